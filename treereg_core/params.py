@@ -1,0 +1,329 @@
+"""All parameters, as one tree of frozen dataclasses: a section per stage.
+
+Every field has a default, a unit and a one-line doc in its metadata (`_f`). The CLI, the app's
+panels and config files are all built from this tree; a stage function receives its own section
+only. `PRESETS["paper"]` holds the paper's literal settings, `PRESETS["robust"]` (the default) the
+robust variant.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import tempfile
+import types
+import typing
+from dataclasses import dataclass, field, fields, replace
+from pathlib import Path
+from typing import Any
+
+from .errors import ConfigError
+
+
+def _f(default: Any, unit: str, doc: str, choices: tuple[Any, ...] | None = None,
+       lo: float | None = None, hi: float | None = None) -> Any:
+    """A parameter field: default plus metadata the CLI and the app render."""
+    meta = {"unit": unit, "doc": doc, "choices": choices, "min": lo, "max": hi}
+    if isinstance(default, (list, dict)):
+        raise TypeError("use tuples for sequence defaults (sections are frozen)")
+    return field(default=default, metadata=meta)
+
+
+@dataclass(frozen=True)
+class PrepareParams:
+    """Stage 0: per-scan preparation before anything is matched."""
+
+    angular_step_deg: tuple[float, float] | None = _f(
+        None, "deg", "instrument angular steps (horizontal phi, vertical varphi); None = estimate from the data")
+    remove_ground: bool = _f(True, "", "remove the ground before projection (robust plane through the lowest point of each cell)")
+    ground_cell_m: float = _f(1.0, "m", "cell size of the lowest-point grid used to find the ground", lo=0.1, hi=10.0)
+    ground_band_m: float = _f(0.3, "m", "points within this height above the ground plane are removed", lo=0.0, hi=5.0)
+    crop_radius_m: float | None = _f(None, "m", "keep points within this horizontal radius of the stem (None = keep all)", lo=0.1)
+    crop_z_min_m: float | None = _f(None, "m", "keep points above this height in the scanner frame (None = no limit)")
+    crop_z_max_m: float | None = _f(None, "m", "keep points below this height in the scanner frame (None = no limit)")
+
+
+@dataclass(frozen=True)
+class ProjectionParams:
+    """Stage 1: spherical projection images (paper eq. 2-3) and rotation sequences (2.1.2)."""
+
+    pixel_factor: int = _f(2, "steps", "a pixel covers k*phi x k*varphi (paper: k = 2)", lo=1, hi=10)
+    border_px: tuple[int, int] = _f((10, 10), "px", "image borders r1, r2 (paper eq. 2)")
+    relative_azimuth: bool = _f(True, "", "measure azimuth from the scan centroid's azimuth, so a tree never straddles +-180 deg")
+    theta_deg: float = _f(10.0, "deg", "rotation step of the image sequence (paper: 10)", lo=0.5, hi=90.0)
+    span_deg: float | None = _f(None, "deg", "sequence covers [-span, +span]; None = 360/n, n = number of scans (paper)", lo=0.0, hi=180.0)
+
+
+@dataclass(frozen=True)
+class MatchingParams:
+    """Stage 2: similar image pairs, ORB features and tie points."""
+
+    similarity: str = _f("iou", "", "how two projection images are compared",
+                         choices=("iou", "chamfer", "ncc"))
+    n_pairs: int = _f(15, "pairs", "most similar image pairs to match (paper: 3)", lo=1, hi=400)
+    image_mode: str = _f("ramp", "", "what ORB sees: the bare binary image or a grey distance ramp around occupied pixels",
+                         choices=("binary", "ramp"))
+    ramp_px: float = _f(8.0, "px", "cap of the distance ramp", lo=1.0, hi=50.0)
+    orb_nfeatures: int = _f(1500, "", "ORB: features per image", lo=10, hi=20000)
+    orb_edge_threshold: int = _f(15, "px", "ORB: border where no features are detected", lo=3, hi=100)
+    orb_patch_size: int = _f(31, "px", "ORB: size of the descriptor patch", lo=7, hi=101)
+    orb_fast_threshold: int = _f(10, "", "ORB: FAST corner threshold", lo=1, hi=100)
+    matches_per_pair: int = _f(60, "matches", "best Hamming matches kept per image pair (paper: 5)", lo=1, hi=5000)
+    beta_check: bool = _f(False, "", "paper 4.1: drop matches whose |beta1-beta2| lies outside mean +- sigma")
+    snap_px: int = _f(3, "px", "move a keypoint on an empty pixel to the nearest occupied pixel within this radius", lo=0, hi=20)
+
+
+@dataclass(frozen=True)
+class CoarseParams:
+    """Stage 3: the coarse rigid transform from tie points."""
+
+    estimator: str = _f("ransac", "", "plain SVD over all tie points (paper) or RANSAC", choices=("svd", "ransac"))
+    dof: int = _f(4, "", "4 = yaw + 3-D translation (levelled scanners), 6 = full rigid", choices=(4, 6))
+    refit_6dof: bool = _f(True, "", "refit all 6 DOF on the 4-DOF inliers (absorbs a small scanner tilt)")
+    inlier_m: float = _f(0.4, "m", "RANSAC inlier distance", lo=0.01, hi=5.0)
+    iterations: int = _f(2000, "", "RANSAC iterations", lo=10, hi=100000)
+    min_ties: int = _f(4, "pairs", "fewest tie pairs (or inliers) accepted for a transform (paper: > 4)", lo=3, hi=1000)
+    seed: int = _f(0, "", "random seed of RANSAC")
+
+
+@dataclass(frozen=True)
+class SlicingParams:
+    """Stage 4: horizontal slices of reference and target after coarse."""
+
+    quantiles: tuple[float, ...] = _f((0.25, 0.5, 0.75), "", "slice heights as quantiles of tree height (paper: quartiles)")
+    thickness_m: float = _f(0.1, "m", "slice thickness (paper: 10 cm)", lo=0.01, hi=2.0)
+
+
+@dataclass(frozen=True)
+class ArcParams:
+    """Stage 5: arcs by angular connectivity in each scan's own (alpha, beta)."""
+
+    connectivity: float = _f(3.0, "steps", "neighbours when d_alpha <= c*phi and d_beta <= c*varphi (paper: 3)", lo=1.0, hi=20.0)
+    min_points: int = _f(15, "points", "smallest arc kept", lo=3, hi=100000)
+
+
+@dataclass(frozen=True)
+class FitParams:
+    """Stage 6: circle (Taubin) and cylinder fits, correspondence and the fine transform."""
+
+    min_arc_deg: float = _f(45.0, "deg", "smallest arc (angle covered about the centre) trusted for a fit", lo=0.0, hi=360.0)
+    max_rms_m: float = _f(0.02, "m", "fits with a larger RMS residual are implausible", lo=0.0001, hi=1.0)
+    max_radius_m: float = _f(1.0, "m", "fits with a larger radius are implausible", lo=0.01, hi=10.0)
+    gate_m: float = _f(0.3, "m", "sections correspond when their centres are this close after coarse", lo=0.01, hi=5.0)
+
+
+@dataclass(frozen=True)
+class FineParams:
+    """Stage 7: fine transform from the tie points of fitted sections."""
+
+    estimator: str = _f("ransac", "", "plain SVD (paper) or RANSAC over tie points", choices=("svd", "ransac"))
+    inlier_m: float = _f(0.05, "m", "RANSAC inlier distance of the fine tie points", lo=0.001, hi=1.0)
+    max_iterations: int = _f(5, "", "re-slice with the new pose until the update is below the tolerance (paper: 1)", lo=1, hi=50)
+    tolerance_m: float = _f(0.001, "m", "stop iterating when the update moves points less than this", lo=0.0, hi=1.0)
+    accept_test: bool = _f(True, "", "keep the fine update only when the independent alignment measure improves")
+
+
+@dataclass(frozen=True)
+class IcpParams:
+    """Baseline: trimmed ICP from the coarse result."""
+
+    method: str = _f("point_to_plane", "", "ICP error metric", choices=("point_to_point", "point_to_plane"))
+    max_iterations: int = _f(50, "", "ICP iterations", lo=1, hi=1000)
+    trim: float = _f(0.8, "", "fraction of closest correspondences kept each iteration", lo=0.1, hi=1.0)
+    max_distance_m: float = _f(0.5, "m", "correspondences farther than this are ignored", lo=0.001, hi=10.0)
+    voxel_m: float = _f(0.02, "m", "voxel size for subsampling before ICP", lo=0.0, hi=1.0)
+
+
+@dataclass(frozen=True)
+class EvaluationParams:
+    """The paper's evaluation model (3.3, eq. 8) and the ICP baseline switch."""
+
+    layers: int = _f(3, "", "layers per branch (bottom, middle, top)", lo=1, hi=20)
+    layer_thickness_m: float = _f(0.1, "m", "thickness of an evaluation layer", lo=0.01, hi=2.0)
+    run_icp: bool = _f(True, "", "also run the ICP baseline from the coarse result")
+
+
+@dataclass(frozen=True)
+class Params:
+    """Everything treereg's pipeline needs, one section per stage."""
+
+    prepare: PrepareParams = field(default_factory=PrepareParams)
+    projection: ProjectionParams = field(default_factory=ProjectionParams)
+    matching: MatchingParams = field(default_factory=MatchingParams)
+    coarse: CoarseParams = field(default_factory=CoarseParams)
+    slicing: SlicingParams = field(default_factory=SlicingParams)
+    arcs: ArcParams = field(default_factory=ArcParams)
+    fitting: FitParams = field(default_factory=FitParams)
+    fine: FineParams = field(default_factory=FineParams)
+    icp: IcpParams = field(default_factory=IcpParams)
+    evaluation: EvaluationParams = field(default_factory=EvaluationParams)
+
+    def with_value(self, section: str, name: str, value: Any) -> "Params":
+        """A copy with one field changed (value checked and coerced to the field's type)."""
+        sec = getattr(self, section)
+        fld = {f.name: f for f in fields(sec)}.get(name)
+        if fld is None:
+            raise ConfigError(f"{section}.{name}: no such parameter")
+        return replace(self, **{section: replace(sec, **{name: _coerce(f"{section}.{name}", fld, value)})})
+
+
+SECTIONS: tuple[str, ...] = tuple(f.name for f in fields(Params))
+
+
+def _paper() -> Params:
+    """The paper's settings taken literally (sections 2.1-2.2, 4.1)."""
+    p = Params()
+    return replace(
+        p,
+        prepare=replace(p.prepare, remove_ground=False),
+        projection=replace(p.projection, relative_azimuth=False),
+        matching=replace(p.matching, n_pairs=3, matches_per_pair=5, beta_check=True, image_mode="binary", snap_px=0),
+        coarse=replace(p.coarse, estimator="svd", dof=6, refit_6dof=False),
+        slicing=replace(p.slicing, quantiles=(0.25, 0.5, 0.75)),
+        fine=replace(p.fine, estimator="svd", max_iterations=1, accept_test=False),
+    )
+
+
+PRESETS: dict[str, Params] = {"robust": Params(), "paper": _paper()}
+
+
+def field_info(section: str) -> list[dataclasses.Field]:
+    """The fields of one section, in order, with their metadata (unit, doc, choices, min, max)."""
+    return list(fields(getattr(Params(), section)))
+
+
+def to_dict(params: Params) -> dict[str, dict[str, Any]]:
+    """JSON-ready nested dict (tuples become lists)."""
+    out: dict[str, dict[str, Any]] = {}
+    for s in SECTIONS:
+        sec = getattr(params, s)
+        out[s] = {f.name: (list(v) if isinstance(v := getattr(sec, f.name), tuple) else v) for f in fields(sec)}
+    return out
+
+
+def from_dict(data: dict[str, Any], base: Params | None = None, source: str = "parameters") -> Params:
+    """Parameters from a nested dict; missing keys keep `base` (default: robust). Unknown keys are errors.
+
+    A top-level `"preset": "paper"` starts from that preset.
+    """
+    if not isinstance(data, dict):
+        raise ConfigError(f"{source}: expected a JSON object of sections")
+    data = dict(data)
+    preset = data.pop("preset", None)
+    if preset is not None:
+        if preset not in PRESETS:
+            raise ConfigError(f"{source}: unknown preset {preset!r}; choose one of {sorted(PRESETS)}")
+        base = PRESETS[preset]
+    p = base or Params()
+    for s, values in data.items():
+        if s not in SECTIONS:
+            raise ConfigError(f"{source}: unknown section {s!r}; sections are {', '.join(SECTIONS)}")
+        if not isinstance(values, dict):
+            raise ConfigError(f"{source}: section {s!r} must be an object")
+        for k, v in values.items():
+            try:
+                p = p.with_value(s, k, v)
+            except ConfigError as e:
+                raise ConfigError(f"{source}: {e}") from None
+    return p
+
+
+def load(path: str | Path) -> Params:
+    """Read a parameter JSON file (as written by `save`, or any subset of it)."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: no such parameter file") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise ConfigError(f"{path}: not valid JSON ({e})") from None
+    return from_dict(data, source=str(path))
+
+
+def save(params: Params, path: str | Path) -> None:
+    """Write parameters as JSON, atomically."""
+    write_text_atomic(Path(path), json.dumps(to_dict(params), indent=2) + "\n")
+
+
+def write_text_atomic(path: Path, text: str) -> None:
+    """Write to a temporary file beside `path`, then rename: never a half-written file."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as fh:
+            fh.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _coerce(key: str, fld: dataclasses.Field, value: Any) -> Any:
+    """Check `value` against the field's annotated type, range and choices."""
+    hint = typing.get_type_hints(_owner_of(fld))[fld.name]
+    meta = fld.metadata
+    optional = False
+    args = typing.get_args(hint)
+    if typing.get_origin(hint) in (typing.Union, types.UnionType) and type(None) in args:
+        optional = True
+        hint = next(a for a in args if a is not type(None))
+    if value is None:
+        if optional:
+            return None
+        raise ConfigError(f"{key}: a value is required")
+    try:
+        if hint is bool:
+            if isinstance(value, str):
+                if value.lower() not in ("true", "false", "1", "0", "yes", "no"):
+                    raise ValueError(value)
+                value = value.lower() in ("true", "1", "yes")
+            elif not isinstance(value, (bool, int)):
+                raise ValueError(value)
+            out: Any = bool(value)
+        elif hint in (int, float):
+            if isinstance(value, bool):
+                raise ValueError(value)
+            f = float(value)
+            if hint is int:
+                if f != int(f):
+                    raise ValueError(value)
+                out = int(f)
+            else:
+                out = f
+            if out != out:  # NaN
+                raise ValueError(value)
+            lo, hi = meta.get("min"), meta.get("max")
+            if (lo is not None and out < lo) or (hi is not None and out > hi):
+                raise ConfigError(f"{key}: {out} is outside [{lo}, {hi}]")
+        elif hint is str:
+            out = str(value)
+        elif typing.get_origin(hint) is tuple:
+            if isinstance(value, str):
+                value = [v for v in value.replace(",", " ").split() if v]
+            elem = typing.get_args(hint)
+            seq = list(value)
+            if len(elem) == 2 and elem[1] is Ellipsis:
+                out = tuple(elem[0](v) for v in seq)
+                if not out:
+                    raise ConfigError(f"{key}: needs at least one value")
+            else:
+                if len(seq) != len(elem):
+                    raise ConfigError(f"{key}: needs {len(elem)} values, got {len(seq)}")
+                out = tuple(t(v) for t, v in zip(elem, seq))
+        else:
+            out = value
+    except (TypeError, ValueError):
+        raise ConfigError(f"{key}: {value!r} is not a valid {getattr(hint, '__name__', hint)}") from None
+    choices = meta.get("choices")
+    if choices is not None and out not in choices:
+        raise ConfigError(f"{key}: {out!r} is not one of {list(choices)}")
+    return out
+
+
+def _owner_of(fld: dataclasses.Field) -> type:
+    for s in fields(Params):
+        cls = s.default_factory  # type: ignore[attr-defined]
+        if any(f is fld for f in fields(cls)):
+            return cls
+    raise KeyError(fld.name)

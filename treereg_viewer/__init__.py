@@ -1,0 +1,1 @@
+"""treereg's browser app (viser): draws stage results, never computes geometry."""

@@ -67,5 +67,131 @@ def main(argv: list[str] | None = None) -> int:
 _BUILDERS: list[Builder] = []
 
 
+# ---- register / evaluate ------------------------------------------------------------------
+def _load_params(args: argparse.Namespace):
+    """The parameters of a run: a preset (default robust), a config file over it, then --angular-step."""
+    from . import params as P
+
+    base = P.PRESETS[args.preset] if getattr(args, "preset", None) else P.Params()
+    if getattr(args, "config", None):
+        base = P.load(args.config, base=base)
+    if getattr(args, "angular_step", None):
+        steps = args.angular_step
+        if len(steps) > 2:
+            raise ConfigError(f"--angular-step takes one or two values (H [V]), got {len(steps)}")
+        base = base.with_value("prepare", "angular_step_deg", (steps[0], steps[-1]))
+    return base
+
+
+def _add_register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "register",
+        help="register scans onto the first one (coarse, then fine) and write transforms.json",
+        description="Register every scan onto the first (the reference): rotating-projection coarse "
+        "registration, then fine registration from fitted stem and branch sections.",
+    )
+    p.add_argument("scans", nargs="+", metavar="SCAN", help="scan files (first = reference): PLY, LAS/LAZ, XYZ/TXT/CSV, NPY/NPZ")
+    p.add_argument("--out", default="transforms.json", help="transform file to write (default: transforms.json)")
+    p.add_argument("--until", choices=("coarse", "fine"), default="fine", help="last stage to run (default: fine)")
+    p.add_argument("--config", help="parameter JSON file (as saved by the app or `treereg params`)")
+    p.add_argument("--preset", choices=("robust", "paper"), help="start from a preset (paper = the paper's literal settings)")
+    p.add_argument("--angular-step", nargs="+", type=float, metavar=("H", "V"),
+                   help="instrument angular steps in degrees (phi [varphi]); estimated from the data when absent")
+    p.add_argument("--exports", action="store_true", help="also write CloudCompare and PDAL matrix files beside --out")
+    p.set_defaults(func=_run_register)
+
+
+def _run_register(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from .io import read_scan
+    from .params import to_dict
+    from .pipeline import register
+    from .transform_io import TransformFile, write_exports, write_transforms
+
+    if len(args.scans) < 2:
+        raise ConfigError("register needs at least two scans (the first is the reference)")
+    params = _load_params(args)
+    step = params.prepare.angular_step_deg
+    scans = [read_scan(f, angular_step_deg=step) for f in args.scans]
+    names = [s.name for s in scans]
+    if len(set(names)) != len(names):
+        raise ConfigError(f"scan files must have distinct base names, got {names}")
+    bar = ProgressBar("register")
+    t0 = time.perf_counter()
+    reg = register(scans, params, until=args.until, progress=bar)
+    seconds = time.perf_counter() - t0
+    if not reg.ok:
+        print(f"treereg: registration failed: {reg.message}", file=sys.stderr)
+        return 1
+    tf = TransformFile(
+        reference=scans[0].name,
+        transforms=reg.transforms,
+        params=to_dict(params),
+        extra={
+            "stage": args.until,
+            "seconds": round(seconds, 3),
+            "angular_step_deg": {s.name: list(s.angular_step_deg) for s in scans},
+            "sources": {s.name: str(Path(f).resolve()) for s, f in zip(scans, args.scans)},
+            "metrics": reg.pipeline.pair_metrics(),
+        },
+    )
+    out = Path(args.out)
+    if args.exports:
+        written = write_exports(out.parent, tf, name=out.name)
+    else:
+        write_transforms(out, tf)
+        written = [out]
+    for name, rows in reg.pipeline.pair_metrics().items():
+        print(f"\n{name} -> {scans[0].name}")
+        for r in rows:
+            v = r["value"]
+            print(f"  {r['stage']:<10} {r['metric']:<40} {v:.4g} {r['unit']}" if isinstance(v, float)
+                  else f"  {r['stage']:<10} {r['metric']:<40} {v} {r['unit']}")
+    print(f"\nwrote {', '.join(str(w) for w in written)} in {seconds:.1f} s")
+    return 0
+
+
+_BUILDERS.append(_add_register)
+
+
+# ---- params -------------------------------------------------------------------------------
+def _add_params(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "params",
+        help="print or write the parameters (a preset, optionally over a config file) as JSON",
+        description="Print the full parameter tree as JSON, with units and docs via --explain.",
+    )
+    p.add_argument("--preset", choices=("robust", "paper"), help="start from a preset (default: robust)")
+    p.add_argument("--config", help="parameter JSON file to apply over the preset")
+    p.add_argument("--out", help="write to this file instead of printing")
+    p.add_argument("--explain", action="store_true", help="print every parameter with its unit and meaning")
+    p.set_defaults(func=_run_params)
+
+
+def _run_params(args: argparse.Namespace) -> int:
+    import json
+
+    from . import params as P
+
+    params = _load_params(args)
+    if args.explain:
+        for sec in P.SECTIONS:
+            print(f"[{sec}]")
+            for f in P.field_info(sec):
+                unit = f" ({f.metadata['unit']})" if f.metadata["unit"] else ""
+                print(f"  {f.name} = {getattr(getattr(params, sec), f.name)!r}{unit}: {f.metadata['doc']}")
+        return 0
+    if args.out:
+        P.save(params, args.out)
+        print(f"wrote {args.out}")
+    else:
+        print(json.dumps(P.to_dict(params), indent=2))
+    return 0
+
+
+_BUILDERS.append(_add_params)
+
+
 if __name__ == "__main__":  # pragma: no cover
     sys.exit(main())

@@ -229,8 +229,8 @@ def from_dict(data: dict[str, Any], base: Params | None = None, source: str = "p
     return p
 
 
-def load(path: str | Path) -> Params:
-    """Read a parameter JSON file (as written by `save`, or any subset of it)."""
+def load(path: str | Path, base: Params | None = None) -> Params:
+    """Read a parameter JSON file (as written by `save`, or any subset of it) over `base`."""
     path = Path(path)
     try:
         data = json.loads(path.read_text())
@@ -238,7 +238,7 @@ def load(path: str | Path) -> Params:
         raise ConfigError(f"{path}: no such parameter file") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise ConfigError(f"{path}: not valid JSON ({e})") from None
-    return from_dict(data, source=str(path))
+    return from_dict(data, base=base, source=str(path))
 
 
 def save(params: Params, path: str | Path) -> None:

@@ -67,6 +67,64 @@ def main(argv: list[str] | None = None) -> int:
 _BUILDERS: list[Builder] = []
 
 
+# ---- simulate -----------------------------------------------------------------------------
+def _add_simulate(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "simulate",
+        help="simulate TLS scans of a tree with known ground truth (scan1.ply, ..., truth.json)",
+        description="Grow a procedural tree (or take a point cloud), scan it from several stations "
+        "with a simulated terrestrial laser scanner, and write a case folder: one PLY per scan in "
+        "its scanner frame, and truth.json with the true transform of every scan onto scan1.ply.",
+    )
+    p.add_argument("--out", required=True, metavar="DIR", help="case folder to write")
+    p.add_argument("--seed", type=int, default=0, help="random seed; the same seed gives the same points (default: 0)")
+    p.add_argument("--stations", type=int, default=3, help="number of scans (default: 3)")
+    p.add_argument("--angular-step", nargs="+", type=float, default=[0.1], metavar=("H", "V"),
+                   help="instrument angular steps in degrees, phi [varphi] (default: 0.1)")
+    p.add_argument("--height", type=float, metavar="M", help="tree height in metres (default: drawn, 5-25 m)")
+    p.add_argument("--dbh", type=float, metavar="M", help="diameter at breast height in metres (default: from the height)")
+    p.add_argument("--orders", type=int, choices=(1, 2, 3), default=3, help="branching orders (default: 3)")
+    p.add_argument("--leaves", action="store_true", help="add leaves (small disks) to the outer branches")
+    p.add_argument("--bent", action="store_true", help="bend the trunk")
+    p.add_argument("--lean", type=float, default=0.0, metavar="DEG", help="lean the whole tree by this angle")
+    p.add_argument("--ground", action="store_true", help="add a (slightly sloped) ground plane")
+    p.add_argument("--second-tree", action="store_true", help="add a smaller tree nearby")
+    p.add_argument("--tilt", type=float, nargs="?", const=0.3, default=0.0, metavar="DEG",
+                   help="instruments not perfectly levelled, by up to DEG (0.3 when given without a value)")
+    p.add_argument("--noise", type=float, default=0.003, metavar="M", help="range noise sigma in metres (default: 0.003)")
+    p.add_argument("--dropout", type=float, default=0.02, help="fraction of returns lost (default: 0.02)")
+    p.add_argument("--distance", type=float, nargs=2, default=[8.0, 15.0], metavar=("MIN", "MAX"),
+                   help="station distance from the trunk in metres (default: 8 15)")
+    p.add_argument("--from-points", metavar="FILE",
+                   help="make the stations from this point cloud (a whole tree: PLY, LAS/LAZ, XYZ, ...) instead")
+    p.add_argument("--float32", action="store_true", help="write float32 PLY (half the size)")
+    p.set_defaults(func=_run_simulate)
+
+
+def _run_simulate(args: argparse.Namespace) -> int:
+    from .simulate import CaseSpec, write_case
+
+    steps = args.angular_step
+    if len(steps) > 2:
+        raise ConfigError(f"--angular-step takes one or two values (H [V]), got {len(steps)}")
+    spec = CaseSpec(
+        seed=args.seed, n_stations=args.stations, angular_step_deg=(steps[0], steps[-1]),
+        height_m=args.height, dbh_m=args.dbh, orders=args.orders, bent=args.bent, lean_deg=args.lean,
+        leaves=args.leaves, ground=args.ground, second_tree=args.second_tree, tilt_deg=args.tilt,
+        range_sigma_m=args.noise, dropout=args.dropout, station_distance_m=tuple(args.distance),
+        from_points=args.from_points,
+    )
+    case = spec.build(progress=ProgressBar("simulate"))
+    truth = write_case(case, args.out, dtype="float32" if args.float32 else "float64")
+    for m in case.metrics:
+        print(f"  {m.description:<24} {m.formatted()}")
+    print(f"wrote {', '.join(case.names)} and {truth.name} to {args.out}")
+    return 0
+
+
+_BUILDERS.append(_add_simulate)
+
+
 # ---- register / evaluate ------------------------------------------------------------------
 def _load_params(args: argparse.Namespace):
     """The parameters of a run: a preset (default robust), a config file over it, then --angular-step."""
@@ -192,6 +250,57 @@ def _run_params(args: argparse.Namespace) -> int:
 
 _BUILDERS.append(_add_params)
 
+
+# ---- view (the browser app; treereg_viewer is imported only when the command runs) ----------
+def _add_view(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "view",
+        help="open the browser app to step through the registration (the bundled demo without scans)",
+        description="Serve treereg's browser app: every stage of the registration drawn, every parameter "
+        "editable, exports as downloads. Without SCAN files it opens the demo case in assets/.",
+    )
+    p.add_argument("scans", nargs="*", metavar="SCAN", help="scan files (first = reference); none = the demo")
+    p.add_argument("--config", help="parameter JSON file (as saved by the app or `treereg params`)")
+    p.add_argument("--preset", choices=("robust", "paper"), help="start from a preset (paper = the paper's literal settings)")
+    p.add_argument("--angular-step", nargs="+", type=float, metavar=("H", "V"),
+                   help="instrument angular steps in degrees (phi [varphi]); estimated from the data when absent")
+    p.add_argument("--truth", help="truth.json with the true transforms (default: the one beside the scans, if any)")
+    p.add_argument("--out", help="folder to also write exports to (besides the browser downloads)")
+    p.add_argument("--port", type=int, default=8080, help="port (default 8080; 0 = any free port)")
+    p.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1: this machine only)")
+    p.set_defaults(func=_run_view)
+
+
+def _run_view(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from treereg_viewer.app import serve
+    from treereg_viewer.controller import Controller
+    from treereg_viewer.demo import find_demo, load_case, read_truth, truth_beside
+
+    from .io import read_scan
+
+    params = _load_params(args)
+    step = params.prepare.angular_step_deg
+    if args.scans:
+        scans = [read_scan(f, angular_step_deg=step) for f in args.scans]
+        names = [s.name for s in scans]
+        if len(set(names)) != len(names):
+            raise ConfigError(f"scan files must have distinct base names, got {names}")
+        truth_path = Path(args.truth) if args.truth else truth_beside([Path(f) for f in args.scans])
+        truth = read_truth(truth_path) if truth_path else None
+    else:
+        folder = find_demo()
+        print(f"treereg view: no scans given, opening the demo in {folder}", flush=True)
+        scans, truth = load_case(folder, angular_step_deg=step)
+        if args.truth:
+            truth = read_truth(Path(args.truth))
+    serve(Controller(scans, params, truth), host=args.host, port=args.port,
+          out_dir=Path(args.out) if args.out else None)
+    return 0
+
+
+_BUILDERS.append(_add_view)
 
 if __name__ == "__main__":  # pragma: no cover
     sys.exit(main())

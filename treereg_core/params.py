@@ -53,13 +53,14 @@ class ProjectionParams:
     relative_azimuth: bool = _f(True, "", "measure azimuth from the scan centroid's azimuth, so a tree never straddles +-180 deg")
     theta_deg: float = _f(10.0, "deg", "rotation step of the image sequence (paper: 10)", lo=0.5, hi=90.0)
     span_deg: float | None = _f(None, "deg", "sequence covers [-span, +span]; None = 360/n, n = number of scans (paper)", lo=0.0, hi=180.0)
+    max_image_px: int | None = _f(1000, "px", "enlarge pixels so no image is longer than this (ORB cost); None = no limit (paper)", lo=64, hi=20000)
 
 
 @dataclass(frozen=True)
 class MatchingParams:
     """Stage 2: similar image pairs, ORB features and tie points."""
 
-    similarity: str = _f("iou", "", "how two projection images are compared",
+    similarity: str = _f("chamfer", "", "how two projection images are compared",
                          choices=("iou", "chamfer", "ncc"))
     n_pairs: int = _f(15, "pairs", "most similar image pairs to match (paper: 3)", lo=1, hi=400)
     image_mode: str = _f("ramp", "", "what ORB sees: the bare binary image or a grey distance ramp around occupied pixels",
@@ -82,6 +83,7 @@ class CoarseParams:
     dof: int = _f(4, "", "4 = yaw + 3-D translation (levelled scanners), 6 = full rigid", choices=(4, 6))
     refit_6dof: bool = _f(True, "", "refit all 6 DOF on the 4-DOF inliers (absorbs a small scanner tilt)")
     inlier_m: float = _f(0.4, "m", "RANSAC inlier distance", lo=0.01, hi=5.0)
+    final_inlier_m: float | None = _f(0.05, "m", "after RANSAC, narrow the inlier distance step by step to this and refit (None = keep inlier_m)", lo=0.005, hi=5.0)
     iterations: int = _f(2000, "", "RANSAC iterations", lo=10, hi=100000)
     min_ties: int = _f(4, "pairs", "fewest tie pairs (or inliers) accepted for a transform (paper: > 4)", lo=3, hi=1000)
     seed: int = _f(0, "", "random seed of RANSAC")
@@ -91,7 +93,8 @@ class CoarseParams:
 class SlicingParams:
     """Stage 4: horizontal slices of reference and target after coarse."""
 
-    quantiles: tuple[float, ...] = _f((0.25, 0.5, 0.75), "", "slice heights as quantiles of tree height (paper: quartiles)")
+    quantiles: tuple[float, ...] = _f(tuple(round(0.05 * k, 2) for k in range(1, 20)), "",
+                                      "slice heights as quantiles of tree height (paper: quartiles 0.25 0.5 0.75)")
     thickness_m: float = _f(0.1, "m", "slice thickness (paper: 10 cm)", lo=0.01, hi=2.0)
 
 
@@ -101,6 +104,7 @@ class ArcParams:
 
     connectivity: float = _f(3.0, "steps", "neighbours when d_alpha <= c*phi and d_beta <= c*varphi (paper: 3)", lo=1.0, hi=20.0)
     min_points: int = _f(15, "points", "smallest arc kept", lo=3, hi=100000)
+    max_range_jump_m: float | None = _f(0.3, "m", "split an arc where the range jumps by more than this (None = paper: angles only)", lo=0.01, hi=100.0)
 
 
 @dataclass(frozen=True)
@@ -111,6 +115,10 @@ class FitParams:
     max_rms_m: float = _f(0.02, "m", "fits with a larger RMS residual are implausible", lo=0.0001, hi=1.0)
     max_radius_m: float = _f(1.0, "m", "fits with a larger radius are implausible", lo=0.01, hi=10.0)
     gate_m: float = _f(0.3, "m", "sections correspond when their centres are this close after coarse", lo=0.01, hi=5.0)
+    max_radius_ratio: float | None = _f(1.5, "", "sections correspond only when their radii differ by at most this factor (None = paper: centres only)", lo=1.0, hi=100.0)
+    circle_lowest: bool = _f(True, "", "fit the lowest slice's arcs by circles (trunk), the others by cylinders (paper)")
+    taper_check: bool = _f(True, "", "paper 4.2: drop a part whose radius exceeds that of the part below on the same stem")
+    taper_tolerance: float = _f(0.3, "", "4.2 check: allowed relative excess of the radius over the part below (paper: 0)", lo=0.0, hi=10.0)
 
 
 @dataclass(frozen=True)
@@ -122,6 +130,16 @@ class FineParams:
     max_iterations: int = _f(5, "", "re-slice with the new pose until the update is below the tolerance (paper: 1)", lo=1, hi=50)
     tolerance_m: float = _f(0.001, "m", "stop iterating when the update moves points less than this", lo=0.0, hi=1.0)
     accept_test: bool = _f(True, "", "keep the fine update only when the independent alignment measure improves")
+    method: str = _f("joint", "", "tie points of separately fitted sections (paper) or one cylinder per section pair fitted to both scans with the pose",
+                     choices=("ties", "joint"))
+    min_pairs: int = _f(3, "pairs", "fewest corresponding sections to estimate an update", lo=1, hi=1000)
+    loss_scale_m: float = _f(0.005, "m", "joint: residual scale of the soft-L1 loss (about the range noise)", lo=0.0001, hi=0.5)
+    max_section_points: int = _f(150, "points", "joint: points per section and scan used in the adjustment", lo=10, hi=100000)
+    prior_m: float = _f(0.1, "m", "joint: weak prior on the translation update (holds directions no section constrains)", lo=0.001, hi=100.0)
+    prior_deg: float = _f(1.0, "deg", "joint: weak prior on the rotation update", lo=0.001, hi=180.0)
+    max_solver_evaluations: int = _f(100, "", "joint: residual evaluations per adjustment", lo=5, hi=10000)
+    measure_voxel_m: float = _f(0.01, "m", "acceptance measure: voxel size of the reference's surface", lo=0.0, hi=0.5)
+    measure_gate_m: float = _f(0.03, "m", "acceptance measure: point-to-plane residuals are truncated here", lo=0.001, hi=1.0)
 
 
 @dataclass(frozen=True)
@@ -177,9 +195,9 @@ def _paper() -> Params:
     return replace(
         p,
         prepare=replace(p.prepare, remove_ground=False),
-        projection=replace(p.projection, relative_azimuth=False),
+        projection=replace(p.projection, relative_azimuth=False, max_image_px=None),
         matching=replace(p.matching, n_pairs=3, matches_per_pair=5, beta_check=True, image_mode="binary", snap_px=0),
-        coarse=replace(p.coarse, estimator="svd", dof=6, refit_6dof=False),
+        coarse=replace(p.coarse, estimator="svd", dof=6, refit_6dof=False, final_inlier_m=None),
         slicing=replace(p.slicing, quantiles=(0.25, 0.5, 0.75)),
         fine=replace(p.fine, estimator="svd", max_iterations=1, accept_test=False),
     )
@@ -313,6 +331,8 @@ def _coerce(key: str, fld: dataclasses.Field, value: Any) -> Any:
                 out = tuple(t(v) for t, v in zip(elem, seq))
         else:
             out = value
+    except ConfigError:  # a ValueError too: keep its precise message (range, length)
+        raise
     except (TypeError, ValueError):
         raise ConfigError(f"{key}: {value!r} is not a valid {getattr(hint, '__name__', hint)}") from None
     choices = meta.get("choices")

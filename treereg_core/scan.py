@@ -88,7 +88,10 @@ class Scan:
         estimated = angular_step_deg is None
         if estimated:
             alpha, beta = spherical_angles_deg(pts)
-            angular_step_deg = estimate_angular_step(alpha, beta)
+            try:
+                angular_step_deg = estimate_angular_step(alpha, beta)
+            except ValueError as e:
+                raise ScanError(label, f"cannot estimate the angular step: {e}") from None
         return cls(
             points=pts,
             name=name,

@@ -1,0 +1,154 @@
+"""Estimating a scan's angular steps phi (horizontal) and varphi (vertical) from its points.
+
+A terrestrial scanner samples a regular grid in azimuth alpha and elevation beta. Where the beam
+hits something, neighbouring points therefore sit exactly one step apart in alpha (same row) or
+in beta (same column); dropouts and occlusion shadows only add larger gaps. So, for each point, we
+take its nearest neighbour to the right that lies roughly in the same row (and the nearest one
+above that lies roughly in the same column) and read the step off as the *mode* of those gaps:
+gaps of 2, 3, ... steps (dropouts) and huge gaps (occlusion) are a minority and do not move it.
+
+Rows and columns are told apart by the direction of the neighbour: a horizontal neighbour has
+|d_beta| < 0.5 |d_alpha|. When phi and varphi differ a lot (e.g. 0.04 x 0.25 deg), the first pass
+over a generous neighbourhood gives a rough ratio; a second pass in a space where beta is rescaled
+by that ratio (so the grid is square) gives the final values.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.ndimage import gaussian_filter1d
+from scipy.spatial import cKDTree
+
+#: Points queried per pass; the k-d tree always holds all points, so neighbours stay true neighbours.
+MAX_QUERY_POINTS = 100_000
+#: Gaps below this (degrees) are repeated angles (several returns of one pulse), not grid steps.
+_MIN_GAP_DEG = 1e-6
+#: Fewest usable gaps per direction before we trust a mode.
+_MIN_SUPPORT = 20
+#: A neighbour is "in the same row" when |d_beta| < _DIRECTION_RATIO * |d_alpha| (and vice versa).
+_DIRECTION_RATIO = 0.5
+
+
+def _centred_azimuth(alpha_deg: np.ndarray) -> np.ndarray:
+    """Azimuth relative to the circular mean, in (-180, 180]: a tree never straddles the +-180 seam."""
+    a = np.radians(alpha_deg)
+    centre = np.degrees(np.arctan2(np.sin(a).mean(), np.cos(a).mean()))
+    return (alpha_deg - centre + 180.0) % 360.0 - 180.0
+
+
+def _peak(x: np.ndarray, bin_width: float) -> float:
+    """Centre of the highest bin of a histogram of `x` smoothed over ~2 bins."""
+    lo, hi = float(x.min()), float(x.max())
+    n_bins = max(int(np.ceil((hi - lo) / bin_width)), 1)
+    counts, edges = np.histogram(x, bins=n_bins, range=(lo, hi + 1e-12))
+    smooth = gaussian_filter1d(counts.astype(float), sigma=2.0, mode="constant")
+    i = int(np.argmax(smooth))
+    return 0.5 * float(edges[i] + edges[i + 1])
+
+
+def _mode(values: np.ndarray) -> float:
+    """The most common value of positive `values`, robust to a sharp spike or a broad peak.
+
+    A histogram of log values (1 % bins, so 0.04 deg and 0.25 deg get the same relative
+    resolution; junk gaps from repeated returns spread over decades there and make no peak) finds
+    the peak. Noisy or rounded coordinates turn the spike into a broad, ragged bump whose highest
+    bin can sit well off its centre, so the peak is then moved to the median of the values within
+    25 % of it until it settles (gaps of two steps, from dropouts, lie outside that window).
+    """
+    peak = float(np.exp(_peak(np.log(values), 0.01)))
+    for _ in range(10):
+        near = values[np.abs(values / peak - 1.0) <= 0.25]
+        if near.size == 0:
+            break
+        new = float(np.median(near))
+        settled = abs(new / peak - 1.0) < 1e-4
+        peak = new
+        if settled:
+            break
+    return peak
+
+
+def _neighbour_gaps(
+    alpha: np.ndarray, beta: np.ndarray, scale: float, k: int, n_query: int, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per queried point: the gap to its nearest right-hand row neighbour and to its nearest upper
+    column neighbour (degrees of alpha, and of beta), found among the k nearest in (alpha, scale*beta).
+
+    Points without such a neighbour among the k nearest are left out.
+    """
+    xy = np.column_stack([alpha, beta * scale])
+    tree = cKDTree(xy, balanced_tree=False, compact_nodes=False)  # faster to build, same answers
+    n = len(xy)
+    idx_q = rng.choice(n, size=n_query, replace=False) if n_query < n else np.arange(n)
+    k_eff = min(k + 1, n)  # +1: the point itself comes back first
+    _, nbr = tree.query(xy[idx_q], k=k_eff)
+    d = xy[nbr] - xy[idx_q][:, None, :]  # (q, k, 2) displacements in the scaled space
+    da, db = d[..., 0], d[..., 1]
+    horizontal = (da > _MIN_GAP_DEG) & (np.abs(db) < _DIRECTION_RATIO * da)
+    vertical = (db > _MIN_GAP_DEG * scale) & (np.abs(da) < _DIRECTION_RATIO * db)
+    # The *nearest* qualifying neighbour (neighbours come sorted by distance), not the smallest
+    # gap: with a little angular noise the minimum over the next column's points is biased low.
+    rows = np.arange(len(idx_q))
+    h_gap = da[rows, np.argmax(horizontal, axis=1)][horizontal.any(axis=1)]
+    v_gap = db[rows, np.argmax(vertical, axis=1)][vertical.any(axis=1)] / scale
+    return h_gap, v_gap
+
+
+def estimate_angular_step(
+    azimuth_deg: np.ndarray, elevation_deg: np.ndarray, seed: int = 0
+) -> tuple[float, float]:
+    """Estimate the instrument's angular steps (phi horizontal, varphi vertical), in degrees.
+
+    Parameters
+    ----------
+    azimuth_deg, elevation_deg
+        Per-point azimuth alpha and elevation beta in degrees, in the scanner's own frame
+        (as `scan.spherical_angles_deg` computes them).
+    seed
+        Seed of the subsampling of query points (only used for scans over `MAX_QUERY_POINTS`).
+
+    Returns
+    -------
+    (phi, varphi)
+        Horizontal and vertical angular steps in degrees.
+
+    Raises
+    ------
+    ValueError
+        When the points do not show a grid (too few points, or no row/column neighbours), so the
+        caller should ask the user for the steps.
+
+    Examples
+    --------
+    >>> a, b = np.meshgrid(np.arange(0, 5, 0.1), np.arange(0, 3, 0.05))
+    >>> phi, varphi = estimate_angular_step(a.ravel(), b.ravel())
+    >>> round(phi, 3), round(varphi, 3)
+    (0.1, 0.05)
+    """
+    alpha = np.asarray(azimuth_deg, dtype=np.float64).ravel()
+    beta = np.asarray(elevation_deg, dtype=np.float64).ravel()
+    if alpha.shape != beta.shape:
+        raise ValueError(f"azimuth and elevation differ in length ({alpha.size} vs {beta.size})")
+    ok = np.isfinite(alpha) & np.isfinite(beta)
+    alpha, beta = _centred_azimuth(alpha[ok]), beta[ok]
+    if alpha.size < 2 * _MIN_SUPPORT:
+        raise ValueError(f"only {alpha.size} points: too few to estimate the angular step")
+    rng = np.random.default_rng(seed)
+
+    # Pass 1: a wide neighbourhood (24) so that, even when one step is ~10x the other, the nearest
+    # neighbour along the coarse direction is among those found.
+    h, v = _neighbour_gaps(alpha, beta, 1.0, 24, min(alpha.size, MAX_QUERY_POINTS // 4), rng)
+    if h.size < _MIN_SUPPORT or v.size < _MIN_SUPPORT:
+        raise ValueError(
+            f"the points do not lie on a regular angular grid ({h.size} row and {v.size} column "
+            "neighbours found); give the steps explicitly"
+        )
+    phi, varphi = _mode(h), _mode(v)
+
+    # Pass 2: rescale beta so the grid is square, then a compact neighbourhood is enough and rows
+    # and columns separate cleanly.
+    scale = phi / varphi
+    h, v = _neighbour_gaps(alpha, beta, scale, 12, min(alpha.size, MAX_QUERY_POINTS), rng)
+    if h.size >= _MIN_SUPPORT and v.size >= _MIN_SUPPORT:
+        phi, varphi = _mode(h), _mode(v)
+    return phi, varphi

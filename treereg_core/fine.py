@@ -1,0 +1,472 @@
+"""Fine registration from stem and branch sections (paper 2.2), made to only ever improve a pair.
+
+Each iteration: slice both scans at heights of the reference frame (`slicing`), separate each
+slice into arcs in each scan's own angular grid (`arcs`), fit circles and cylinders (`fitting`),
+pair the sections of the two scans (`correspondence`) and estimate an update of the transform.
+Two estimators (`FineParams.method`):
+
+* ``"ties"`` — the paper: circle centres, and for cylinders the axis point at the slice height
+  plus the point one unit along the axis towards +z, as tie points; SVD (or RANSAC) over them.
+  Its weaknesses, measured in our feasibility trial: a fit to one scan's partial arc has a centre
+  error of several cm, and tie points at equal slice heights never constrain z.
+* ``"joint"`` (default) — a model-to-point adjustment: for every pair of corresponding sections one
+  cylinder is fitted to the points of *both* scans at once, while the target's points move with
+  the unknown rigid update. Both scans see different sides of a stem, so together they cover far
+  more arc than either alone; a shared radius removes the partial-arc ambiguity. A cylinder only
+  constrains motion across its axis, so oblique branches fix z and sections at several heights
+  fix the tilts. Directions no section constrains are held at the current pose by a weak prior.
+
+Iterate (`max_iterations`, `tolerance_m`): re-slice with the new pose until the update moves the
+target by less than the tolerance. Acceptance test (`accept_test`): the update is kept only when
+an independent measure of alignment — the truncated point-to-plane residual of the target's
+points against the reference's surface — is lower than at the coarse pose; otherwise the coarse
+transform stands and the message says why.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from . import robust
+from .arcs import ArcResult, separate_arcs
+from .correspondence import Correspondences, match_sections
+from .fitting import Section, _basis, check_taper, fit_section
+from .icp import _skew_rotation, estimate_normals, voxel_downsample
+from .params import ArcParams, FineParams, FitParams, Params
+from .results import Metric, Progress, no_progress
+from .rigid import apply_transform, kabsch, make_transform
+from .scan import Scan
+from .slicing import SliceResult, slice_scans
+
+#: Points of the target used to measure how far an update moves it (and for the acceptance measure).
+_SAMPLE = 20_000
+#: Joint adjustment: a section pair whose RMS exceeds this multiple of the median RMS is dropped.
+_TRIM_FACTOR = 2.5
+
+
+@dataclass(frozen=True)
+class FineResult:
+    """Fine registration of one target onto the reference.
+
+    Attributes
+    ----------
+    ok, message, metrics
+        `ok` is True whenever a usable transform is returned (the coarse one when the fine update
+        is rejected); `message` says why the fine update was not kept, if it was not.
+    T_ref_tgt
+        The final 4x4 transform: fine update composed with coarse, or the coarse one if rejected.
+    T_coarse
+        The transform fine registration started from.
+    accepted
+        Whether the fine update was kept.
+    iterations
+        Iterations run (slice, separate, fit, match, estimate).
+    updates_m
+        Mean displacement of the target's points by each iteration's update.
+    measure_coarse_m, measure_fine_m
+        The acceptance measure (RMS of truncated point-to-plane residuals) at the coarse and at the
+        fine pose.
+    slices
+        The last iteration's slices (heights in the reference frame).
+    ref_arcs, tgt_arcs
+        Per slice, the arcs of each scan (indices into each scan's own points).
+    ref_sections, tgt_sections
+        Fitted sections of each scan, in the reference frame (the target's under the final transform).
+    correspondences
+        Pairs (index into ref_sections, index into tgt_sections).
+    tie_points_ref, tie_points_tgt
+        K x 3 tie points in the reference frame (the target's under the final transform).
+    """
+
+    ok: bool
+    message: str
+    metrics: tuple[Metric, ...]
+    T_ref_tgt: np.ndarray
+    T_coarse: np.ndarray
+    accepted: bool
+    iterations: int
+    updates_m: tuple[float, ...]
+    measure_coarse_m: float
+    measure_fine_m: float
+    slices: SliceResult | None
+    ref_arcs: tuple[ArcResult, ...]
+    tgt_arcs: tuple[ArcResult, ...]
+    ref_sections: tuple[Section, ...]
+    tgt_sections: tuple[Section, ...]
+    correspondences: Correspondences | None
+    tie_points_ref: np.ndarray
+    tie_points_tgt: np.ndarray
+
+
+@dataclass(frozen=True)
+class _Sections:
+    """Arcs and fitted sections of one scan, plus each section's point indices into the scan."""
+
+    arcs: tuple[ArcResult, ...]
+    sections: tuple[Section, ...]
+    members: tuple[np.ndarray, ...]
+
+
+def _fit_scan_sections(scan: Scan, slice_idx: Sequence[np.ndarray], heights: np.ndarray, T: np.ndarray,
+                       ap: ArcParams, fp: FitParams) -> _Sections:
+    """Separate every slice of `scan` into arcs and fit each arc (points mapped by `T`)."""
+    arcs: list[ArcResult] = []
+    sections: list[Section] = []
+    members: list[np.ndarray] = []
+    for k, (idx, h) in enumerate(zip(slice_idx, heights)):
+        ar = separate_arcs(scan, idx, ap)
+        arcs.append(ar)
+        circle = fp.circle_lowest and k == 0
+        for j, members_j in enumerate(ar.arcs()):
+            pts = apply_transform(T, scan.points[members_j])
+            sections.append(fit_section(pts, k, j, float(h), circle, fp))
+            members.append(members_j)
+    if fp.taper_check:
+        sections = check_taper(sections, fp.taper_tolerance, fp.gate_m)
+    return _Sections(tuple(arcs), tuple(sections), tuple(members))
+
+
+def _match(ref: _Sections, tgt: _Sections, fp: FitParams) -> Correspondences:
+    """Pair plausible sections of the two scans, slice by slice, nearest centres within the gate."""
+    ri = np.array([i for i, s in enumerate(ref.sections) if s.plausible], dtype=np.int64)
+    ti = np.array([i for i, s in enumerate(tgt.sections) if s.plausible], dtype=np.int64)
+    rc = np.array([ref.sections[i].centre_m for i in ri]).reshape(-1, 3)
+    tc = np.array([tgt.sections[i].centre_m for i in ti]).reshape(-1, 3)
+    rg = np.array([ref.sections[i].slice_index for i in ri])
+    tg = np.array([tgt.sections[i].slice_index for i in ti])
+    rr = np.array([ref.sections[i].radius_m for i in ri])
+    tr = np.array([tgt.sections[i].radius_m for i in ti])
+    c = match_sections(rc, tc, fp.gate_m, rg, tg, rr, tr, fp.max_radius_ratio)
+    if c.ok:
+        c = Correspondences(c.ok, c.message, c.metrics, np.c_[ri[c.pairs[:, 0]], ti[c.pairs[:, 1]]], c.distances_m)
+    return c
+
+
+def _tie_points(s: Section) -> np.ndarray:
+    """Paper 2.2.3: a circle's centre; a cylinder's axis point and the point one unit further towards +z."""
+    if s.kind == "circle":
+        return s.centre_m[None, :]
+    return np.vstack([s.centre_m, s.centre_m + s.axis])
+
+
+def _ties(ref: _Sections, tgt: _Sections, corr: Correspondences) -> tuple[np.ndarray, np.ndarray]:
+    a, b = [], []
+    for i, j in corr.pairs:
+        ta, tb = _tie_points(ref.sections[i]), _tie_points(tgt.sections[j])
+        n = min(len(ta), len(tb))
+        a.append(ta[:n])
+        b.append(tb[:n])
+    return (np.vstack(a), np.vstack(b)) if a else (np.empty((0, 3)), np.empty((0, 3)))
+
+
+def _estimate_ties(ref: _Sections, tgt: _Sections, corr: Correspondences, fp: FineParams) -> tuple[np.ndarray | None, str]:
+    """Update mapping the target's tie points (reference frame) onto the reference's: SVD or RANSAC."""
+    a, b = _ties(ref, tgt, corr)
+    if len(a) < 3 or robust.is_degenerate(b, 6):
+        return None, f"only {len(a)} tie points, or all on one line; at least 3 spread points are needed"
+    if fp.estimator == "svd":
+        return kabsch(b, a), ""
+    fit = robust.ransac(b, a, dof=6, inlier_m=fp.inlier_m, iterations=500, seed=0)
+    if fit is None or fit.n_inliers < 3:
+        return None, f"RANSAC found fewer than 3 tie points agreeing within {fp.inlier_m} m"
+    return fit.T, ""
+
+
+def _subsample(idx: np.ndarray, n: int) -> np.ndarray:
+    return idx if len(idx) <= n else idx[np.linspace(0, len(idx) - 1, n).astype(np.int64)]
+
+
+def _basis_rows(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per row of unit vectors `a` (K x 3), two unit vectors completing it to an orthonormal frame."""
+    helper = np.where(np.abs(a[:, :1]) < 0.9, np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 1.0, 0.0]]))
+    e1 = np.cross(a, helper)
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    return e1, np.cross(a, e1)
+
+
+def _robust_weight(res: np.ndarray, scale: float) -> np.ndarray:
+    """IRLS weight of the soft-L1 loss rho(z) = 2 (sqrt(1 + z) - 1), z = (res / scale)^2."""
+    return 1.0 / np.sqrt(1.0 + (res / scale) ** 2)
+
+
+@dataclass(frozen=True)
+class JointFit:
+    """Outcome of the joint adjustment: the update and one cylinder per section pair (reference frame)."""
+
+    U: np.ndarray
+    points_m: np.ndarray
+    axes: np.ndarray
+    radii_m: np.ndarray
+    rms_m: np.ndarray
+    iterations: int
+
+
+def adjust_joint(points: np.ndarray, section: np.ndarray, moving: np.ndarray, c0: np.ndarray, a0: np.ndarray,
+                 r0: np.ndarray, loss_scale_m: float, prior_m: float, prior_deg: float,
+                 max_iterations: int = 30) -> JointFit:
+    """Fit one cylinder per section to all its points while the `moving` points follow a rigid update.
+
+    A Gauss-Newton (IRLS, soft-L1) bundle adjustment with an analytic Jacobian. The section
+    unknowns (axis point across the axis: 2, axis tilt: 2, radius: 1) are eliminated per section
+    (Schur complement of their 5 x 5 blocks), leaving a 6 x 6 system for the update (rotation
+    vector about the data centroid, translation); a weak prior on the update keeps directions that
+    no section constrains where they are.
+
+    Parameters
+    ----------
+    points
+        N x 3 points in the reference frame, grouped by section (`section` non-decreasing).
+    section
+        Section number 0..K-1 of each point; every section must have points.
+    moving
+        N bools: True for target points (they move with the update).
+    c0, a0, r0
+        K x 3 axis points, K x 3 unit axes, K radii to start from.
+    loss_scale_m, prior_m, prior_deg
+        Soft-L1 scale; prior standard deviations of the translation and rotation update.
+
+    Returns
+    -------
+    JointFit
+        `U` maps the moving points (as given) to their adjusted position.
+    """
+    K = len(c0)
+    starts = np.flatnonzero(np.r_[True, section[1:] != section[:-1]])
+    centre = points.mean(axis=0)
+    mv = np.flatnonzero(moving)
+    base = points[mv] - centre
+    c, a, r = c0.astype(float).copy(), a0.astype(float).copy(), r0.astype(float).copy()
+    R, tau, omega = np.eye(3), np.zeros(3), np.zeros(3)
+    prior = (loss_scale_m ** 2) * np.r_[[1 / np.radians(prior_deg) ** 2] * 3, [1 / prior_m ** 2] * 3]
+    eye5 = np.eye(5)
+
+    def residuals(R_: np.ndarray, tau_: np.ndarray, c_: np.ndarray, a_: np.ndarray, r_: np.ndarray):
+        cur = points.copy()
+        cur[mv] = base @ R_.T + centre + tau_
+        d = cur - c_[section]
+        along = np.einsum("ij,ij->i", d, a_[section])
+        perp = d - along[:, None] * a_[section]
+        nrm = np.sqrt(np.einsum("ij,ij->i", perp, perp))
+        return cur, d, along, perp, nrm, nrm - r_[section]
+
+    def cost(res: np.ndarray, om: np.ndarray, t: np.ndarray) -> float:
+        z = (res / loss_scale_m) ** 2
+        return float(np.sum(2.0 * (np.sqrt(1.0 + z) - 1.0)) * loss_scale_m ** 2 + prior @ np.r_[om, t] ** 2)
+
+    cur, d, along, perp, nrm, res = residuals(R, tau, c, a, r)
+    f = cost(res, omega, tau)
+    it = 0
+    for it in range(1, max_iterations + 1):
+        w = _robust_weight(res, loss_scale_m)
+        n = perp / np.maximum(nrm, 1e-12)[:, None]
+        e1, e2 = _basis_rows(a)
+        ne1 = np.einsum("ij,ij->i", n, e1[section])
+        ne2 = np.einsum("ij,ij->i", n, e2[section])
+        Js = np.c_[-ne1, -ne2, -along * ne1, -along * ne2, -np.ones(len(res))]
+        Jp = np.zeros((len(res), 6))
+        Jp[mv, :3] = np.cross(cur[mv] - centre, n[mv])
+        Jp[mv, 3:] = n[mv]
+        wJs = Js * w[:, None]
+        Hss = np.add.reduceat(np.einsum("ni,nj->nij", wJs, Js), starts, axis=0)
+        Hsp = np.add.reduceat(np.einsum("ni,nj->nij", wJs, Jp), starts, axis=0)
+        gs = np.add.reduceat(wJs * res[:, None], starts, axis=0)
+        Hpp = (Jp * w[:, None]).T @ Jp + np.diag(prior)
+        gp = (Jp * w[:, None]).T @ res + prior * np.r_[omega, tau]
+        # Levenberg damping on the section blocks keeps near-degenerate sections (tiny arcs) finite.
+        Hss = Hss + 1e-9 * eye5 + 1e-6 * np.einsum("kii->ki", Hss)[:, :, None] * eye5
+        Hinv = np.linalg.inv(Hss)
+        HinvHsp = Hinv @ Hsp
+        S = Hpp - np.einsum("kji,kjl->il", Hsp, HinvHsp)
+        b = gp - np.einsum("kji,kj->i", Hsp, np.einsum("kij,kj->ki", Hinv, gs))
+        try:
+            dp = -np.linalg.solve(S + 1e-12 * np.eye(6), b)
+        except np.linalg.LinAlgError:
+            break
+        ds = -(np.einsum("kij,kj->ki", Hinv, gs) + HinvHsp @ dp)
+        step = 1.0
+        for _ in range(8):  # backtracking: IRLS steps on a robust cost can overshoot
+            Rd = _skew_rotation(step * dp[:3])
+            R_n, tau_n, om_n = Rd @ R, Rd @ tau + step * dp[3:], omega + step * dp[:3]
+            c_n = c + step * (ds[:, :1] * e1 + ds[:, 1:2] * e2)
+            a_n = a + step * (ds[:, 2:3] * e1 + ds[:, 3:4] * e2)
+            a_n /= np.linalg.norm(a_n, axis=1, keepdims=True)
+            r_n = r + step * ds[:, 4]
+            out = residuals(R_n, tau_n, c_n, a_n, r_n)
+            f_n = cost(out[-1], om_n, tau_n)
+            if f_n <= f:
+                break
+            step /= 2.0
+        else:
+            break
+        R, tau, omega, c, a, r = R_n, tau_n, om_n, c_n, a_n, r_n
+        cur, d, along, perp, nrm, res = out
+        converged = f - f_n <= 1e-10 * max(f, 1e-12) or (
+            np.linalg.norm(step * dp[:3]) < 1e-7 and np.linalg.norm(step * dp[3:]) < 1e-6)
+        f = f_n
+        if converged:
+            break
+    counts = np.diff(np.r_[starts, len(res)])
+    rms = np.sqrt(np.add.reduceat(res ** 2, starts) / counts)
+    U = make_transform(R, centre - R @ centre + tau)
+    return JointFit(U, c, a, np.abs(r), rms, it)
+
+
+def _estimate_joint(ref_scan: Scan, tgt_scan: Scan, T: np.ndarray, ref: _Sections, tgt: _Sections,
+                    corr: Correspondences, fp: FineParams) -> tuple[np.ndarray | None, str, np.ndarray]:
+    """Rigid update from one cylinder per section pair fitted to both scans' points at once.
+
+    Pairs whose cylinder fits badly (RMS above `_TRIM_FACTOR` times the median and above the loss
+    scale: a wrong pairing or a mis-separated arc) are dropped and the adjustment is repeated. Returns (update or None, message, kept pair mask).
+    """
+    K = len(corr.pairs)
+    pts, sec, mov = [], [], []
+    c0 = np.empty((K, 3))
+    a0 = np.empty((K, 3))
+    r0 = np.empty(K)
+    for k, (i, j) in enumerate(corr.pairs):
+        si, sj = ref.sections[i], tgt.sections[j]
+        p = ref_scan.points[_subsample(ref.members[i], fp.max_section_points)]
+        q = apply_transform(T, tgt_scan.points[_subsample(tgt.members[j], fp.max_section_points)])
+        pts += [p, q]
+        sec.append(np.full(len(p) + len(q), k))
+        mov += [np.zeros(len(p), dtype=bool), np.ones(len(q), dtype=bool)]
+        a0[k] = si.axis / np.linalg.norm(si.axis)
+        c0[k] = (si.centre_m + sj.centre_m) / 2.0
+        r0[k] = (si.radius_m + sj.radius_m) / 2.0
+    P, S, M = np.vstack(pts), np.concatenate(sec), np.concatenate(mov)
+    keep = np.ones(K, dtype=bool)
+    for _ in range(4):
+        idx = np.flatnonzero(keep[S])
+        remap = np.cumsum(keep) - 1
+        fit = adjust_joint(P[idx], remap[S[idx]], M[idx], c0[keep], a0[keep], r0[keep], fp.loss_scale_m,
+                           fp.prior_m, fp.prior_deg)
+        bad = fit.rms_m > max(_TRIM_FACTOR * float(np.median(fit.rms_m)), fp.loss_scale_m)
+        if not bad.any() or keep.sum() - bad.sum() < fp.min_pairs:
+            break
+        keep[np.flatnonzero(keep)[bad]] = False
+    if not np.isfinite(fit.U).all():
+        return None, "the joint section adjustment diverged", keep
+    return fit.U, "", keep
+
+
+def _alignment_measure(ref_pts: np.ndarray, ref_tree: cKDTree, ref_normals: np.ndarray,
+                       tgt_sample: np.ndarray, T: np.ndarray, gate_m: float) -> float:
+    """RMS of the point-to-plane residuals of the target's points, each truncated at `gate_m`.
+
+    Points without a reference point within `gate_m` count as `gate_m`, so a pose cannot look
+    better by sliding the target out of the overlap.
+    """
+    moved = apply_transform(T, tgt_sample)
+    d, j = ref_tree.query(moved, distance_upper_bound=gate_m)
+    e = np.full(len(moved), gate_m)
+    ok = np.isfinite(d)
+    e[ok] = np.minimum(np.abs(np.einsum("ij,ij->i", moved[ok] - ref_pts[j[ok]], ref_normals[j[ok]])), gate_m)
+    return float(np.sqrt(np.mean(e ** 2)))
+
+
+def _mean_move(U: np.ndarray, pts: np.ndarray) -> float:
+    return float(np.linalg.norm(apply_transform(U, pts) - pts, axis=1).mean())
+
+
+def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, params: Params,
+                  progress: Progress | None = None) -> FineResult:
+    """Refine the coarse transform of `tgt` onto `ref` from stem and branch sections.
+
+    Parameters
+    ----------
+    ref, tgt
+        Reference and target scans (each in its scanner frame).
+    T_coarse
+        The coarse 4x4 T_ref_tgt.
+    params
+        Uses the sections slicing, arcs, fitting and fine.
+    progress
+        Optional progress callback.
+
+    Returns
+    -------
+    FineResult
+        Final transform, whether the fine update was accepted and why not, and the last
+        iteration's slices, arcs, fits, correspondences and tie points for drawing.
+    """
+    progress = progress or no_progress
+    fp, sp, ap, fitp = params.fine, params.slicing, params.arcs, params.fitting
+    T0 = np.asarray(T_coarse, dtype=float)
+    if T0.shape != (4, 4) or not np.isfinite(T0).all():
+        return _failed(T0, "the coarse transform is missing or not finite; run coarse registration first")
+    rng = np.random.default_rng(0)
+    sample = tgt.points if tgt.n_points <= _SAMPLE else tgt.points[rng.choice(tgt.n_points, _SAMPLE, replace=False)]
+    T = T0.copy()
+    updates: list[float] = []
+    ref_secs: _Sections | None = None
+    note = ""
+    it = 0
+    for it in range(1, fp.max_iterations + 1):
+        progress((it - 1) / (fp.max_iterations + 1), f"iteration {it}: slicing and fitting")
+        sl = slice_scans(ref, tgt, T, sp)
+        if ref_secs is None:  # reference slices never move: fit them once
+            ref_secs = _fit_scan_sections(ref, sl.ref_indices, sl.heights_m, np.eye(4), ap, fitp)
+        tgt_secs = _fit_scan_sections(tgt, sl.tgt_indices, sl.heights_m, T, ap, fitp)
+        corr = _match(ref_secs, tgt_secs, fitp)
+        if not sl.ok or not corr.ok or len(corr.pairs) < fp.min_pairs:
+            note = (sl.message if not sl.ok else
+                    f"only {len(corr.pairs)} corresponding sections (fine.min_pairs = {fp.min_pairs})")
+            it -= 1
+            break
+        if fp.method == "ties":
+            U, note = _estimate_ties(ref_secs, tgt_secs, corr, fp)
+        else:
+            U, note, _ = _estimate_joint(ref, tgt, T, ref_secs, tgt_secs, corr, fp)
+        if U is None:
+            it -= 1
+            break
+        move = _mean_move(U, apply_transform(T, sample))
+        updates.append(move)
+        T = U @ T
+        if move < fp.tolerance_m:
+            break
+    progress(fp.max_iterations / (fp.max_iterations + 1), "acceptance test")
+    ref_pts = voxel_downsample(ref.points, fp.measure_voxel_m)
+    tree = cKDTree(ref_pts)
+    normals = estimate_normals(ref_pts, tree=tree)
+    m0 = _alignment_measure(ref_pts, tree, normals, sample, T0, fp.measure_gate_m)
+    m1 = _alignment_measure(ref_pts, tree, normals, sample, T, fp.measure_gate_m) if updates else m0
+    accepted = bool(updates)
+    message = ""
+    if not updates:
+        message = f"fine registration found nothing to improve ({note}); kept the coarse transform"
+    elif fp.accept_test and not m1 < m0:
+        accepted = False
+        message = (f"the fine update did not improve the alignment (residual {m0 * 1000:.1f} mm at coarse, "
+                   f"{m1 * 1000:.1f} mm after fine); kept the coarse transform")
+    if not accepted:
+        T = T0.copy()
+    # What the app draws: slices, arcs, fits and ties at the pose finally returned.
+    sl = slice_scans(ref, tgt, T, sp)
+    if ref_secs is None:
+        ref_secs = _fit_scan_sections(ref, sl.ref_indices, sl.heights_m, np.eye(4), ap, fitp)
+    tgt_secs = _fit_scan_sections(tgt, sl.tgt_indices, sl.heights_m, T, ap, fitp)
+    corr = _match(ref_secs, tgt_secs, fitp)
+    ties_r, ties_t = _ties(ref_secs, tgt_secs, corr) if corr.ok else (np.empty((0, 3)), np.empty((0, 3)))
+    metrics = (
+        Metric("fine accepted", "", "yes" if accepted else "no"),
+        Metric("fine iterations", "", it),
+        Metric("fine update (last iteration)", "m", updates[-1] if updates else 0.0),
+        Metric("corresponding sections", "", int(len(corr.pairs))),
+        Metric("alignment residual, coarse", "m", m0),
+        Metric("alignment residual, fine", "m", m1),
+    )
+    progress(1.0, "done")
+    return FineResult(True, message, metrics, T, T0, accepted, it, tuple(updates), m0, m1, sl,
+                      ref_secs.arcs, tgt_secs.arcs, ref_secs.sections, tgt_secs.sections, corr,
+                      ties_r, ties_t)
+
+
+def _failed(T0: np.ndarray, message: str) -> FineResult:
+    e = np.empty((0, 3))
+    return FineResult(False, message, (Metric("fine accepted", "", "no"),), T0, T0, False, 0, (), np.nan, np.nan,
+                      None, (), (), (), (), None, e, e)

@@ -1,0 +1,218 @@
+"""treereg's browser app: the server, theme and layout, and the glue between GUI, controller and
+drawer.
+
+Layout: on the right the control panel (stage selector, Previous/Next, Run, progress, messages;
+tabs "Stage" with one folder per stage, "Scans", "Files"); on the left a wide docked panel with the
+current stage's images, plots and tables; the 3-D scene in the middle. Callbacks only record what
+changed (parameters go to the `Controller`, display choices to the `ViewState`); the pipeline runs
+on the controller's worker and drawing on the `Drawer`'s thread.
+
+    server = viser.ViserServer(host="127.0.0.1", port=0)
+    app = TreeregApp(server, Controller(scans, params, truth))
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import viser
+
+from treereg_core.errors import ConfigError
+from treereg_core.params import Params
+from treereg_core.pipeline import STAGES
+
+from .controller import Controller, Snapshot
+from .drawer import Drawer
+from .export_panel import ExportPanel
+from .scan_panel import ScanPanel
+from .stage_panel import StagePanel
+from .stages import APP_STAGES
+from .view_panel import ViewPanel
+from .view_state import ViewState
+
+log = logging.getLogger(__name__)
+
+
+class TreeregApp:
+    """The app on one viser server. Every browser tab sees the same GUI and the same state.
+
+    Parameters
+    ----------
+    server
+        A running `viser.ViserServer`.
+    controller
+        Owns the scans, parameters and pipeline.
+    out_dir
+        When given, exports are also written there.
+    autorun
+        Run the whole pipeline in the background as soon as the app is up.
+    """
+
+    def __init__(self, server: viser.ViserServer, controller: Controller, out_dir: Path | None = None,
+                 autorun: bool = True) -> None:
+        self.server = server
+        self.controller = controller
+        self.out_dir = Path(out_dir) if out_dir is not None else None
+        self._view_lock = threading.Lock()
+        self._view = ViewState()
+        self._last_progress = 0.0
+
+        server.gui.configure_theme(show_share_button=False, control_width="large", brand_color=(30, 140, 60),
+                                   titlebar_content=None)
+        server.scene.set_up_direction("+z")
+        self.panel = ViewPanel(server)
+        gui = server.gui
+        gui.add_markdown("**treereg** · marker-free registration of single-tree TLS scans (rotating projection, "
+                         "then stem and branch centres)")
+        self.stages = StagePanel(gui, self)
+        tabs = gui.add_tab_group()
+        with tabs.add_tab("Stage", viser.Icon.LIST_NUMBERS):
+            self.stages.build_folders(gui)
+        with tabs.add_tab("Scans", viser.Icon.TREE):
+            self.scans = ScanPanel(gui, self)
+        with tabs.add_tab("Files", viser.Icon.FILE_EXPORT):
+            self.files = ExportPanel(gui, self)
+
+        self.drawer = Drawer(server, self.panel, lambda: controller.snapshot, lambda: self.view,
+                             on_error=lambda msg: controller.note(msg, error=True))
+        controller.subscribe(self._on_snapshot)
+        controller.subscribe_progress(self._on_progress)
+        self._on_snapshot(controller.snapshot)
+        self._place_camera(controller.snapshot)
+        if autorun and len(controller.snapshot.scans) >= 2:
+            controller.request_run(STAGES[-1])
+
+    # ---- view state ------------------------------------------------------------------------------
+    @property
+    def view(self) -> ViewState:
+        return self._view
+
+    def set_view(self, **changes: Any) -> None:
+        """Record display choices and ask for a redraw (callbacks call this; it returns at once)."""
+        with self._view_lock:
+            self._view = replace(self._view, **changes)
+        self.drawer.request()
+
+    def select_stage(self, index: int) -> None:
+        index = int(np.clip(index, 0, len(APP_STAGES) - 1))
+        self.set_view(stage=index)
+        self.stages.show_stage(index)
+        snap = self.controller.snapshot
+        self.stages.show_snapshot(snap, index)
+        stage = APP_STAGES[index]
+        if self.stages.auto_run.value and snap.status(stage.pipeline_stage) == "stale" and len(snap.scans) >= 2 \
+                and not any(snap.status(s) == "failed" for s in STAGES[: STAGES.index(stage.pipeline_stage)]):
+            self.controller.request_run(stage.pipeline_stage)
+
+    def step_stage(self, delta: int) -> None:
+        self.select_stage(self.view.stage + delta)
+
+    def select_target(self, label: str) -> None:
+        snap = self.controller.snapshot
+        labels = [f"{s.name} → {snap.scans[0].name}" for s in snap.scans[1:]]
+        if label in labels:
+            self.set_view(target=labels.index(label), match_pair=0)
+            for key, h in self.stages.view_controls.items():
+                if key.startswith("target") and h.value != label:
+                    h.value = label
+
+    def set_scan_visible(self, name: str, visible: bool) -> None:
+        hidden = set(self.view.hidden_scans)
+        (hidden.discard if visible else hidden.add)(name)
+        self.set_view(hidden_scans=frozenset(hidden))
+
+    # ---- actions ---------------------------------------------------------------------------------
+    def run_current(self) -> None:
+        """Run: re-run the current stage and the ones after it, reusing earlier results."""
+        snap = self.controller.snapshot
+        stage = APP_STAGES[self.view.stage].pipeline_stage
+        rerun = stage if snap.status(stage) != "stale" else None
+        self.controller.request_run(STAGES[-1], rerun_from=rerun)
+
+    def on_param_change(self, section: str, name: str, value: Any) -> str | None:
+        try:
+            self.controller.set_param(section, name, value)
+        except ConfigError as e:
+            self.controller.note(str(e), error=True)
+            self.stages.sections[section].sync(self.controller.params)  # show what is in force
+            return str(e)
+        return None
+
+    def load_params(self, params: Params, source: str) -> None:
+        self.controller.set_params(params)
+        self.stages.sync_params(params)
+        self.controller.note(f"Parameters from {source} in force; press Run to apply them.")
+
+    def send_file(self, client: Any, filename: str, data: bytes) -> None:
+        """A browser download for the tab that asked (all tabs when there is no client, as in tests)."""
+        target = client if client is not None else self.server
+        target.send_file_download(filename, data)
+
+    def close(self) -> None:
+        self.controller.close()
+        self.drawer.close()
+
+    # ---- from the worker ----------------------------------------------------------------------
+    def _on_snapshot(self, snap: Snapshot) -> None:
+        self.stages.show_snapshot(snap, self.view.stage)
+        self.scans.show_snapshot(snap)
+        if not snap.busy:
+            self.stages.progress_text.content = ""
+        self.drawer.request()
+
+    def _on_progress(self, fraction: float, text: str) -> None:
+        now = time.perf_counter()
+        if fraction < 1.0 and now - self._last_progress < 0.1:  # ~10 updates a second are plenty
+            return
+        self._last_progress = now
+        self.stages.show_progress(fraction, text)
+
+    def _place_camera(self, snap: Snapshot) -> None:
+        """Look from behind the reference scanner at the trees of all scans (in their own frames on
+        stage 0, so up to ~30 m apart), high enough to see the crowns."""
+        if not snap.scans:
+            return
+        centres = np.array([s.points.mean(axis=0) for s in snap.scans])
+        ref = centres[0]
+        height = float(np.ptp(snap.scans[0].points[:, 2])) or 10.0
+        look = np.array([centres[:, 0].mean(), centres[:, 1].mean(), ref[2]])
+        spread = float(np.max(np.linalg.norm(centres[:, :2] - look[:2], axis=1)))
+        d = ref[:2] / (np.linalg.norm(ref[:2]) or 1.0)  # from the reference scanner towards its tree
+        dist = 1.2 * spread + 1.4 * height
+        cam = np.array([look[0] - d[0] * dist, look[1] - d[1] * dist, look[2] + 0.6 * dist])
+        self.server.initial_camera.position = tuple(cam)
+        self.server.initial_camera.look_at = tuple(look)
+        self.server.initial_camera.up = (0.0, 0.0, 1.0)
+
+def serve(
+    controller: Controller,
+    host: str = "127.0.0.1",
+    port: int = 8080,
+    out_dir: Path | None = None,
+    ready: Any = None,
+) -> None:
+    """Start the server and the app, print the URL, block until Ctrl-C.
+
+    `ready(url)` is called once the app is up (the CLI prints it; tests read it).
+    """
+    t0 = time.perf_counter()
+    server = viser.ViserServer(host=host, port=port, verbose=False)
+    app = TreeregApp(server, controller, out_dir=out_dir)
+    url = f"http://{host}:{server.get_port()}/"
+    print(f"treereg view: {url}  (app ready in {time.perf_counter() - t0:.1f} s; Ctrl-C to stop)", flush=True)
+    if ready is not None:
+        ready(url)
+    try:
+        while True:
+            time.sleep(1.0)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        app.close()
+        server.stop()

@@ -1,0 +1,368 @@
+"""The app's controller: one worker thread runs the pipeline; callbacks only record requests.
+
+viser runs GUI callbacks on a thread pool, so two can run at once and none may block for long.
+Callbacks therefore call the recording methods here (`set_param`, `request_run`, `add_scan_bytes`
+...), which take the one lock for a moment, note what changed and wake the worker. Only the worker
+touches the `Pipeline`; after every change it publishes an immutable `Snapshot` that drawing code
+and exports read without locks. Every browser tab sees the same snapshot: one consistent state.
+"""
+
+from __future__ import annotations
+
+import logging
+import tempfile
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Mapping, Sequence
+
+import numpy as np
+
+from treereg_core.errors import ConfigError, ScanError
+from treereg_core.params import Params
+from treereg_core.pipeline import STAGES, Pipeline, StageOutput
+from treereg_core.scan import Scan
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Snapshot:
+    """What the app draws: the state after the worker's last change. Never mutated."""
+
+    version: int
+    scans: tuple[Scan, ...]
+    truth: Mapping[str, np.ndarray] | None
+    params: Params
+    outputs: Mapping[str, StageOutput]
+    transforms: Mapping[str, np.ndarray]
+    pair_metrics: Mapping[str, list[dict[str, Any]]]
+    busy: bool = False
+    running: str | None = None
+    message: str = ""
+    error: bool = False
+    crashed: Mapping[str, str] = field(default_factory=dict)  # stage -> error, when it raised
+
+    def status(self, stage: str) -> str:
+        """'done', 'failed', 'running' or 'stale' for a pipeline stage."""
+        if self.running == stage:
+            return "running"
+        out = self.outputs.get(stage)
+        if out is None:
+            return "failed" if stage in self.crashed else "stale"
+        return "done" if out.ok else "failed"
+
+    def output(self, stage: str) -> StageOutput | None:
+        return self.outputs.get(stage)
+
+    @property
+    def scan_names(self) -> list[str]:
+        return [s.name for s in self.scans]
+
+
+Listener = Callable[[Snapshot], None]
+ProgressListener = Callable[[float, str], None]
+#: Turns an uploaded file (its name and bytes) into a Scan, raising ScanError when it cannot.
+ScanParser = Callable[[str, bytes], Scan]
+
+
+@dataclass
+class _Requests:
+    """What callbacks asked for since the worker last looked (guarded by the controller's lock)."""
+
+    params_changed: bool = False
+    run_until: str | None = None
+    rerun_from: str | None = None
+    uploads: list[tuple[str, bytes]] = field(default_factory=list)
+    scans: list[Scan] | None = None
+    truth: dict[str, np.ndarray] | None = None
+    notes: list[tuple[str, bool]] = field(default_factory=list)
+
+    def pending(self) -> bool:
+        return bool(self.params_changed or self.run_until or self.uploads or self.scans is not None or self.notes)
+
+
+def parse_scan_upload(filename: str, data: bytes) -> Scan:
+    """Read an uploaded scan file with treereg_core.io (via a temporary file of the same suffix)."""
+    from treereg_core.io import read_scan
+
+    name = Path(filename).name or "upload"
+    if not data:
+        raise ScanError(name, "the file is empty")
+    with tempfile.TemporaryDirectory(prefix="treereg-upload-") as tmp:
+        path = Path(tmp) / name
+        path.write_bytes(data)
+        scan = read_scan(path)
+    # The temporary directory is gone: name the scan after the uploaded file, not the temp path.
+    return Scan(scan.points, scan.name, scan.angular_step_deg, Path(name), scan.step_estimated)
+
+
+class Controller:
+    """Owns the pipeline and the worker thread that runs it.
+
+    Parameters
+    ----------
+    scans
+        The scans, reference first.
+    params
+        Parameters to start with.
+    truth
+        True `T_ref_scan` per scan name, when known (the demo), for errors against truth.
+    parse_upload
+        How uploaded bytes become a Scan (tests may pass their own).
+    """
+
+    def __init__(
+        self,
+        scans: Sequence[Scan],
+        params: Params | None = None,
+        truth: Mapping[str, np.ndarray] | None = None,
+        parse_upload: ScanParser = parse_scan_upload,
+    ) -> None:
+        self._lock = threading.Lock()
+        self._wake = threading.Condition(self._lock)
+        self._idle = threading.Event()
+        self._pipeline = Pipeline(list(scans), params or Params(), dict(truth) if truth else None)
+        self._desired = self._pipeline.params
+        self._req = _Requests()
+        self._listeners: list[Listener] = []
+        self._progress_listeners: list[ProgressListener] = []
+        self._parse_upload = parse_upload
+        self._version = 0
+        self._stopped = False
+        self._crashed: dict[str, str] = {}  # stages that raised, until inputs change or Run is pressed
+        self._snapshot = self._make_snapshot(busy=False, running=None, message="", error=False)
+        self._thread = threading.Thread(target=self._loop, name="treereg-worker", daemon=True)
+        self._thread.start()
+
+    # ---- subscription ----------------------------------------------------------------------
+    def subscribe(self, listener: Listener) -> None:
+        """Call `listener(snapshot)` (on the worker thread) after every published change."""
+        self._listeners.append(listener)
+
+    def subscribe_progress(self, listener: ProgressListener) -> None:
+        """Call `listener(fraction, text)` (on the worker thread) while a stage runs."""
+        self._progress_listeners.append(listener)
+
+    @property
+    def snapshot(self) -> Snapshot:
+        """The latest published state (an immutable object: safe to read from any thread)."""
+        return self._snapshot
+
+    @property
+    def params(self) -> Params:
+        """The parameters as the user last set them (may be newer than the snapshot's)."""
+        with self._lock:
+            return self._desired
+
+    # ---- recording requests (any thread; quick) -------------------------------------------
+    def set_param(self, section: str, name: str, value: Any) -> Params:
+        """Record one parameter change; raises ConfigError (and changes nothing) when invalid."""
+        with self._wake:
+            new = self._desired.with_value(section, name, value)
+            if new != self._desired:
+                self._desired = new
+                self._req.params_changed = True
+                self._notify()
+            return new
+
+    def set_params(self, params: Params) -> None:
+        """Record a whole new parameter set (a loaded file or a preset)."""
+        with self._wake:
+            if params != self._desired:
+                self._desired = params
+                self._req.params_changed = True
+                self._notify()
+
+    def request_run(self, until: str = STAGES[-1], rerun_from: str | None = None) -> None:
+        """Ask the worker to run every stale stage up to `until`.
+
+        `rerun_from` also drops that stage's cached output first (the user pressed Run on a stage
+        that was up to date). Requests made while a run is under way are merged and run after it.
+        """
+        if until not in STAGES or (rerun_from is not None and rerun_from not in STAGES):
+            raise ValueError(f"unknown stage {until!r} / {rerun_from!r}")
+        with self._wake:
+            r = self._req
+            if r.run_until is None or STAGES.index(until) > STAGES.index(r.run_until):
+                r.run_until = until
+            if rerun_from is not None and (r.rerun_from is None or STAGES.index(rerun_from) < STAGES.index(r.rerun_from)):
+                r.rerun_from = rerun_from
+            self._notify()
+
+    def add_scan_bytes(self, filename: str, data: bytes) -> None:
+        """Queue an uploaded file; the worker parses it (a bad file only produces a message)."""
+        with self._wake:
+            self._req.uploads.append((filename, bytes(data)))
+            self._notify()
+
+    def set_scans(self, scans: Sequence[Scan], truth: Mapping[str, np.ndarray] | None = None) -> None:
+        """Replace all scans (first = reference); every stage becomes stale."""
+        with self._wake:
+            self._req.scans = list(scans)
+            self._req.truth = dict(truth) if truth else None
+            self._notify()
+
+    def note(self, message: str, error: bool = False) -> None:
+        """Publish a message for the user (e.g. a rejected parameter), in order with other changes."""
+        with self._wake:
+            self._req.notes.append((message, error))
+            self._notify()
+
+    def wait_idle(self, timeout: float = 60.0) -> bool:
+        """Block until the worker has nothing left to do (tests, CLI exports). True if idle."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self._idle.wait(timeout=max(0.0, deadline - time.monotonic())):
+                with self._lock:
+                    if not self._req.pending():
+                        return True
+                time.sleep(0.005)
+        return False
+
+    def close(self) -> None:
+        """Stop the worker (after the stage it is running, if any)."""
+        with self._wake:
+            self._stopped = True
+            self._wake.notify_all()
+        self._thread.join(timeout=30)
+
+    def _notify(self) -> None:
+        # Called with the lock held.
+        self._idle.clear()
+        self._wake.notify_all()
+
+    # ---- the worker ------------------------------------------------------------------------
+    def _loop(self) -> None:
+        while True:
+            with self._wake:
+                while not self._req.pending() and not self._stopped:
+                    self._idle.set()
+                    self._wake.wait()
+                if self._stopped:
+                    self._idle.set()
+                    return
+                req, self._req = self._req, _Requests()
+                desired = self._desired
+            try:
+                self._handle(req, desired)
+            except Exception as e:  # never let the worker die; the user sees one line, the log the rest
+                log.exception("treereg worker failed")
+                self._publish(message=f"Internal error: {type(e).__name__}: {e}", error=True)
+
+    def _handle(self, req: _Requests, desired: Params) -> None:
+        pipe = self._pipeline
+        message, error = "", False
+        for text, err in req.notes:
+            message, error = text, err
+        if req.scans is not None:
+            pipe.set_scans(req.scans, req.truth)
+            message, error = f"Loaded {len(req.scans)} scans.", False
+        for filename, data in req.uploads:
+            try:
+                scan = self._parse_upload(filename, data)
+            except (ScanError, ConfigError) as e:
+                message, error = f"Upload rejected — {e}", True
+                continue
+            except Exception as e:  # a reader bug must not take the app down either
+                log.exception("reading upload %s failed", filename)
+                message, error = f"Upload rejected — {filename}: could not be read ({type(e).__name__}: {e})", True
+                continue
+            scan = _unique_name(scan, {s.name for s in pipe.scans})
+            pipe.set_scans([*pipe.scans, scan], pipe.truth)
+            message, error = f"Added {scan.name} ({scan.n_points:,} points) as scan {len(pipe.scans)}.", False
+        if req.scans is not None or req.uploads or req.params_changed or req.run_until:
+            self._crashed.clear()  # new inputs or an explicit run: try again
+        if req.params_changed or desired != pipe.params:
+            stale = pipe.set_params(desired)
+            if stale and not req.run_until:
+                message = f"Parameters changed: {', '.join(stale)} must re-run (press Run)."
+                error = False
+        self._publish(message=message, error=error)
+        if req.run_until:
+            self._run(req.run_until, req.rerun_from)
+
+    def _run(self, until: str, rerun_from: str | None) -> None:
+        pipe = self._pipeline
+        if len(pipe.scans) < 2:
+            self._publish(message="Registration needs at least two scans: upload another scan.", error=True)
+            return
+        if rerun_from is not None:
+            pipe.invalidate(rerun_from)
+        todo = [s for s in STAGES[: STAGES.index(until) + 1] if pipe.output(s) is None]
+        t0 = time.perf_counter()
+        running = {"stage": todo[0] if todo else None}
+        self._publish(busy=True, running=running["stage"], message="Running…" if todo else "")
+
+        def progress(fraction: float, text: str) -> None:
+            stage = text.split(":", 1)[0] if text else None
+            if stage in STAGES and stage != running["stage"]:
+                running["stage"] = stage
+                self._publish(busy=True, running=stage, message=f"Running {stage}…")
+            for fn in self._progress_listeners:
+                fn(fraction, text)
+
+        try:
+            last = pipe.run(until, progress)
+        except Exception as e:
+            # The stage that raised is the first one still without an output.
+            stage = next((s for s in todo if pipe.output(s) is None), running["stage"] or until)
+            log.exception("pipeline stage %s failed", stage)
+            pipe.invalidate(stage)  # the stage has no valid output: it and all later ones are stale
+            self._crashed[stage] = f"{type(e).__name__}: {e}"
+            self._publish(message=f"{stage} failed: {type(e).__name__}: {e}", error=True)
+            return
+        seconds = time.perf_counter() - t0
+        if last is not None and not last.ok:
+            self._publish(message=f"{last.stage} failed: {last.message}", error=True)
+        elif todo:
+            self._publish(message=f"Ran {', '.join(todo)} in {seconds:.1f} s.")
+        else:
+            self._publish(message="")
+
+    def _make_snapshot(self, busy: bool, running: str | None, message: str, error: bool) -> Snapshot:
+        pipe = self._pipeline
+        outputs = {s: o for s in STAGES if (o := pipe.output(s)) is not None}
+        self._version += 1
+        return Snapshot(
+            version=self._version,
+            scans=tuple(pipe.scans),
+            truth=pipe.truth,
+            params=pipe.params,
+            outputs=outputs,
+            transforms=_safe(pipe.transforms, {}),
+            pair_metrics=_safe(pipe.pair_metrics, {}),
+            busy=busy,
+            running=running,
+            message=message,
+            error=error,
+            crashed=dict(self._crashed),
+        )
+
+    def _publish(self, busy: bool = False, running: str | None = None, message: str = "", error: bool = False) -> None:
+        snap = self._make_snapshot(busy, running, message, error)
+        self._snapshot = snap
+        for fn in self._listeners:
+            try:
+                fn(snap)
+            except Exception:  # a drawing bug must not stop the pipeline
+                log.exception("snapshot listener failed")
+
+
+def _safe(fn: Callable[[], Any], default: Any) -> Any:
+    try:
+        return fn()
+    except Exception:
+        log.exception("reading pipeline results failed")
+        return default
+
+
+def _unique_name(scan: Scan, taken: set[str]) -> Scan:
+    """Rename an uploaded scan whose name is already used ('scan2' -> 'scan2-2')."""
+    if scan.name not in taken:
+        return scan
+    k = 2
+    while f"{scan.name}-{k}" in taken:
+        k += 1
+    return scan.with_points(scan.points, name=f"{scan.name}-{k}")

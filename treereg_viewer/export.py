@@ -1,0 +1,97 @@
+"""Exports of the latest result: the same files `treereg register` writes, plus the merged cloud.
+
+`export_bundle(snapshot)` makes every file in memory (for browser downloads); `write_bundle` puts
+them in a folder (`treereg view --out DIR`). The file contents come from treereg_core.transform_io
+and treereg_core.io, so the app and the command line export identical files.
+"""
+
+from __future__ import annotations
+
+import io as _io
+import json
+import tempfile
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from treereg_core import params as P
+from treereg_core.io import write_scan
+from treereg_core.rigid import apply_transform
+from treereg_core.transform_io import TransformFile, write_exports
+
+from .controller import Snapshot
+
+
+class ExportError(ValueError):
+    """Nothing (valid) to export yet; the message says what to do."""
+
+
+@dataclass(frozen=True)
+class ExportBundle:
+    """All export files, by file name, and what they were made from."""
+
+    stage: str  # "fine" or "coarse": which stage's transforms
+    transforms: dict[str, np.ndarray]
+    files: dict[str, bytes]
+
+
+def transform_file(snap: Snapshot) -> tuple[TransformFile, str]:
+    """The TransformFile of the snapshot's best transforms (fine if it ran, else coarse)."""
+    if len(snap.scans) < 2:
+        raise ExportError("Nothing to export: registration needs at least two scans.")
+    stage = "fine" if snap.status("fine") == "done" else "coarse" if snap.status("coarse") == "done" else None
+    if stage is None:
+        raise ExportError("Nothing to export yet: run the pipeline up to the coarse stage at least.")
+    transforms = {name: np.asarray(T, dtype=np.float64) for name, T in snap.transforms.items()}
+    extra = {"stage": stage, "metrics": {k: v for k, v in snap.pair_metrics.items()}}
+    tf = TransformFile(reference=snap.scans[0].name, transforms=transforms, params=P.to_dict(snap.params), extra=extra)
+    return tf, stage
+
+
+def merged_points(snap: Snapshot, transforms: dict[str, np.ndarray]) -> np.ndarray:
+    """Every scan's points (as loaded, ground included) in the reference frame."""
+    parts = [apply_transform(transforms[s.name], s.points) for s in snap.scans if s.name in transforms]
+    return np.concatenate(parts, axis=0)
+
+
+def export_bundle(snap: Snapshot, cloud_format: str = "ply") -> ExportBundle:
+    """transforms.json (with the parameters used and per-pair metrics), CloudCompare and PDAL
+    matrices per scan, params.json, and the merged registered cloud (`merged.<ply|las>`)."""
+    if cloud_format not in ("ply", "las", "laz"):
+        raise ExportError(f"merged cloud format must be ply, las or laz, not {cloud_format!r}")
+    tf, stage = transform_file(snap)
+    files: dict[str, bytes] = {}
+    with tempfile.TemporaryDirectory(prefix="treereg-export-") as tmp:
+        for path in write_exports(tmp, tf):
+            files[path.name] = path.read_bytes()
+        # float32 PLY: half the size, about a micrometre at tree distances.
+        cloud = write_scan(Path(tmp) / f"merged.{cloud_format}", merged_points(snap, tf.transforms), dtype="float32")
+        files[cloud.name] = cloud.read_bytes()
+    files["params.json"] = (json.dumps(P.to_dict(snap.params), indent=2) + "\n").encode()
+    return ExportBundle(stage, dict(tf.transforms), files)
+
+
+def write_bundle(bundle: ExportBundle, out_dir: Path) -> list[Path]:
+    """Write every file of `bundle` into `out_dir` (atomically each)."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written = []
+    for name, data in bundle.files.items():
+        path = out_dir / name
+        tmp = path.with_name(f".{name}.tmp")
+        tmp.write_bytes(data)
+        tmp.replace(path)
+        written.append(path)
+    return written
+
+
+def zip_bundle(bundle: ExportBundle) -> bytes:
+    """All files in one zip (one browser download instead of many)."""
+    buf = _io.BytesIO()
+    with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_DEFLATED) as z:
+        for name, data in bundle.files.items():
+            z.writestr(name, data)
+    return buf.getvalue()
+

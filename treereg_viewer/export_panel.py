@@ -1,0 +1,75 @@
+"""The "Files" tab: exports (browser downloads and, with --out, files on disk) and parameter files."""
+
+from __future__ import annotations
+
+import json
+from typing import TYPE_CHECKING, Any
+
+import viser
+
+from treereg_core import params as P
+from treereg_core.errors import ConfigError
+
+from . import export
+
+if TYPE_CHECKING:
+    from .app import TreeregApp
+
+
+class ExportPanel:
+    def __init__(self, gui: viser.GuiApi, app: "TreeregApp") -> None:
+        self.app = app
+        with gui.add_folder("Export"):
+            where = f" They are also written to `{app.out_dir}`." if app.out_dir else ""
+            gui.add_markdown(
+                "The transforms `T_ref_scan` of the latest run (fine where it ran, else coarse) with the "
+                "parameters used; CloudCompare matrix text per scan; the PDAL matrix string; the merged "
+                f"registered cloud.{where}"
+            )
+            self.cloud_format = gui.add_dropdown("Merged cloud format", ("ply", "las"), initial_value="ply")
+            self.download_transforms = gui.add_button("Download transforms.json", icon=viser.Icon.DOWNLOAD)
+            self.download_all = gui.add_button("Download all exports (zip)", icon=viser.Icon.FILE_ZIP)
+            self.export_md = gui.add_markdown("")
+        self.download_transforms.on_click(lambda e: self._download(e.client, only="transforms.json"))
+        self.download_all.on_click(lambda e: self._download(e.client, only=None))
+        with gui.add_folder("Parameters"):
+            self.preset = gui.add_dropdown("Preset", tuple(P.PRESETS), initial_value="robust",
+                                           hint="robust: our defaults; paper: the paper's settings taken literally.")
+            self.apply_preset = gui.add_button("Apply preset")
+            self.download_params = gui.add_button("Download parameters (JSON)", icon=viser.Icon.DOWNLOAD)
+            self.load_params = gui.add_upload_button("Load parameters (JSON)", icon=viser.Icon.UPLOAD,
+                                                     mime_type="application/json")
+        self.apply_preset.on_click(lambda _: app.load_params(P.PRESETS[self.preset.value], f"preset {self.preset.value}"))
+        self.download_params.on_click(
+            lambda e: app.send_file(e.client, "params.json", (json.dumps(P.to_dict(app.controller.params), indent=2) + "\n").encode())
+        )
+        self.load_params.on_upload(lambda _: self._load_params(self.load_params.value))
+
+    def _download(self, client: Any, only: str | None) -> None:
+        snap = self.app.controller.snapshot
+        try:
+            bundle = export.export_bundle(snap, cloud_format=self.cloud_format.value)
+        except export.ExportError as e:
+            self.app.controller.note(str(e), error=True)
+            return
+        written = ""
+        if self.app.out_dir is not None:
+            paths = export.write_bundle(bundle, self.app.out_dir)
+            written = f" Written to `{self.app.out_dir}` ({len(paths)} files)."
+        if only is not None:
+            self.app.send_file(client, only, bundle.files[only])
+        else:
+            self.app.send_file(client, "treereg_exports.zip", export.zip_bundle(bundle))
+        self.export_md.content = f"Exported the {bundle.stage} transforms of {len(bundle.transforms)} scans.{written}"
+
+    def _load_params(self, uploaded: Any) -> None:
+        try:
+            data = json.loads(uploaded.content.decode("utf-8"))
+            params = P.from_dict(data, source=uploaded.name or "parameters")
+        except (UnicodeDecodeError, json.JSONDecodeError) as e:
+            self.app.controller.note(f"{uploaded.name}: not valid JSON ({e})", error=True)
+            return
+        except ConfigError as e:
+            self.app.controller.note(str(e), error=True)
+            return
+        self.app.load_params(params, uploaded.name)

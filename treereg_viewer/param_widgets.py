@@ -1,0 +1,149 @@
+"""GUI inputs for one parameter section, built from the field metadata in treereg_core.params.
+
+Each field's type picks the input (checkbox, dropdown for `choices`, number with its min/max,
+text for optional values and lists); its label carries the unit and its hint the one-line doc.
+A change is handed to `on_change(section, name, value)`, which returns None when accepted or a
+message when rejected; a rejected value is put back so the input always shows what is in force.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import threading
+import types
+import typing
+from typing import Any, Callable
+
+import viser
+
+from treereg_core import params as P
+
+#: on_change(section, field name, raw value) -> None if accepted, else the reason it was rejected.
+OnChange = Callable[[str, str, Any], "str | None"]
+
+_SUFFIXES = ("_deg", "_m", "_px")
+
+
+def field_label(fld: dataclasses.Field) -> str:
+    """'inlier_m' -> 'inlier (m)'; 'orb_nfeatures' -> 'orb nfeatures'."""
+    name = fld.name
+    for s in _SUFFIXES:
+        if name.endswith(s):
+            name = name[: -len(s)]
+            break
+    unit = fld.metadata.get("unit") or ""
+    text = name.replace("_", " ")
+    return f"{text} ({unit})" if unit else text
+
+
+def field_hint(fld: dataclasses.Field) -> str:
+    meta = fld.metadata
+    parts = [meta.get("doc") or ""]
+    lo, hi = meta.get("min"), meta.get("max")
+    if lo is not None or hi is not None:
+        parts.append(f"range [{'' if lo is None else lo}, {'' if hi is None else hi}]")
+    return "; ".join(p for p in parts if p)
+
+
+def _hint_type(section: str, fld: dataclasses.Field) -> tuple[Any, bool]:
+    """The field's annotated type without Optional, and whether None is allowed."""
+    cls = type(getattr(P.Params(), section))
+    hint = typing.get_type_hints(cls)[fld.name]
+    args = typing.get_args(hint)
+    if typing.get_origin(hint) in (typing.Union, types.UnionType) and type(None) in args:
+        return next(a for a in args if a is not type(None)), True
+    return hint, False
+
+
+def format_text(value: Any) -> str:
+    """How a text input shows a value: None -> '', tuples -> '0.25, 0.5, 0.75'."""
+    if value is None:
+        return ""
+    if isinstance(value, tuple):
+        return ", ".join(f"{v:g}" if isinstance(v, float) else str(v) for v in value)
+    return str(value)
+
+
+def _float_step(value: float, lo: float | None) -> float:
+    # Enough decimals for the default and the minimum, at least three (e.g. 0.001 m).
+    digits = 3
+    for x in (value, lo):
+        if x is None:
+            continue
+        d = 0
+        while d < 6 and abs(x - round(x, d)) > 1e-12:
+            d += 1
+        digits = max(digits, d)
+    return 10.0 ** -digits
+
+
+class SectionWidgets:
+    """The inputs of one parameter section, in field order, in the current GUI container."""
+
+    def __init__(self, gui: viser.GuiApi, section: str, params: P.Params, on_change: OnChange) -> None:
+        self.section = section
+        self._on_change = on_change
+        self._syncing = threading.local()
+        self.handles: dict[str, Any] = {}
+        self._kinds: dict[str, str] = {}
+        self._choices: dict[str, tuple[Any, ...]] = {}
+        sec = getattr(params, section)
+        for fld in P.field_info(section):
+            self._add(gui, fld, getattr(sec, fld.name))
+
+    def _add(self, gui: viser.GuiApi, fld: dataclasses.Field, value: Any) -> None:
+        meta = fld.metadata
+        label, hint = field_label(fld), field_hint(fld)
+        typ, optional = _hint_type(self.section, fld)
+        choices = meta.get("choices")
+        if typ is bool and not optional:
+            h = gui.add_checkbox(label, bool(value), hint=hint)
+            kind = "bool"
+        elif choices is not None and not optional:
+            self._choices[fld.name] = tuple(choices)
+            h = gui.add_dropdown(label, [str(c) for c in choices], initial_value=str(value), hint=hint)
+            kind = "choice"
+        elif typ in (int, float) and not optional:
+            lo, hi = meta.get("min"), meta.get("max")
+            step = 1 if typ is int else _float_step(float(value), lo)
+            h = gui.add_number(label, value, min=lo, max=hi, step=step, hint=hint)
+            kind = "number"
+        else:
+            extra = " Leave empty for none." if optional else ""
+            if typing.get_origin(typ) is tuple:
+                extra += " Values separated by commas."
+            h = gui.add_text(label, format_text(value), hint=hint + "." + extra if hint else extra.strip())
+            kind = "text"
+        self.handles[fld.name] = h
+        self._kinds[fld.name] = kind
+        h.on_update(lambda event, name=fld.name: self._changed(name))
+
+    def _changed(self, name: str) -> None:
+        if getattr(self._syncing, "on", False):
+            return
+        h = self.handles[name]
+        kind = self._kinds[name]
+        value: Any = h.value
+        if kind == "choice":
+            value = next((c for c in self._choices[name] if str(c) == value), value)
+        elif kind == "text":
+            value = value.strip() or None
+        self._on_change(self.section, name, value)
+
+    def sync(self, params: P.Params) -> None:
+        """Show `params` in the inputs without reporting them as changes (a load, a preset, a revert)."""
+        sec = getattr(params, self.section)
+        self._syncing.on = True
+        try:
+            for name, h in self.handles.items():
+                v = getattr(sec, name)
+                kind = self._kinds[name]
+                shown = str(v) if kind == "choice" else format_text(v) if kind == "text" else v
+                if h.value != shown:
+                    h.value = shown
+        finally:
+            self._syncing.on = False
+
+    def set_disabled(self, disabled: bool) -> None:
+        for h in self.handles.values():
+            h.disabled = disabled

@@ -1,0 +1,82 @@
+"""Helpers shared by the renderers: subsampling for display, poses, metric tables, status text."""
+
+from __future__ import annotations
+
+from typing import Any, Iterable
+
+import numpy as np
+import viser.transforms as vtf
+
+from treereg_core.results import Metric
+
+from ..controller import Snapshot
+
+
+def display_subset(n: int, max_points: int, seed: int = 0) -> np.ndarray:
+    """Sorted indices of at most `max_points` of `n` points (seeded: the same every redraw)."""
+    if n <= max_points:
+        return np.arange(n)
+    rng = np.random.default_rng(seed)
+    return np.sort(rng.choice(n, size=max_points, replace=False))
+
+
+def pose_kwargs(T: np.ndarray) -> dict[str, np.ndarray]:
+    """viser's (wxyz, position) of a 4x4 rigid transform."""
+    T = np.asarray(T, dtype=np.float64)
+    return {"wxyz": vtf.SO3.from_matrix(T[:3, :3]).wxyz, "position": T[:3, 3].copy()}
+
+
+def metrics_rows(metrics: Iterable[Metric]) -> list[tuple[str, str]]:
+    return [(m.description, m.formatted()) for m in metrics]
+
+
+def md_table(header: tuple[str, ...], rows: list[tuple[Any, ...]]) -> str:
+    """A markdown table; cells are str()-ed, '|' escaped."""
+    if not rows:
+        return ""
+
+    def cell(v: Any) -> str:
+        if isinstance(v, float):
+            v = f"{v:.4g}"
+        return str(v).replace("|", "\\|")
+
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(cell(v) for v in r) + " |" for r in rows]
+    return "\n".join(lines)
+
+
+def metrics_table(columns: dict[str, Iterable[Metric]]) -> str:
+    """Metric rows side by side: one column per label (e.g. per target scan), one row per metric."""
+    cols = {k: {m.description: m.formatted() for m in v} for k, v in columns.items()}
+    names: list[str] = []
+    for c in cols.values():
+        names += [n for n in c if n not in names]
+    rows = [(n, *(c.get(n, "") for c in cols.values())) for n in names]
+    return md_table(("metric", *cols.keys()), rows)
+
+
+def pair_label(snap: Snapshot, target_index: int) -> str:
+    """'scan2 → scan1' for target number `target_index` (0 = second scan)."""
+    return f"{snap.scans[target_index + 1].name} → {snap.scans[0].name}"
+
+
+def not_ready_text(snap: Snapshot, stage: str) -> str:
+    """What the panel says when a stage has nothing to show."""
+    status = snap.status(stage)
+    if status == "running":
+        return f"*{stage} is running…*"
+    if len(snap.scans) < 2:
+        return "*Registration needs at least two scans: upload another scan (Scans tab).*"
+    for s, why in snap.crashed.items():
+        return f"**{s} failed:** {why}\n\nLater stages are stale until it succeeds."
+    for s, out in snap.outputs.items():
+        if not out.ok:
+            return f"**{s} failed:** {out.message}\n\nLater stages are stale until it succeeds."
+    return f"*{stage} has not run for the current parameters: press **Run**.*"
+
+
+def item_message(item: Any) -> str:
+    """A failed item's message, as a line for the panel (empty when ok)."""
+    if getattr(item, "ok", True):
+        return ""
+    return f"**Failed:** {getattr(item, 'message', '')}"

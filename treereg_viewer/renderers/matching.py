@@ -1,0 +1,108 @@
+"""Stage 2: coarse.MatchResult — similarity matrix, ORB matches of a chosen image pair, tie points.
+
+The panel shows the similarity matrix of the reference's and the target's image sequences as a
+heatmap with the chosen pairs marked (the current one highlighted), and the current pair's two
+images side by side with their matches: kept in green, rejected by the β check in grey. In 3-D,
+the tie points of each scan (each in its own frame, as the scans are shown on this stage) joined by
+lines.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import plotly.graph_objects as go
+import viser
+
+from ..controller import Snapshot
+from ..drawing import binary_to_rgb, display_xy, draw_lines, draw_markers, fit_width, hstack
+from ..palette import HIGHLIGHT, KEPT, REJECTED, scan_color
+from ..view_panel import PanelContent
+from ..view_state import ViewState
+from .common import item_message, metrics_table, not_ready_text, pair_label
+
+
+def similarity_figure(match: Any, angles_ref: tuple[float, ...], angles_tgt: tuple[float, ...], current: int,
+                      ref_name: str, tgt_name: str) -> go.Figure:
+    """Heatmap of the similarity matrix (rows: reference images, columns: target images), chosen pairs marked."""
+    sim = np.asarray(match.similarity, dtype=float)
+    fig = go.Figure(go.Heatmap(
+        z=sim, x=list(angles_tgt)[: sim.shape[1]], y=list(angles_ref)[: sim.shape[0]], colorscale="Viridis",
+        colorbar=dict(title=match.measure, thickness=12),
+        hovertemplate=f"{ref_name} θ=%{{y}}°<br>{tgt_name} θ=%{{x}}°<br>{match.measure}=%{{z:.3f}}<extra></extra>",
+    ))
+    pairs = match.pairs
+    if pairs:
+        fig.add_trace(go.Scatter(
+            x=[p.angle_tgt_deg for p in pairs], y=[p.angle_ref_deg for p in pairs], mode="markers",
+            marker=dict(symbol="circle-open", size=11, color="white", line=dict(width=2)),
+            name="chosen pairs", text=[f"pair {k + 1}: {int(np.count_nonzero(p.kept))} kept matches" for k, p in enumerate(pairs)],
+            hoverinfo="text",
+        ))
+        c = pairs[min(current, len(pairs) - 1)]
+        fig.add_trace(go.Scatter(
+            x=[c.angle_tgt_deg], y=[c.angle_ref_deg], mode="markers", name="shown below",
+            marker=dict(symbol="square-open", size=15, color="rgb(250,200,0)", line=dict(width=3)), hoverinfo="skip",
+        ))
+    fig.update_layout(
+        margin=dict(l=50, r=10, t=30, b=40), showlegend=False,
+        title=dict(text=f"Similarity ({match.measure}) of the two sequences; circles: chosen pairs", font=dict(size=12)),
+        xaxis_title=f"{tgt_name} rotation θ (deg)", yaxis_title=f"{ref_name} rotation θ (deg)",
+    )
+    return fig
+
+
+def matches_image(pair: Any, img_ref: np.ndarray, img_tgt: np.ndarray, color_ref: tuple[int, int, int],
+                  color_tgt: tuple[int, int, int]) -> np.ndarray:
+    """The pair's two images side by side (reference left) with kept (green) and rejected (grey) matches."""
+    a, b = binary_to_rgb(img_ref, color_ref), binary_to_rgb(img_tgt, color_tgt)
+    lay = hstack([a, b], gap=16)
+    canvas = lay.image
+    p0 = display_xy(pair.xy_ref, img_ref.shape) + lay.offsets[0]
+    p1 = display_xy(pair.xy_tgt, img_tgt.shape) + lay.offsets[1]
+    kept = np.asarray(pair.kept, dtype=bool)
+    colors = np.where(kept[:, None], np.array(KEPT, np.uint8), np.array(REJECTED, np.uint8))
+    order = np.argsort(kept, kind="stable")  # rejected first, kept drawn on top
+    draw_lines(canvas, p0[order], p1[order], colors[order], thickness=1)
+    draw_markers(canvas, np.vstack([p0, p1]), np.vstack([colors, colors]), radius=2)
+    return fit_width(canvas)
+
+
+def render_matching(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> tuple[list[Any], PanelContent]:
+    out, seqs = snap.output("matching"), snap.output("projection")
+    if out is None or seqs is None or not out.items:
+        return [], PanelContent("2 · Matching", text=not_ready_text(snap, "matching"))
+    t = min(view.target, len(out.items) - 1)
+    m = out.items[t]
+    ref_name, tgt_name = snap.scans[0].name, snap.scans[t + 1].name
+    seq_ref, seq_tgt = seqs.items[0], seqs.items[t + 1]
+    title = f"2 · Matching: {pair_label(snap, t)}"
+    texts = [item_message(m)] if not m.ok else []
+    images, plots = [], []
+    if getattr(m, "similarity", None) is not None and np.size(m.similarity):
+        plots.append((similarity_figure(m, seq_ref.angles_deg, seq_tgt.angles_deg, view.match_pair, ref_name, tgt_name), 1.25))
+    if m.pairs:
+        k = min(view.match_pair, len(m.pairs) - 1)
+        pair = m.pairs[k]
+        img = matches_image(pair, seq_ref.images[pair.i], seq_tgt.images[pair.j], scan_color(0), scan_color(t + 1))
+        n_kept = int(np.count_nonzero(pair.kept))
+        images.append((img, (
+            f"Image pair {k + 1} of {len(m.pairs)}: {ref_name} at θ = {pair.angle_ref_deg:+.0f}° (left), "
+            f"{tgt_name} at θ = {pair.angle_tgt_deg:+.0f}° (right); {n_kept} of {len(pair.kept)} matches kept "
+            f"(green), {len(pair.kept) - n_kept} rejected by the β check (grey)."
+        )))
+    texts.append(f"{m.n_ties} tie points from {len(m.pairs)} image pairs. In 3-D: each tie point in its own scan's "
+                 "frame, joined to its partner (the scans are not registered yet).")
+    handles: list[Any] = []
+    if m.n_ties:
+        ref_xyz, tgt_xyz = np.asarray(m.ref_xyz), np.asarray(m.tgt_xyz)
+        segs = np.stack([ref_xyz, tgt_xyz], axis=1).astype(np.float32)
+        handles.append(scene.add_line_segments(f"{root}/ties", segs, HIGHLIGHT, thickness=1.5, thickness_units="screen"))
+        handles.append(scene.add_point_cloud(f"{root}/ties_ref", ref_xyz, scan_color(0), point_size=0.12,
+                                             point_shape="circle", precision="float32"))
+        handles.append(scene.add_point_cloud(f"{root}/ties_tgt", tgt_xyz, scan_color(t + 1), point_size=0.12,
+                                             point_shape="circle", precision="float32"))
+    table = metrics_table({pair_label(snap, i): it.metrics for i, it in enumerate(out.items)})
+    return handles, PanelContent(title, text="\n\n".join(x for x in texts if x), images=tuple(images),
+                                 plots=tuple(plots), table=table)

@@ -1,0 +1,55 @@
+"""The "Scans" tab: display options of the scan layer, show/hide per scan, and scan upload."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+import viser
+
+from .controller import Snapshot
+from .palette import scan_color
+
+if TYPE_CHECKING:
+    from .app import TreeregApp
+
+#: File types treereg_core.io reads (the upload dialog's filter is only a hint: anything may come).
+SCAN_SUFFIXES = ".ply,.las,.laz,.xyz,.txt,.csv,.npy,.npz"
+
+
+class ScanPanel:
+    def __init__(self, gui: viser.GuiApi, app: "TreeregApp") -> None:
+        self.app = app
+        self.gui = gui
+        v = app.view
+        self.point_size = gui.add_slider("Point size (m)", 0.005, 0.2, 0.005, v.point_size)
+        self.max_points = gui.add_number("Points shown per scan", v.max_points, min=1000, max=2_000_000, step=1000,
+                                         hint="Display subsampling only; every stage uses all points.")
+        self.stations = gui.add_checkbox("Show scanner stations", v.show_stations)
+        self.point_size.on_update(lambda _: app.set_view(point_size=float(self.point_size.value)))
+        self.max_points.on_update(lambda _: app.set_view(max_points=int(self.max_points.value)))
+        self.stations.on_update(lambda _: app.set_view(show_stations=bool(self.stations.value)))
+        self.visibility_folder = gui.add_folder("Show / hide")
+        self._checkboxes: list[Any] = []
+        self._names: tuple[str, ...] = ()
+        self.upload = gui.add_upload_button("Add a scan file", icon=viser.Icon.UPLOAD, mime_type="*/*",
+                                            hint=f"Appends a scan ({SCAN_SUFFIXES}); the first scan stays the reference.")
+        self.upload.on_upload(lambda _: app.controller.add_scan_bytes(self.upload.value.name, self.upload.value.content))
+        gui.add_markdown("Uploaded scans are registered onto scan 1. A file that cannot be read is "
+                         "reported above and changes nothing.")
+
+    def show_snapshot(self, snap: Snapshot) -> None:
+        """Rebuild the show/hide checkboxes when the set of scans changed."""
+        names = tuple(s.name for s in snap.scans)
+        if names == self._names:
+            return
+        self._names = names
+        for cb in self._checkboxes:
+            cb.remove()
+        self._checkboxes = []
+        with self.visibility_folder:
+            for i, name in enumerate(names):
+                r, g, b = scan_color(i)
+                cb = self.gui.add_checkbox(f"{i + 1}: {name}", name not in self.app.view.hidden_scans,
+                                           hint=f"scan colour rgb({r}, {g}, {b})")
+                cb.on_update(lambda _, name=name, cb=cb: self.app.set_scan_visible(name, bool(cb.value)))
+                self._checkboxes.append(cb)

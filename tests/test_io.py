@@ -15,7 +15,7 @@ from treereg_core.errors import ScanError
 from treereg_core.io import ScanWarning, read_points, read_scan, write_scan
 from treereg_core.simulate import simulate_case
 
-REAL_SCAN = Path("/work/shared/data/real_trees/rtls_single_scan_scanner_at_origin.xyz.gz")
+REAL_SCAN = Path(__file__).resolve().parents[2] / "shared" / "data" / "real_trees" / "rtls_single_scan_scanner_at_origin.xyz.gz"
 
 
 @pytest.fixture(scope="module")
@@ -92,6 +92,7 @@ def test_scan_object_is_written_and_read_back_with_name_and_steps(tmp_path, sim_
         ("spaced.csv", lambda p: "".join(f"{a!r}, {b!r}, {c!r}\n" for a, b, c in p.tolist())),
         ("extra.txt", lambda p: "x y z r g b label\n" + "".join(f"{a!r} {b!r} {c!r} 1 2 3 leaf\n" for a, b, c in p.tolist())),
         ("comments.xyz", lambda p: "# exported by X\n// X Y Z\n\n" + _xyz_lines(p)),
+        ("windows.csv", lambda p: "\ufeffx,y,z\r\n" + _xyz_lines(p, ",").replace("\n", "\r\n")),
     ],
 )
 def test_text_formats(tmp_path, pts, name, text_of):

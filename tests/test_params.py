@@ -25,6 +25,8 @@ PAPER_VALUES = {
     ("fine", "estimator"): "svd",  # 2.2.3: SVD over the fitted centres
     ("fine", "max_iterations"): 1,  # one fine step
     ("evaluation", "layers"): 3,  # 3.3: bottom, middle and top layers of a branch
+    ("fine", "method"): "ties",  # 2.2.3: centres and axis points as tie points
+    ("arcs", "max_range_jump_m"): None,  # 2.2.2: connectivity by angles only
 }
 
 # Where our default deliberately departs from the paper.
@@ -42,16 +44,7 @@ def test_default_is_the_robust_preset():
     assert P.to_dict(P.Params()) == P.to_dict(P.PRESETS["robust"])
 
 
-# Fields whose own doc names the paper's value but which `_paper()` does not set yet (reported to
-# the owners of those sections; strict: remove the mark once the preset is fixed).
-_NOT_YET = pytest.mark.xfail(strict=True, reason="paper preset does not set this field yet")
-PAPER_VALUES_PENDING = [
-    pytest.param(("fine", "method"), "ties", marks=_NOT_YET),  # doc: "tie points ... (paper)"
-    pytest.param(("arcs", "max_range_jump_m"), None, marks=_NOT_YET),  # doc: "None = paper: angles only"
-]
-
-
-@pytest.mark.parametrize("key, value", sorted(PAPER_VALUES.items()) + PAPER_VALUES_PENDING)
+@pytest.mark.parametrize("key, value", sorted(PAPER_VALUES.items()))
 def test_paper_preset_holds_the_papers_values(key, value):
     section, name = key
     assert getattr(getattr(P.PRESETS["paper"], section), name) == value

@@ -54,7 +54,7 @@ def test_step_estimated_on_grid_with_dropouts_noise_and_occlusion(step):
     assert rel_err(est, (step, step)).max() < 0.10, est
 
 
-@pytest.mark.parametrize("phi, varphi", [(0.04, 0.25), (0.25, 0.04), (0.1, 0.05)])
+@pytest.mark.parametrize("phi, varphi", [(0.04, 0.25), (0.25, 0.04), (0.1, 0.05), (1.0, 0.04)])
 def test_step_estimated_when_horizontal_and_vertical_steps_differ(phi, varphi):
     pts = grid_scan(phi, varphi, seed=2)
     est = estimate_angular_step(*spherical_angles_deg(pts))

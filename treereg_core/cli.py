@@ -88,6 +88,10 @@ def _add_simulate(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--bent", action="store_true", help="bend the trunk")
     p.add_argument("--lean", type=float, default=0.0, metavar="DEG", help="lean the whole tree by this angle")
     p.add_argument("--ground", action="store_true", help="add a (slightly sloped) ground plane")
+    p.add_argument("--ground-radius", type=float, default=20.0, metavar="M",
+                   help="the ground reaches this far around the tree (default: 20)")
+    p.add_argument("--ground-front", type=float, default=2.0, metavar="M",
+                   help="scans reach down to the ground this far in front of the trunk (default: 2)")
     p.add_argument("--second-tree", action="store_true", help="add a smaller tree nearby")
     p.add_argument("--tilt", type=float, nargs="?", const=0.3, default=0.0, metavar="DEG",
                    help="instruments not perfectly levelled, by up to DEG (0.3 when given without a value)")
@@ -97,6 +101,9 @@ def _add_simulate(sub: argparse._SubParsersAction) -> None:
                    help="station distance from the trunk in metres (default: 8 15)")
     p.add_argument("--from-points", metavar="FILE",
                    help="make the stations from this point cloud (a whole tree: PLY, LAS/LAZ, XYZ, ...) instead")
+    p.add_argument("--splat", type=float, metavar="M",
+                   help="with --from-points: each point also hides what lies behind it as a sphere of "
+                   "this radius (about the point spacing), so a sparse trunk is not seen through")
     p.add_argument("--float32", action="store_true", help="write float32 PLY (half the size)")
     p.set_defaults(func=_run_simulate)
 
@@ -110,9 +117,10 @@ def _run_simulate(args: argparse.Namespace) -> int:
     spec = CaseSpec(
         seed=args.seed, n_stations=args.stations, angular_step_deg=(steps[0], steps[-1]),
         height_m=args.height, dbh_m=args.dbh, orders=args.orders, bent=args.bent, lean_deg=args.lean,
-        leaves=args.leaves, ground=args.ground, second_tree=args.second_tree, tilt_deg=args.tilt,
+        leaves=args.leaves, ground=args.ground, ground_radius_m=args.ground_radius,
+        ground_front_m=args.ground_front, second_tree=args.second_tree, tilt_deg=args.tilt,
         range_sigma_m=args.noise, dropout=args.dropout, station_distance_m=tuple(args.distance),
-        from_points=args.from_points,
+        from_points=args.from_points, splat_radius_m=args.splat,
     )
     case = spec.build(progress=ProgressBar("simulate"))
     truth = write_case(case, args.out, dtype="float32" if args.float32 else "float64")

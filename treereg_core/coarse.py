@@ -15,6 +15,7 @@ is described once.
 
 from __future__ import annotations
 
+import threading
 import time
 import weakref
 from dataclasses import dataclass, fields
@@ -37,15 +38,20 @@ MIN_TIES_ANY = 3
 _FEATURE_FIELDS = ("image_mode", "ramp_px", "orb_nfeatures", "orb_edge_threshold", "orb_patch_size",
                    "orb_fast_threshold", "snap_px")
 _feature_cache: "weakref.WeakKeyDictionary[ImageSequence, dict]" = weakref.WeakKeyDictionary()
+_feature_lock = threading.Lock()
 
 
 def sequence_features(seq: ImageSequence, index: int, p: MatchingParams) -> ImageFeatures:
     """ORB features of image `index` of `seq`, computed once per (sequence, image, feature parameters)."""
     key = (index,) + tuple(getattr(p, f) for f in _FEATURE_FIELDS)
-    per_seq = _feature_cache.setdefault(seq, {})
-    if key not in per_seq:
-        per_seq[key] = features.detect(seq.images[index], p)
-    return per_seq[key]
+    with _feature_lock:
+        found = _feature_cache.get(seq, {}).get(key)
+    if found is None:
+        # Detect outside the lock (it is the slow part); two threads may both compute it: harmless.
+        found = features.detect(seq.images[index], p)
+        with _feature_lock:
+            _feature_cache.setdefault(seq, {})[key] = found
+    return found
 
 
 @dataclass(frozen=True, eq=False)

@@ -52,7 +52,7 @@ def orb_input(image: np.ndarray, mode: str, ramp_px: float) -> np.ndarray:
     if mode == "ramp":
         # distanceTransform measures, for every non-zero (empty) pixel, the distance to the nearest
         # zero (occupied) pixel: exactly the ramp we want.
-        dist = cv2.distanceTransform(image, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+        dist = cv2.distanceTransform(image, cv2.DIST_L2, cv2.DIST_MASK_5)
         return (np.minimum(dist, ramp_px) * (255.0 / ramp_px)).astype(np.uint8)
     raise ValueError(f"unknown image mode {mode!r}; choose 'binary' or 'ramp'")
 

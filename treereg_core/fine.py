@@ -30,6 +30,7 @@ from typing import Sequence
 
 import numpy as np
 from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
 from . import robust
 from .arcs import ArcResult, separate_arcs
@@ -38,7 +39,7 @@ from .fitting import Section, _basis, check_taper, fit_section
 from .icp import _skew_rotation, estimate_normals, voxel_downsample
 from .params import ArcParams, FineParams, FitParams, Params
 from .results import Metric, Progress, no_progress
-from .rigid import apply_transform, kabsch, make_transform
+from .rigid import apply_transform, invert, kabsch, make_transform
 from .scan import Scan
 from .slicing import SliceResult, slice_scans
 
@@ -130,7 +131,7 @@ def _fit_scan_sections(scan: Scan, slice_idx: Sequence[np.ndarray], heights: np.
     return _Sections(tuple(arcs), tuple(sections), tuple(members))
 
 
-def _match(ref: _Sections, tgt: _Sections, fp: FitParams) -> Correspondences:
+def _match(ref: _Sections, tgt: _Sections, fp: FitParams, gate_m: float | None = None) -> Correspondences:
     """Pair plausible sections of the two scans, slice by slice, nearest centres within the gate."""
     ri = np.array([i for i, s in enumerate(ref.sections) if s.plausible], dtype=np.int64)
     ti = np.array([i for i, s in enumerate(tgt.sections) if s.plausible], dtype=np.int64)
@@ -140,7 +141,7 @@ def _match(ref: _Sections, tgt: _Sections, fp: FitParams) -> Correspondences:
     tg = np.array([tgt.sections[i].slice_index for i in ti])
     rr = np.array([ref.sections[i].radius_m for i in ri])
     tr = np.array([tgt.sections[i].radius_m for i in ti])
-    c = match_sections(rc, tc, fp.gate_m, rg, tg, rr, tr, fp.max_radius_ratio)
+    c = match_sections(rc, tc, fp.gate_m if gate_m is None else gate_m, rg, tg, rr, tr, fp.max_radius_ratio)
     if c.ok:
         c = Correspondences(c.ok, c.message, c.metrics, np.c_[ri[c.pairs[:, 0]], ti[c.pairs[:, 1]]], c.distances_m)
     return c
@@ -188,9 +189,46 @@ def _basis_rows(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return e1, np.cross(a, e1)
 
 
-def _robust_weight(res: np.ndarray, scale: float) -> np.ndarray:
-    """IRLS weight of the soft-L1 loss rho(z) = 2 (sqrt(1 + z) - 1), z = (res / scale)^2."""
-    return 1.0 / np.sqrt(1.0 + (res / scale) ** 2)
+def _rotvec(R: np.ndarray) -> np.ndarray:
+    """Rotation vector (axis times angle, rad) of a rotation matrix."""
+    return Rotation.from_matrix(R).as_rotvec()
+
+
+def _solve_well_determined(S_data: np.ndarray, S_prior: np.ndarray, b: np.ndarray, lever_m: float,
+                           sigma_m: float, max_sigma_m: float | None) -> tuple[np.ndarray, int]:
+    """Gauss-Newton step of the 6 pose unknowns, restricted to the directions the data determine.
+
+    Rotations are scaled by the lever arm `lever_m` so all six directions are in metres. A direction
+    whose noise-propagated standard deviation sigma / sqrt(eigenvalue) exceeds `max_sigma_m` (a
+    stem of vertical cylinders says nothing about z, or about a turn about itself) gets no update:
+    it stays where coarse put it instead of wandering with noise and model error.
+    Returns (step, number of held directions).
+    """
+    D = np.r_[[lever_m] * 3, [1.0] * 3]
+    Sy = S_data / np.outer(D, D)
+    lam, V = np.linalg.eigh((Sy + Sy.T) / 2.0)
+    if max_sigma_m is None:
+        good = np.ones(6, dtype=bool)
+    else:
+        good = sigma_m / np.sqrt(np.maximum(lam, 1e-300)) <= max_sigma_m
+    if not good.any():
+        return np.zeros(6), 6
+    Vg = V[:, good]
+    A = Vg.T @ ((Sy + S_prior / np.outer(D, D)) @ Vg)
+    dy = -Vg @ np.linalg.solve(A, Vg.T @ (b / D))
+    return dy / D, int((~good).sum())
+
+
+def _robust_weight(res: np.ndarray, scale: float, loss: str) -> np.ndarray:
+    """IRLS weight rho'(z), z = (res / scale)^2, of soft-L1 (2 (sqrt(1 + z) - 1)) or Cauchy (ln(1 + z))."""
+    z = (res / scale) ** 2
+    return 1.0 / np.sqrt(1.0 + z) if loss == "soft_l1" else 1.0 / (1.0 + z)
+
+
+def _robust_cost(res: np.ndarray, scale: float, loss: str) -> float:
+    z = (res / scale) ** 2
+    rho = 2.0 * (np.sqrt(1.0 + z) - 1.0) if loss == "soft_l1" else np.log1p(z)
+    return float(rho.sum()) * scale ** 2
 
 
 @dataclass(frozen=True)
@@ -203,18 +241,20 @@ class JointFit:
     radii_m: np.ndarray
     rms_m: np.ndarray
     iterations: int
+    held_directions: int
 
 
 def adjust_joint(points: np.ndarray, section: np.ndarray, moving: np.ndarray, c0: np.ndarray, a0: np.ndarray,
                  r0: np.ndarray, loss_scale_m: float, prior_m: float, prior_deg: float,
+                 loss: str = "soft_l1", max_sigma_m: float | None = None, prior_offset: np.ndarray | None = None,
                  max_iterations: int = 30) -> JointFit:
     """Fit one cylinder per section to all its points while the `moving` points follow a rigid update.
 
-    A Gauss-Newton (IRLS, soft-L1) bundle adjustment with an analytic Jacobian. The section
+    A Gauss-Newton (IRLS, soft-L1 or Cauchy loss) bundle adjustment with an analytic Jacobian. The section
     unknowns (axis point across the axis: 2, axis tilt: 2, radius: 1) are eliminated per section
     (Schur complement of their 5 x 5 blocks), leaving a 6 x 6 system for the update (rotation
-    vector about the data centroid, translation); a weak prior on the update keeps directions that
-    no section constrains where they are.
+    vector about the data centroid, translation); a prior centred on the coarse pose keeps
+    directions that the sections hardly constrain near it.
 
     Parameters
     ----------
@@ -227,7 +267,15 @@ def adjust_joint(points: np.ndarray, section: np.ndarray, moving: np.ndarray, c0
     c0, a0, r0
         K x 3 axis points, K x 3 unit axes, K radii to start from.
     loss_scale_m, prior_m, prior_deg
-        Soft-L1 scale; prior standard deviations of the translation and rotation update.
+        Loss scale; prior standard deviations of the translation and rotation away from the prior pose.
+    loss
+        "soft_l1" (convex beyond the scale: safe far from the solution) or "cauchy" (redescending:
+        a wrong pair's points lose their pull once the right pose is near).
+    max_sigma_m
+        Pose directions determined worse than this are held (see `_solve_well_determined`).
+    prior_offset
+        4x4 taking the prior pose of the moving points to the pose they are given in (the fine
+        updates so far); None = they are given at the prior pose.
 
     Returns
     -------
@@ -237,10 +285,15 @@ def adjust_joint(points: np.ndarray, section: np.ndarray, moving: np.ndarray, c0
     K = len(c0)
     starts = np.flatnonzero(np.r_[True, section[1:] != section[:-1]])
     centre = points.mean(axis=0)
+    lever = float(np.sqrt(np.mean(np.sum((points - centre) ** 2, axis=1))))
+    held = 0
     mv = np.flatnonzero(moving)
     base = points[mv] - centre
     c, a, r = c0.astype(float).copy(), a0.astype(float).copy(), r0.astype(float).copy()
-    R, tau, omega = np.eye(3), np.zeros(3), np.zeros(3)
+    R, tau = np.eye(3), np.zeros(3)
+    # The pose relative to the prior (coarse) one, in the same parametrisation: rotation about `centre`.
+    Rp = np.eye(3) if prior_offset is None else prior_offset[:3, :3]
+    tp = np.zeros(3) if prior_offset is None else Rp @ centre + prior_offset[:3, 3] - centre
     prior = (loss_scale_m ** 2) * np.r_[[1 / np.radians(prior_deg) ** 2] * 3, [1 / prior_m ** 2] * 3]
     eye5 = np.eye(5)
 
@@ -253,15 +306,14 @@ def adjust_joint(points: np.ndarray, section: np.ndarray, moving: np.ndarray, c0
         nrm = np.sqrt(np.einsum("ij,ij->i", perp, perp))
         return cur, d, along, perp, nrm, nrm - r_[section]
 
-    def cost(res: np.ndarray, om: np.ndarray, t: np.ndarray) -> float:
-        z = (res / loss_scale_m) ** 2
-        return float(np.sum(2.0 * (np.sqrt(1.0 + z) - 1.0)) * loss_scale_m ** 2 + prior @ np.r_[om, t] ** 2)
+    def cost(res: np.ndarray, Rt: np.ndarray, t: np.ndarray) -> float:
+        return _robust_cost(res, loss_scale_m, loss) + float(prior @ np.r_[_rotvec(Rt), t] ** 2)
 
     cur, d, along, perp, nrm, res = residuals(R, tau, c, a, r)
-    f = cost(res, omega, tau)
+    f = cost(res, Rp, tp)
     it = 0
     for it in range(1, max_iterations + 1):
-        w = _robust_weight(res, loss_scale_m)
+        w = _robust_weight(res, loss_scale_m, loss)
         n = perp / np.maximum(nrm, 1e-12)[:, None]
         e1, e2 = _basis_rows(a)
         ne1 = np.einsum("ij,ij->i", n, e1[section])
@@ -275,34 +327,32 @@ def adjust_joint(points: np.ndarray, section: np.ndarray, moving: np.ndarray, c0
         Hsp = np.add.reduceat(np.einsum("ni,nj->nij", wJs, Jp), starts, axis=0)
         gs = np.add.reduceat(wJs * res[:, None], starts, axis=0)
         Hpp = (Jp * w[:, None]).T @ Jp + np.diag(prior)
-        gp = (Jp * w[:, None]).T @ res + prior * np.r_[omega, tau]
+        gp = (Jp * w[:, None]).T @ res + prior * np.r_[_rotvec(Rp), tp]
         # Levenberg damping on the section blocks keeps near-degenerate sections (tiny arcs) finite.
         Hss = Hss + 1e-9 * eye5 + 1e-6 * np.einsum("kii->ki", Hss)[:, :, None] * eye5
         Hinv = np.linalg.inv(Hss)
         HinvHsp = Hinv @ Hsp
         S = Hpp - np.einsum("kji,kjl->il", Hsp, HinvHsp)
         b = gp - np.einsum("kji,kj->i", Hsp, np.einsum("kij,kj->ki", Hinv, gs))
-        try:
-            dp = -np.linalg.solve(S + 1e-12 * np.eye(6), b)
-        except np.linalg.LinAlgError:
-            break
+        dp, held = _solve_well_determined(S - np.diag(prior), np.diag(prior), b, lever, loss_scale_m, max_sigma_m)
         ds = -(np.einsum("kij,kj->ki", Hinv, gs) + HinvHsp @ dp)
         step = 1.0
         for _ in range(8):  # backtracking: IRLS steps on a robust cost can overshoot
             Rd = _skew_rotation(step * dp[:3])
-            R_n, tau_n, om_n = Rd @ R, Rd @ tau + step * dp[3:], omega + step * dp[:3]
+            R_n, tau_n = Rd @ R, Rd @ tau + step * dp[3:]
+            Rp_n, tp_n = Rd @ Rp, Rd @ tp + step * dp[3:]
             c_n = c + step * (ds[:, :1] * e1 + ds[:, 1:2] * e2)
             a_n = a + step * (ds[:, 2:3] * e1 + ds[:, 3:4] * e2)
             a_n /= np.linalg.norm(a_n, axis=1, keepdims=True)
             r_n = r + step * ds[:, 4]
             out = residuals(R_n, tau_n, c_n, a_n, r_n)
-            f_n = cost(out[-1], om_n, tau_n)
+            f_n = cost(out[-1], Rp_n, tp_n)
             if f_n <= f:
                 break
             step /= 2.0
         else:
             break
-        R, tau, omega, c, a, r = R_n, tau_n, om_n, c_n, a_n, r_n
+        R, tau, Rp, tp, c, a, r = R_n, tau_n, Rp_n, tp_n, c_n, a_n, r_n
         cur, d, along, perp, nrm, res = out
         converged = f - f_n <= 1e-10 * max(f, 1e-12) or (
             np.linalg.norm(step * dp[:3]) < 1e-7 and np.linalg.norm(step * dp[3:]) < 1e-6)
@@ -312,11 +362,12 @@ def adjust_joint(points: np.ndarray, section: np.ndarray, moving: np.ndarray, c0
     counts = np.diff(np.r_[starts, len(res)])
     rms = np.sqrt(np.add.reduceat(res ** 2, starts) / counts)
     U = make_transform(R, centre - R @ centre + tau)
-    return JointFit(U, c, a, np.abs(r), rms, it)
+    return JointFit(U, c, a, np.abs(r), rms, it, held)
 
 
 def _estimate_joint(ref_scan: Scan, tgt_scan: Scan, T: np.ndarray, ref: _Sections, tgt: _Sections,
-                    corr: Correspondences, fp: FineParams) -> tuple[np.ndarray | None, str, np.ndarray]:
+                    corr: Correspondences, fp: FineParams, loss: str,
+                    T_prior: np.ndarray) -> tuple[np.ndarray | None, str, np.ndarray]:
     """Rigid update from one cylinder per section pair fitted to both scans' points at once.
 
     Pairs whose cylinder fits badly (RMS above `_TRIM_FACTOR` times the median and above the loss
@@ -343,7 +394,8 @@ def _estimate_joint(ref_scan: Scan, tgt_scan: Scan, T: np.ndarray, ref: _Section
         idx = np.flatnonzero(keep[S])
         remap = np.cumsum(keep) - 1
         fit = adjust_joint(P[idx], remap[S[idx]], M[idx], c0[keep], a0[keep], r0[keep], fp.loss_scale_m,
-                           fp.prior_m, fp.prior_deg)
+                           fp.prior_m, fp.prior_deg, loss, fp.max_direction_sigma_m, T @ invert(T_prior),
+                           fp.max_solver_iterations)
         bad = fit.rms_m > max(_TRIM_FACTOR * float(np.median(fit.rms_m)), fp.loss_scale_m)
         if not bad.any() or keep.sum() - bad.sum() < fp.min_pairs:
             break
@@ -412,6 +464,10 @@ def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, params: Params,
             ref_secs = _fit_scan_sections(ref, sl.ref_indices, sl.heights_m, np.eye(4), ap, fitp)
         tgt_secs = _fit_scan_sections(tgt, sl.tgt_indices, sl.heights_m, T, ap, fitp)
         corr = _match(ref_secs, tgt_secs, fitp)
+        if it > 1 and corr.ok and fp.gate_factor is not None:
+            # Once the pose is close, right pairs sit far closer than the coarse gate: a pair much
+            # farther apart than the median (a fork mistaken for a stem) is dropped.
+            corr = _match(ref_secs, tgt_secs, fitp, max(fp.min_gate_m, fp.gate_factor * float(np.median(corr.distances_m))))
         if not sl.ok or not corr.ok or len(corr.pairs) < fp.min_pairs:
             note = (sl.message if not sl.ok else
                     f"only {len(corr.pairs)} corresponding sections (fine.min_pairs = {fp.min_pairs})")
@@ -420,7 +476,8 @@ def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, params: Params,
         if fp.method == "ties":
             U, note = _estimate_ties(ref_secs, tgt_secs, corr, fp)
         else:
-            U, note, _ = _estimate_joint(ref, tgt, T, ref_secs, tgt_secs, corr, fp)
+            U, note, _ = _estimate_joint(ref, tgt, T, ref_secs, tgt_secs, corr, fp,
+                                         "soft_l1" if it == 1 else fp.refine_loss, T0)
         if U is None:
             it -= 1
             break

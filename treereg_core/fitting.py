@@ -205,13 +205,15 @@ def _circle_about(xyz: np.ndarray, a: np.ndarray) -> tuple[np.ndarray, float, fl
     return c[0] * e1 + c[1] * e2 + along * a, r, rms
 
 
-def fit_cylinder(xyz: np.ndarray, axis_hint: np.ndarray | None = None, loss_scale_m: float = 0.005) -> CylinderFit:
+def fit_cylinder(xyz: np.ndarray, axis_hint: np.ndarray | None = None, loss_scale_m: float = 0.005,
+                 refine: bool = True) -> CylinderFit:
     """Least-squares cylinder fit (paper 2.2.3, branch sections), started from PCA.
 
     The start axis is the best (lowest circle RMS) of: the principal direction of the points
     (PCA; right for long branch pieces), the direction most normal to the surface normals (right
     for short, wide slices of a stem, where PCA points across the stem), vertical, and `axis_hint`.
-    Then `scipy.optimize.least_squares` refines axis, axis point and radius with a soft-L1 loss.
+    Then `scipy.optimize.least_squares` refines axis, axis point and radius with a soft-L1 loss
+    (analytic Jacobian).
 
     Parameters
     ----------
@@ -221,6 +223,10 @@ def fit_cylinder(xyz: np.ndarray, axis_hint: np.ndarray | None = None, loss_scal
         An optional extra start direction.
     loss_scale_m
         Residual scale of the robust loss.
+    refine
+        False skips the least-squares refinement and returns the best start (axis from the
+        candidates, Taubin circle across it): about ten times faster, for callers that refine
+        later anyway (the joint adjustment of `fine.py`).
 
     Returns
     -------
@@ -253,19 +259,31 @@ def fit_cylinder(xyz: np.ndarray, axis_hint: np.ndarray | None = None, loss_scal
     a0, c0, r0, _ = best
     e1, e2 = _basis(a0)
 
-    def resid(x: np.ndarray) -> np.ndarray:
-        a = a0 + x[2] * e1 + x[3] * e2
-        a = a / np.linalg.norm(a)
+    def parts(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
+        L = float(np.sqrt(1.0 + x[2] ** 2 + x[3] ** 2))
+        a = (a0 + x[2] * e1 + x[3] * e2) / L
         d = q - (c0 + x[0] * e1 + x[1] * e2)
-        perp = d - np.outer(d @ a, a)
-        return np.sqrt(np.einsum("ij,ij->i", perp, perp)) - x[4]
+        along = d @ a
+        perp = d - np.outer(along, a)
+        return a, along, perp, np.sqrt(np.einsum("ij,ij->i", perp, perp)), L
 
-    try:
-        sol = least_squares(resid, np.array([0.0, 0.0, 0.0, 0.0, r0]), loss="soft_l1",
-                            f_scale=loss_scale_m, x_scale=np.array([r0, r0, 0.1, 0.1, r0]), max_nfev=60)
-    except ValueError:
-        return _nan_cylinder(n, "least squares failed")
-    x = sol.x
+    def resid(x: np.ndarray) -> np.ndarray:
+        return parts(x)[3] - x[4]
+
+    def jac(x: np.ndarray) -> np.ndarray:
+        # r = |perp| - R; d r / d(axis point) = -n, d r / d(axis) = -(d . a) n (n = perp / |perp|, n . a = 0).
+        _, along, perp, nrm, L = parts(x)
+        n = perp / np.maximum(nrm, 1e-12)[:, None]
+        ne1, ne2 = n @ e1, n @ e2
+        return np.c_[-ne1, -ne2, -along * ne1 / L, -along * ne2 / L, -np.ones(len(q))]
+
+    x = np.array([0.0, 0.0, 0.0, 0.0, r0])
+    if refine:
+        try:
+            x = least_squares(resid, x, jac=jac, loss="soft_l1", f_scale=loss_scale_m,
+                              x_scale=np.array([r0, r0, 0.1, 0.1, r0]), max_nfev=60).x
+        except ValueError:
+            return _nan_cylinder(n, "least squares failed")
     a = a0 + x[2] * e1 + x[3] * e2
     a /= np.linalg.norm(a)
     if a[2] < 0:
@@ -337,13 +355,15 @@ class Section:
 
 def fit_section(points: np.ndarray, slice_index: int, arc: int, height_m: float, circle: bool,
                 p: FitParams) -> Section:
-    """Fit one arc (points in the reference frame) by a circle or a cylinder and judge the fit."""
+    """Fit one arc (points in the reference frame) by a circle or a cylinder and judge the fit.
+
+    Cylinders are refined by least squares only when `p.refine_cylinders`."""
     if circle:
         fit = judge_fit(fit_circle_taubin(points[:, :2]), p)
         centre = np.array([fit.centre_m[0], fit.centre_m[1], height_m])
         axis = np.array([0.0, 0.0, 1.0])
     else:
-        fit = judge_fit(fit_cylinder(points), p)
+        fit = judge_fit(fit_cylinder(points, refine=p.refine_cylinders), p)
         axis = fit.axis
         centre = fit.point_at_z(height_m) if fit.ok else np.full(3, np.nan)
         # A near-horizontal axis meets the slice plane far from the points: use the point nearest them.

@@ -11,14 +11,13 @@ from __future__ import annotations
 
 import gzip
 import io as _io
-import os
-import tempfile
 import warnings
 from pathlib import Path
 from typing import Callable, TextIO
 
 import numpy as np
 
+from .atomic import write_atomic
 from .errors import ScanError
 from .scan import MIN_POINTS, Scan
 
@@ -279,7 +278,7 @@ def _sniff(path: Path, gzipped: bool) -> tuple[str | None, int]:
     """
     try:
         with _open_text(path, gzipped) as fh:
-            head = [fh.readline() for _ in range(64)]
+            head = [fh.readline(1 << 16) for _ in range(64)]  # bounded, even for a binary file
     except (OSError, EOFError, gzip.BadGzipFile) as e:
         raise ScanError(str(path), f"cannot read the file ({e})") from None
     head = [h for h in head if h]
@@ -371,24 +370,10 @@ def write_scan(path: str | Path, points_or_scan: np.ndarray | Scan, dtype: str =
     if ext == ".ply":
         if dtype not in ("float64", "float32"):
             raise ValueError(f"dtype must be 'float64' or 'float32', got {dtype!r}")
-        _write_atomic(path, lambda tmp: _write_ply(tmp, pts, dtype))
+        write_atomic(path, lambda tmp: _write_ply(tmp, pts, dtype))
     else:
-        _write_atomic(path, lambda tmp: _write_las(tmp, pts, compress=ext == ".laz"))
+        write_atomic(path, lambda tmp: _write_las(tmp, pts, compress=ext == ".laz"))
     return path
-
-
-def _write_atomic(path: Path, write: Callable[[Path], None]) -> None:
-    """Run `write` on a temporary file beside `path`, then rename it over `path`."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    tmp = Path(tmp_name)
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
 
 
 def _write_ply(path: Path, pts: np.ndarray, dtype: str) -> None:

@@ -10,14 +10,13 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
-import tempfile
 import types
 import typing
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
+from .atomic import write_text_atomic
 from .errors import ConfigError
 
 
@@ -53,7 +52,7 @@ class ProjectionParams:
     relative_azimuth: bool = _f(True, "", "measure azimuth from the scan centroid's azimuth, so a tree never straddles +-180 deg")
     theta_deg: float = _f(10.0, "deg", "rotation step of the image sequence (paper: 10)", lo=0.5, hi=90.0)
     span_deg: float | None = _f(None, "deg", "sequence covers [-span, +span]; None = 360/n, n = number of scans (paper)", lo=0.0, hi=180.0)
-    max_image_px: int | None = _f(1000, "px", "enlarge pixels so no image is longer than this (ORB cost); None = no limit (paper)", lo=64, hi=20000)
+    max_image_px: int | None = _f(700, "px", "enlarge pixels so no image is longer than this (ORB cost); None = no limit (paper)", lo=64, hi=20000)
 
 
 @dataclass(frozen=True)
@@ -116,6 +115,7 @@ class FitParams:
     max_radius_m: float = _f(1.0, "m", "fits with a larger radius are implausible", lo=0.01, hi=10.0)
     gate_m: float = _f(0.3, "m", "sections correspond when their centres are this close after coarse", lo=0.01, hi=5.0)
     max_radius_ratio: float | None = _f(1.5, "", "sections correspond only when their radii differ by at most this factor (None = paper: centres only)", lo=1.0, hi=100.0)
+    refine_cylinders: bool = _f(False, "", "refine each scan's cylinder fits by least squares (paper; the joint adjustment refines them anyway)")
     circle_lowest: bool = _f(True, "", "fit the lowest slice's arcs by circles (trunk), the others by cylinders (paper)")
     taper_check: bool = _f(True, "", "paper 4.2: drop a part whose radius exceeds that of the part below on the same stem")
     taper_tolerance: float = _f(0.3, "", "4.2 check: allowed relative excess of the radius over the part below (paper: 0)", lo=0.0, hi=10.0)
@@ -133,11 +133,16 @@ class FineParams:
     method: str = _f("joint", "", "tie points of separately fitted sections (paper) or one cylinder per section pair fitted to both scans with the pose",
                      choices=("ties", "joint"))
     min_pairs: int = _f(3, "pairs", "fewest corresponding sections to estimate an update", lo=1, hi=1000)
-    loss_scale_m: float = _f(0.005, "m", "joint: residual scale of the soft-L1 loss (about the range noise)", lo=0.0001, hi=0.5)
+    loss_scale_m: float = _f(0.005, "m", "joint: residual scale of the robust loss (about the range noise)", lo=0.0001, hi=0.5)
+    refine_loss: str = _f("cauchy", "", "joint: loss after the first iteration (soft-L1 always first; Cauchy ignores wrong pairs near the solution)",
+                          choices=("soft_l1", "cauchy"))
+    gate_factor: float | None = _f(4.0, "", "after the first iteration, pairs farther apart than this times the median distance are dropped (None = off)", lo=1.0, hi=100.0)
+    min_gate_m: float = _f(0.02, "m", "the adaptive gate is never tighter than this", lo=0.001, hi=5.0)
+    max_direction_sigma_m: float | None = _f(0.02, "m", "joint: pose directions the sections determine worse than this (noise std) keep the coarse value (None = update all)", lo=1e-6, hi=10.0)
     max_section_points: int = _f(150, "points", "joint: points per section and scan used in the adjustment", lo=10, hi=100000)
-    prior_m: float = _f(0.1, "m", "joint: weak prior on the translation update (holds directions no section constrains)", lo=0.001, hi=100.0)
-    prior_deg: float = _f(1.0, "deg", "joint: weak prior on the rotation update", lo=0.001, hi=180.0)
-    max_solver_evaluations: int = _f(100, "", "joint: residual evaluations per adjustment", lo=5, hi=10000)
+    prior_m: float = _f(0.05, "m", "joint: prior std of the translation away from coarse (holds directions the sections hardly constrain)", lo=0.001, hi=100.0)
+    prior_deg: float = _f(2.0, "deg", "joint: prior std of the rotation away from coarse", lo=0.001, hi=180.0)
+    max_solver_iterations: int = _f(30, "", "joint: Gauss-Newton iterations per adjustment", lo=1, hi=1000)
     measure_voxel_m: float = _f(0.01, "m", "acceptance measure: voxel size of the reference's surface", lo=0.0, hi=0.5)
     measure_gate_m: float = _f(0.03, "m", "acceptance measure: point-to-plane residuals are truncated here", lo=0.001, hi=1.0)
 
@@ -159,6 +164,14 @@ class EvaluationParams:
 
     layers: int = _f(3, "", "layers per branch (bottom, middle, top)", lo=1, hi=20)
     layer_thickness_m: float = _f(0.1, "m", "thickness of an evaluation layer", lo=0.01, hi=2.0)
+    layer_spacing_m: float = _f(0.15, "m", "height between a branch's layers", lo=0.01, hi=5.0)
+    quantiles: tuple[float, ...] = _f((0.2, 0.35, 0.5, 0.65, 0.8), "", "heights (quantiles of tree height) where branches are searched")
+    margin_m: float = _f(0.03, "m", "a layer takes the points within the branch radius plus this of its axis", lo=0.001, hi=1.0)
+    min_arc_deg: float = _f(60.0, "deg", "evaluation fits covering less arc are not used", lo=0.0, hi=360.0)
+    max_rms_m: float = _f(0.01, "m", "evaluation fits with a larger RMS residual are not used", lo=0.0001, hi=1.0)
+    max_radius_m: float = _f(1.0, "m", "evaluation fits with a larger radius are not used", lo=0.01, hi=10.0)
+    max_branches: int = _f(30, "", "most branches evaluated (spread over the heights)", lo=1, hi=1000)
+    gate_m: float = _f(1.0, "m", "a target layer whose centre is farther than this from the branch is not used", lo=0.01, hi=10.0)
     run_icp: bool = _f(True, "", "also run the ICP baseline from the coarse result")
 
 
@@ -198,8 +211,12 @@ def _paper() -> Params:
         projection=replace(p.projection, relative_azimuth=False, max_image_px=None),
         matching=replace(p.matching, n_pairs=3, matches_per_pair=5, beta_check=True, image_mode="binary", snap_px=0),
         coarse=replace(p.coarse, estimator="svd", dof=6, refit_6dof=False, final_inlier_m=None),
-        slicing=replace(p.slicing, quantiles=(0.25, 0.5, 0.75)),
-        fine=replace(p.fine, estimator="svd", max_iterations=1, accept_test=False),
+        slicing=replace(p.slicing, quantiles=(0.25, 0.5, 0.75), thickness_m=0.1),
+        arcs=replace(p.arcs, connectivity=3.0, max_range_jump_m=None),
+        fitting=replace(p.fitting, max_radius_ratio=None, refine_cylinders=True, circle_lowest=True,
+                        taper_check=True, taper_tolerance=0.0, min_arc_deg=0.0, max_rms_m=1.0),
+        fine=replace(p.fine, method="ties", estimator="svd", max_iterations=1, accept_test=False, gate_factor=None),
+        icp=replace(p.icp, method="point_to_point"),
     )
 
 
@@ -262,19 +279,6 @@ def load(path: str | Path, base: Params | None = None) -> Params:
 def save(params: Params, path: str | Path) -> None:
     """Write parameters as JSON, atomically."""
     write_text_atomic(Path(path), json.dumps(to_dict(params), indent=2) + "\n")
-
-
-def write_text_atomic(path: Path, text: str) -> None:
-    """Write to a temporary file beside `path`, then rename: never a half-written file."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as fh:
-            fh.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def _coerce(key: str, fld: dataclasses.Field, value: Any) -> Any:

@@ -51,6 +51,15 @@ class ImageSequence:
         return len(self.angles_deg)
 
     @property
+    def ok(self) -> bool:
+        """A sequence always exists once built (an empty scan is refused by `build_sequence`)."""
+        return True
+
+    @property
+    def message(self) -> str:
+        return ""
+
+    @property
     def metrics(self) -> tuple[Metric, ...]:
         shapes = np.array([p.shape for p in self.projections])
         return (

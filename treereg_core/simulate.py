@@ -18,7 +18,7 @@ Examples
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -29,7 +29,7 @@ from .io import read_points, read_scan, write_scan
 from .results import Metric, Progress
 from .rigid import apply_transform, invert, make_transform, rotation_z
 from .scan import Scan
-from .simulate_scanner import scan_scene, visible_points
+from .simulate_scanner import scan_scene, visible_points, visible_points_splat
 from .simulate_tree import (
     LABEL_OTHER_TREE,
     Scene,
@@ -44,6 +44,8 @@ from .transform_io import TransformFile, read_transforms, write_transforms
 
 #: The truth file of a case folder (a transform file, plus the steps and stations).
 TRUTH_NAME = "truth.json"
+#: With a ground plane, trunks start this far below it: a sloped ground then leaves no gap.
+_GROUND_SINK_M = 0.3
 
 
 @dataclass(frozen=True)
@@ -61,6 +63,8 @@ class CaseSpec:
     leaves : small disks (3-6 cm across) on the outer two branch orders.
     ground, ground_slope_deg, ground_radius_m : a ground plane sloping by up to this angle, kept
         within this radius of the tree.
+    ground_front_m : each scan's window reaches down to the ground this far in front of the trunk
+        (the ground nearer the scanner is not scanned: it would be most of the points).
     second_tree : a smaller tree 3.5-6 m from the first, in the scans' view.
     tilt_deg : instruments tilted by half to all of this angle (not perfectly levelled).
     range_sigma_m, dropout : range noise (along the ray) and fraction of lost returns.
@@ -68,7 +72,11 @@ class CaseSpec:
         from the trunk, this azimuth apart (scan 2 one way from scan 1, scan 3 the other way), with
         the instrument this high above the ground.
     from_points : a point-cloud file (x y z ...) to make the stations from instead of a procedural
-        tree; the cloud is moved so that its base is at z = 0 and its trunk at x = y = 0.
+        tree; the cloud is moved so that its base is at z = 0 and its trunk at x = y = 0. Each
+        station keeps the nearest point of each angular cell.
+    splat_radius_m : with `from_points`, let each point also hide what lies behind it as a sphere
+        of this radius (about the cloud's point spacing), so that a station does not see the back
+        of a sparse trunk through the gaps between its points; None = cells only.
     """
 
     seed: int = 0
@@ -84,6 +92,7 @@ class CaseSpec:
     ground: bool = False
     ground_slope_deg: float = 3.0
     ground_radius_m: float = 20.0
+    ground_front_m: float = 2.0
     second_tree: bool = False
     tilt_deg: float = 0.0
     range_sigma_m: float = 0.003
@@ -92,6 +101,7 @@ class CaseSpec:
     separation_deg: tuple[float, float] = (90.0, 150.0)
     instrument_height_m: tuple[float, float] = (1.3, 1.7)
     from_points: str | None = None
+    splat_radius_m: float | None = None
 
     def __post_init__(self) -> None:
         def pair(name: str) -> tuple[float, float]:
@@ -125,9 +135,11 @@ class CaseSpec:
             (self.range_sigma_m >= 0, "range_sigma_m: must be >= 0"),
             (0 <= self.dropout < 1, f"dropout: {self.dropout} is outside [0, 1)"),
             (self.station_distance_m[0] > 0.5, "station_distance_m: stations must stand more than 0.5 m from the trunk"),
-            (self.ground_radius_m > self.station_distance_m[1],
-             "ground_radius_m: the ground must reach beyond the farthest station"),
+            (self.ground_radius_m >= 1.0, "ground_radius_m: the ground must reach at least 1 m around the tree"),
+            (self.ground_front_m >= 0.0, "ground_front_m: must be >= 0"),
         ]
+        checks.append((self.splat_radius_m is None or (self.from_points is not None and 0 < self.splat_radius_m <= 1),
+                       "splat_radius_m: needs from_points and a radius in (0, 1] m"))
         for ok, msg in checks:
             if not ok:
                 raise ConfigError(msg)
@@ -318,7 +330,8 @@ def _make_stations(spec: CaseSpec, ground_height, rng: np.random.Generator) -> l
         xy = d * np.array([np.cos(np.radians(a)), np.sin(np.radians(a))])
         z = float(ground_height(xy)) + rng.uniform(*spec.instrument_height_m)
         heading = float(rng.uniform(0, 360))
-        tilt = float(spec.tilt_deg * rng.uniform(0.5, 1.0)) if spec.tilt_deg > 0 else 0.0
+        # Drawn whether or not there is a tilt, so that switching it on keeps the other draws.
+        tilt = float(spec.tilt_deg * rng.uniform(0.5, 1.0))
         tilt_axis = float(rng.uniform(0, 360))
         # The instrument's frame: turned by its heading, then tipped slightly off level.
         R = rotation_z(heading) @ tilt_rotation(tilt, tilt_axis)
@@ -335,8 +348,8 @@ def _draw_shape(spec: CaseSpec, rng: np.random.Generator) -> TreeShape:
                      lean_deg=spec.lean_deg, leaves=spec.leaves)
 
 
-def _second_tree(spec: CaseSpec, main: TreeShape, stations: list[Station], ground_height,
-                 rng: np.random.Generator) -> TreeInfo:
+def _second_tree(main: TreeShape, stations: list[Station], ground_height, rng: np.random.Generator,
+                 sink_m: float) -> TreeInfo:
     """A smaller tree 3.5-6 m from the main one, kept at least 4 m from every station."""
     best, best_gap = None, -1.0
     for _ in range(64):
@@ -351,7 +364,7 @@ def _second_tree(spec: CaseSpec, main: TreeShape, stations: list[Station], groun
     shape = replace(main, height_m=round(H2, 3), dbh_m=round(max(0.1, main.dbh_m * H2 / main.height_m), 4),
                     bent=False, lean_deg=0.0, orders=min(main.orders, 2))
     base = np.array([best[0], best[1], float(ground_height(best))])
-    return make_tree(shape, rng, base=base, label_override=LABEL_OTHER_TREE)
+    return make_tree(shape, rng, base=base, label_override=LABEL_OTHER_TREE, sink_m=sink_m)
 
 
 def centre_cloud(points: np.ndarray) -> np.ndarray:
@@ -384,7 +397,8 @@ def _build(spec: CaseSpec, progress: Progress | None) -> SimulatedCase:
         stations = _make_stations(spec, lambda xy: 0.0, rng_stations)
     else:
         shape = _draw_shape(spec, rng_tree)
-        main = make_tree(shape, rng_tree)
+        sink = _GROUND_SINK_M if spec.ground else 0.0
+        main = make_tree(shape, rng_tree, sink_m=sink)
         ground = None
         if spec.ground:
             ground = make_ground(rng_ground.uniform(0, spec.ground_slope_deg), rng_ground.uniform(0, 360),
@@ -396,7 +410,7 @@ def _build(spec: CaseSpec, progress: Progress | None) -> SimulatedCase:
         stations = _make_stations(spec, height, rng_stations)
         trees = (main,)
         if spec.second_tree:
-            trees = (main, _second_tree(spec, shape, stations, height, rng_other))
+            trees = (main, _second_tree(shape, stations, height, rng_other, sink))
         scene = merge_scenes([t.scene for t in trees], ground)
 
     scans, labels = [], []
@@ -411,12 +425,17 @@ def _build(spec: CaseSpec, progress: Progress | None) -> SimulatedCase:
 
         sub(0.0, "casting rays" if cloud is None else "binning points")
         if cloud is not None:
-            pts, _ = visible_points(apply_transform(T_scan_world, cloud), spec.angular_step_deg, rng,
-                                    spec.range_sigma_m, spec.dropout)
+            local = apply_transform(T_scan_world, cloud)
+            if spec.splat_radius_m is None:
+                pts, _ = visible_points(local, spec.angular_step_deg, rng, spec.range_sigma_m, spec.dropout)
+            else:
+                pts, _ = visible_points_splat(local, spec.angular_step_deg, spec.splat_radius_m, rng,
+                                              spec.range_sigma_m, spec.dropout)
             lab = np.full(len(pts), -1, dtype=np.int8)
         else:
+            near = max(st.distance_m - spec.ground_front_m, 0.0)
             rs = scan_scene(scene.transformed(T_scan_world), spec.angular_step_deg, rng,
-                            spec.range_sigma_m, spec.dropout, progress=sub)
+                            spec.range_sigma_m, spec.dropout, ground_near_m=near, progress=sub)
             pts, lab = rs.points, rs.labels
             n_rays += rs.n_rays
         scans.append(Scan.from_points(pts, name=name, angular_step_deg=spec.angular_step_deg))

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .results import Progress
-from .simulate_tree import GroundPlane, Scene
+from .simulate_tree import Cylinders, Disks, GroundPlane, Scene, Spheres
 
 #: Upper bound on (ray, primitive) pairs intersected at once: bounds memory (~40 floats per pair).
 _CHUNK_PAIRS = 1_500_000
@@ -29,12 +29,14 @@ class RayScan:
     """What one station returned, in the instrument frame.
 
     points: N x 3 (metres, noise included); labels: N part labels (`simulate_tree.LABEL_NAMES`);
+    primitive: N indices of the primitive hit (cylinders, then spheres, then disks; -1 = ground);
     grid_ij: N x 2 integer ray indices (azimuth i, elevation j; angles i*phi, j*varphi);
     n_rays: rays cast over the window; window_ij: (i0, i1, j0, j1) inclusive ray index ranges.
     """
 
     points: np.ndarray
     labels: np.ndarray
+    primitive: np.ndarray
     grid_ij: np.ndarray
     n_rays: int
     window_ij: tuple[int, int, int, int]
@@ -178,7 +180,8 @@ def scan_scene(
     window_deg : (alpha_lo, alpha_hi, beta_lo, beta_hi) to scan; default the angular hull of the
         tree primitives (ground excluded).
     ground_near_m : with a ground plane and no `window_deg`, the window's lower edge is lowered to
-        see the ground from this horizontal distance on (default 3 m before the tree, at least half-way).
+        see the ground from this horizontal distance on (towards the ground plane's centre, the
+        tree; default 2 m before it).
     progress : called with (fraction, text) as chunks complete.
     """
     phi, vphi = (np.radians(float(v)) for v in angular_step_deg)
@@ -203,7 +206,7 @@ def scan_scene(
             # The ground point below the place `ground_near_m` from the scanner towards the tree.
             base = g.centre
             dist = np.hypot(base[0], base[1])
-            near = max(0.5 * dist, dist - 3.0) if ground_near_m is None else min(float(ground_near_m), dist)
+            near = max(dist - 2.0, 0.0) if ground_near_m is None else min(float(ground_near_m), dist)
             q = base * (near / max(dist, 1e-9))
             q = q - (q @ g.normal - g.offset) * g.normal
             wb0 = min(wb0, float(np.arctan2(q[2], np.hypot(q[0], q[1]))))
@@ -240,6 +243,7 @@ def scan_scene(
     hit_ray: list[np.ndarray] = []
     hit_t: list[np.ndarray] = []
     hit_lab: list[np.ndarray] = []
+    hit_prim: list[np.ndarray] = []
 
     if scene.ground is not None:
         jj, ii = np.divmod(np.arange(n_rays), n_cols)
@@ -248,6 +252,7 @@ def scan_scene(
         hit_ray.append(np.flatnonzero(good))
         hit_t.append(t[good])
         hit_lab.append(np.zeros(int(good.sum()), dtype=np.int8))
+        hit_prim.append(np.full(int(good.sum()), -1, dtype=np.int64))
 
     # Chunks of consecutive primitives holding at most _CHUNK_PAIRS candidate pairs each.
     cum = np.cumsum(counts)
@@ -283,28 +288,30 @@ def scan_scene(
         hit_ray.append((row * n_cols + col)[good])
         hit_t.append(t[good])
         hit_lab.append(labels_all[prim[good]])
+        hit_prim.append(prim[good])
         if progress is not None:
             progress(float(e1) / len(counts), "casting rays")
 
     ray = np.concatenate(hit_ray) if hit_ray else np.zeros(0, dtype=np.int64)
     tt = np.concatenate(hit_t) if hit_t else np.zeros(0)
     lab = np.concatenate(hit_lab) if hit_lab else np.zeros(0, dtype=np.int8)
+    pid = np.concatenate(hit_prim) if hit_prim else np.zeros(0, dtype=np.int64)
     # Nearest hit per ray; rays ordered column by column (azimuth-major), as a TLS sweeps.
     row, col = np.divmod(ray, n_cols)
     key = col.astype(np.int64) * n_rows + row
     order = np.lexsort((tt, key))
-    key, tt, lab = key[order], tt[order], lab[order]
+    key, tt, lab, pid = key[order], tt[order], lab[order], pid[order]
     first = np.ones(key.size, dtype=bool)
     first[1:] = key[1:] != key[:-1]
-    key, tt, lab = key[first], tt[first], lab[first]
+    key, tt, lab, pid = key[first], tt[first], lab[first], pid[first]
 
     keep = rng.random(key.size) >= dropout
-    key, tt, lab = key[keep], tt[keep], lab[keep]
+    key, tt, lab, pid = key[keep], tt[keep], lab[keep], pid[keep]
     rng_m = tt + rng.normal(0.0, range_sigma_m, tt.size)
     col, row = np.divmod(key, n_rows)
     pts = np.stack([cb[row] * ca[col], cb[row] * sa[col], sb[row]], axis=1) * rng_m[:, None]
     grid = np.stack([col + i0, row + j0], axis=1)
-    return RayScan(pts, lab.astype(np.int8), grid, n_rays, (i0, i1, j0, j1))
+    return RayScan(pts, lab.astype(np.int8), pid, grid, n_rays, (i0, i1, j0, j1))
 
 
 def visible_points(
@@ -336,4 +343,34 @@ def visible_points(
     idx = order[first]
     idx = idx[rng.random(idx.size) >= dropout]
     scale = (r[idx] + rng.normal(0.0, range_sigma_m, idx.size)) / np.maximum(r[idx], 1e-12)
+    return points[idx] * scale[:, None], idx
+
+
+def visible_points_splat(
+    points: np.ndarray,
+    angular_step_deg: tuple[float, float],
+    radius_m: float,
+    rng: np.random.Generator,
+    range_sigma_m: float = 0.003,
+    dropout: float = 0.02,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Like `visible_points`, but each point occludes as a small sphere of `radius_m`.
+
+    A cloud sparser than the scanner's angular cells lets plain binning see through a trunk to its
+    back; as spheres of about the point spacing the points form closed surfaces, so the far side
+    is hidden as from a real station. Each ray returns the point whose sphere it meets first; a
+    point met by several rays is returned once (its own position, noise along its own ray).
+    """
+    e3, e1 = np.zeros((0, 3)), np.zeros(0)
+    scene = Scene(
+        Cylinders(e3, e3, e1, e1, np.zeros(0, dtype=np.int8)),
+        Spheres(points, np.full(len(points), float(radius_m)), np.full(len(points), -1, dtype=np.int8)),
+        Disks(e3, e3, e1, np.zeros(0, dtype=np.int8)),
+    )
+    rs = scan_scene(scene, angular_step_deg, rng, range_sigma_m=0.0, dropout=0.0)
+    _, first = np.unique(rs.primitive, return_index=True)
+    idx = rs.primitive[np.sort(first)]  # in scan order: by the first ray that met each point
+    idx = idx[rng.random(idx.size) >= dropout]
+    r = np.linalg.norm(points[idx], axis=1)
+    scale = (r + rng.normal(0.0, range_sigma_m, idx.size)) / np.maximum(r, 1e-12)
     return points[idx] * scale[:, None], idx

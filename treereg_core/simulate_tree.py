@@ -314,15 +314,15 @@ def _leaves(chains: list[_Chains], shape: TreeShape, rng: np.random.Generator) -
     return Disks(centre, normal, radius, np.full(s.size, LABEL_LEAF, dtype=np.int8))
 
 
-def _trunk_axis(shape: TreeShape, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """Trunk axis points (n+1 x 3) from 0.3 m below the base to the top, and arc lengths.
+def _trunk_axis(shape: TreeShape, rng: np.random.Generator, sink_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Trunk axis points (n+1 x 3) from `sink_m` below the base to the top, and arc lengths.
 
     A bent trunk follows two smooth sine modes in random horizontal directions (up to ~20 degrees
     off vertical); a straight one only wavers by a degree or so.
     """
     H = shape.height_m
-    n = max(int(np.ceil((H + 0.3) / _TRUNK_SEG_M)), 4)
-    s = np.linspace(-0.3, H, n + 1)
+    n = max(int(np.ceil((H + sink_m) / _TRUNK_SEG_M)), 4)
+    s = np.linspace(-sink_m, H, n + 1)
     h1, h2 = (np.array([np.cos(a), np.sin(a), 0.0]) for a in rng.uniform(0, 2 * np.pi, 2))
     if shape.bent:
         a1, a2 = rng.uniform(0.15, 0.3), rng.uniform(0.05, 0.15)
@@ -334,25 +334,26 @@ def _trunk_axis(shape: TreeShape, rng: np.random.Generator) -> tuple[np.ndarray,
               + (a2 * np.sin(2 * np.pi * rel + ph))[:, None] * h2)
     steps = d * np.diff(s)[:, None]
     pts = np.vstack([np.zeros(3), np.cumsum(steps, axis=0)])
-    pts[:, 2] -= 0.3  # the first 0.3 m is below ground level, so a sloped ground leaves no gap
+    pts[:, 2] -= sink_m  # below ground level, so that a sloped ground leaves no gap at the base
     return pts, s
 
 
 def make_tree(shape: TreeShape, rng: np.random.Generator, base: np.ndarray | None = None,
-              label_override: int | None = None) -> TreeInfo:
+              label_override: int | None = None, sink_m: float = 0.0) -> TreeInfo:
     """One procedural tree standing at `base` (world, default the origin).
 
     Order-1 branches leave the trunk between the crown base (25-45% of the height) and the top,
     at golden-angle azimuths, longest low in the crown (a cone-shaped crown); each further order
-    sprouts from its parent. `label_override` gives every primitive one label (a second tree).
+    sprouts from its parent. `label_override` gives every primitive one label (a second tree);
+    `sink_m` starts the trunk that far below the base (into a ground plane).
     """
     H, dbh = float(shape.height_m), float(shape.dbh_m)
     base = np.zeros(3) if base is None else np.asarray(base, dtype=float)
     # Drawn first, so that switching leaves or lean on or off keeps the same tree.
     lean_axis = rng.uniform(0, 360)
     leaf_rng = np.random.default_rng(rng.integers(0, 2**63))
-    axis, s = _trunk_axis(shape, rng)
-    trunk = _Chains(axis[None], _trunk_radius(s, H, dbh)[None], np.array([H + 0.3]))
+    axis, s = _trunk_axis(shape, rng, sink_m)
+    trunk = _Chains(axis[None], _trunk_radius(s, H, dbh)[None], np.array([H + sink_m]))
     cyl, sph = [], []
     c, sp = _chain_primitives(trunk, LABEL_TRUNK)
     cyl.append(c)
@@ -364,7 +365,7 @@ def make_tree(shape: TreeShape, rng: np.random.Generator, base: np.ndarray | Non
     if shape.orders >= 1:
         n1 = int(np.clip(round(H * rng.uniform(1.6, 2.2)), 6, 50))
         z = np.sort(rng.uniform(crown_base, 0.93 * H, n1))
-        p, u, r_tr = trunk.point_at(np.zeros(n1, dtype=int), (z + 0.3) / (H + 0.3))
+        p, u, r_tr = trunk.point_at(np.zeros(n1, dtype=int), (z + sink_m) / (H + sink_m))
         az = np.radians(137.5 * np.arange(n1) + rng.uniform(-25, 25, n1))
         rel = (z - crown_base) / (H - crown_base)
         ang = np.radians(rng.uniform(50, 80, n1) - 25 * rel)

@@ -25,7 +25,7 @@ import numpy as np
 
 from . import __version__
 from .errors import ConfigError
-from .params import write_text_atomic
+from .atomic import write_text_atomic
 
 #: Largest |R^T R - I| entry accepted for the rotation part of a transform.
 ORTHONORMAL_TOL = 1e-6

@@ -15,6 +15,7 @@ import plotly.graph_objects as go
 import viser
 
 from ..controller import Snapshot
+from ..palette import scan_color
 from ..view_panel import PanelContent
 from ..view_state import ViewState
 from .common import md_table, metrics_table, not_ready_text, pair_label
@@ -41,20 +42,38 @@ def branch_figure(evs: dict[str, Any], target: str) -> go.Figure | None:
     fig = go.Figure()
     any_rows = False
     for label, ev in evs.items():
-        rows = [b for b in branch_rows(ev) if np.isfinite(getattr(b, "mean_distance_m", np.nan))]
+        rows = [b for b in branch_rows(ev) if len(b.distances_m)]
         if not rows:
             continue
         any_rows = True
         fig.add_trace(go.Bar(
-            x=[f"{getattr(b, 'name', k + 1)}" for k, b in enumerate(rows)],
-            y=[b.mean_distance_m * 100.0 for b in rows], name=label, marker_color=METHOD_COLORS.get(label),
+            x=[f"{b.index + 1}" for b in rows], y=[b.mean_m * 100.0 for b in rows], name=label,
+            marker_color=METHOD_COLORS.get(label),
+            hovertext=[f"branch {b.index + 1} at {b.height_m:.2f} m, r = {b.radius_m * 100:.1f} cm" for b in rows],
         ))
     if not any_rows:
         return None
-    fig.update_layout(barmode="group", margin=dict(l=50, r=10, t=30, b=40), legend=dict(orientation="h", y=1.12),
+    fig.update_layout(barmode="group", margin=dict(l=50, r=10, t=30, b=40), legend=dict(orientation="h", y=1.15),
                       title=dict(text=f"{target}: mean centre distance per branch (eq. 8)", font=dict(size=12)),
-                      xaxis_title="branch", yaxis_title="d̄ (cm)")
+                      xaxis_title="branch (bottom to top)", yaxis_title="d̄ (cm)", xaxis_type="category")
     return fig
+
+
+def _branch_lines(scene: viser.SceneApi, root: str, ev: Any, color: tuple[int, int, int]) -> list[Any]:
+    """The evaluated layer centres of each branch in both scans, joined (the d_i of eq. 8)."""
+    rows = [b for b in branch_rows(ev) if len(b.distances_m)]
+    if not rows:
+        return []
+    ref = np.concatenate([b.ref_centres_m for b in rows]).astype(np.float32)
+    tgt = np.concatenate([b.tgt_centres_m for b in rows]).astype(np.float32)
+    return [
+        scene.add_line_segments(f"{root}/d", np.stack([ref, tgt], axis=1), (250, 200, 0), thickness=3.0,
+                                thickness_units="screen"),
+        scene.add_point_cloud(f"{root}/ref_centres", ref, scan_color(0), point_size=0.06, point_shape="circle",
+                              precision="float32"),
+        scene.add_point_cloud(f"{root}/tgt_centres", tgt, color, point_size=0.06, point_shape="circle",
+                              precision="float32"),
+    ]
 
 
 def render_result(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> tuple[list[Any], PanelContent]:
@@ -76,6 +95,7 @@ def render_result(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewSt
         text += "Errors against truth come from the demo's `truth.json`."
     else:
         text += "No truth is known for these scans: the paper's branch measure d̄ is the yardstick."
+    text += " Yellow segments in 3-D join the centre points of the evaluated branch layers (the dᵢ of eq. 8)."
     if notes:
         text += "\n\n" + "\n\n".join(notes)
     if not report.ok and report.message:
@@ -93,8 +113,10 @@ def render_result(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewSt
     rows = []
     for label, ev in evs.items():
         for b in branch_rows(ev):
-            rows.append((label, getattr(b, "name", ""), *(getattr(b, f, "") for f in ("n_layers",)),
-                         f"{getattr(b, 'mean_distance_m', float('nan')) * 100:.2f}"))
+            d = ", ".join(f"{x * 100:.1f}" for x in b.distances_m)
+            rows.append((label, b.index + 1, f"{b.height_m:.2f}", f"{b.radius_m * 100:.1f}", d, f"{b.mean_m * 100:.2f}"))
     if rows:
-        table += "\n\n" + md_table(("registration", "branch", "layers", "d̄ (cm)"), rows)
-    return [], PanelContent(f"7 · Result: {pair_label(snap, t)}", text=text, plots=tuple(plots), table=table)
+        table += "\n\n" + md_table(("registration", "branch", "height (m)", "radius (cm)", "d₁…dₙ (cm)", "d̄ (cm)"), rows)
+    shown = report.icp_eval if pose == "ICP" else report.fine
+    handles = _branch_lines(scene, root, shown, scan_color(t + 1)) if shown is not None else []
+    return handles, PanelContent(f"7 · Result: {pair_label(snap, t)}", text=text, plots=tuple(plots), table=table)

@@ -1,0 +1,238 @@
+"""End to end in headless Chromium: `treereg view` on the bundled demo, driven like a user.
+
+Debian's chromium (`/usr/bin/chromium`) through Playwright for Python, no browser download, and an
+offline guard (only http://127.0.0.1 may load). WebGL runs on SwiftShader. One server and one browser
+for the module; the walk-through steps through every stage, changes a parameter and re-runs, uploads
+a bad file, exports transforms.json and checks screenshots' pixels.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytestmark = pytest.mark.browser
+
+playwright_api = pytest.importorskip("playwright.sync_api")
+CHROMIUM = "/usr/bin/chromium"
+if not Path(CHROMIUM).exists():
+    pytest.skip(f"{CHROMIUM} is not installed", allow_module_level=True)
+
+from treereg_core.io import read_points  # noqa: E402
+from treereg_core.rigid import mean_displacement, rotation_error_deg  # noqa: E402
+from treereg_core.transform_io import read_transforms  # noqa: E402
+from treereg_viewer.demo import find_demo  # noqa: E402
+from treereg_viewer.palette import scan_color  # noqa: E402
+
+REPO = Path(__file__).resolve().parent.parent
+LAUNCH_ARGS = [
+    "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+    "--disable-background-networking", "--disable-component-update", "--disable-sync",
+    "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
+]
+ROT_TOL_DEG = 0.5
+DISP_TOL_M = 0.03
+#: Screenshots are saved here for people (and the README) to look at.
+SHOT_DIR = Path(os.environ.get("TREEREG_SHOTS", "/tmp/treereg-browser-shots"))
+
+
+@pytest.fixture(scope="module")
+def served(tmp_path_factory):
+    """`treereg view --port 0 --out DIR` on the demo, as a user starts it; yields (url, out dir, seconds to URL)."""
+    out = tmp_path_factory.mktemp("exports")
+    env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""), PYTHONUNBUFFERED="1")
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "treereg_core.cli", "view", "--port", "0", "--out", str(out)],
+        cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )
+    url, lines = None, []
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and proc.poll() is None:
+        line = proc.stdout.readline()
+        lines.append(line)
+        m = re.search(r"treereg view: (http://127\.0\.0\.1:\d+/)", line)
+        if m:
+            url = m.group(1)
+            break
+    if url is None:
+        proc.kill()
+        pytest.fail("treereg view did not start:\n" + "".join(lines))
+    yield url, out, time.perf_counter() - t0, t0
+    proc.terminate()
+    try:
+        proc.wait(timeout=10)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+
+
+@pytest.fixture(scope="module")
+def browser():
+    with playwright_api.sync_playwright() as p:
+        b = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=LAUNCH_ARGS)
+        yield b
+        b.close()
+
+
+def _open(browser, url):
+    context = browser.new_context(viewport={"width": 1500, "height": 950}, accept_downloads=True)
+    # Offline guard: the app must load nothing but its own server.
+    blocked: list[str] = []
+
+    def guard(route):
+        if route.request.url.startswith("http://127.0.0.1") or route.request.url.startswith("ws://127.0.0.1"):
+            route.continue_()
+        else:
+            blocked.append(route.request.url)
+            route.abort()
+
+    context.route("**/*", guard)
+    page = context.new_page()
+    page.goto(url)
+    expect = playwright_api.expect
+    expect(page.get_by_role("button", name="Run", exact=True)).to_be_visible(timeout=30_000)
+    page.wait_for_function(
+        "() => !!window.__viserMutable?.nodeRefFromName['/scans/s2/points'] && "
+        "window.__viserTestpoints.rendererInfo.render.frame > 0", timeout=30_000)
+    return context, page, blocked
+
+
+def _close_toast(page):
+    """The 'Software WebGL rendering detected' notice covers the top of the scene."""
+    toast = page.get_by_text("Software WebGL rendering detected")
+    if toast.count():
+        toast.locator("xpath=ancestor::div[contains(@class,'Notification-root')][1]").get_by_role("button").click()
+
+
+def _frame(page) -> int:
+    return page.evaluate("() => window.__viserTestpoints.rendererInfo.render.frame")
+
+
+def _screenshot(page, name) -> np.ndarray:
+    before = _frame(page)
+    try:  # rendering is on demand: wait for a frame after the last change
+        page.wait_for_function(f"() => window.__viserTestpoints.rendererInfo.render.frame > {before}", timeout=3000)
+    except playwright_api.TimeoutError:
+        pass
+    SHOT_DIR.mkdir(parents=True, exist_ok=True)
+    png = page.screenshot(path=str(SHOT_DIR / f"{name}.png"))
+    return _decode_png(png)
+
+
+def _decode_png(data: bytes) -> np.ndarray:
+    import cv2
+
+    bgr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+    return np.ascontiguousarray(bgr[..., ::-1])
+
+
+def _colour_pixels(img: np.ndarray, rgb: tuple[int, int, int], tol: int = 60) -> int:
+    """Pixels close to `rgb` (shading makes points lighter or darker than their colour)."""
+    d = np.abs(img.astype(np.int32) - np.array(rgb)).max(axis=-1)
+    return int((d < tol).sum())
+
+
+def _wait_all_done(page, timeout_ms=120_000):
+    page.wait_for_function(
+        "() => [...document.querySelectorAll('p, div')].some(e => /✓ 7 Result/.test(e.textContent) && "
+        "!/[○…✗]/.test(e.textContent) && /0 Scans/.test(e.textContent))", timeout=timeout_ms)
+
+
+def _go(page, label):
+    """Pick a stage in the selector, like a user."""
+    page.get_by_label("Stage", exact=True).click()
+    page.get_by_role("option", name=label, exact=True).click()
+
+
+def test_walk_through_the_demo(served, browser):
+    url, out_dir, url_seconds, t_start = served
+    expect = playwright_api.expect
+    context, page, blocked = _open(browser, url)
+    visible_seconds = time.perf_counter() - t_start
+    _close_toast(page)
+    _wait_all_done(page)
+    ready_seconds = time.perf_counter() - t_start
+    print(f"\ndemo: URL after {url_seconds:.1f} s, scans drawn in the browser after {visible_seconds:.1f} s, "
+          f"every stage done after {ready_seconds:.1f} s")
+
+    # Step through every stage with Next; each shows its own panel.
+    titles = ["0 · Scans", "1 · Projection", "2 · Matching", "3 · Coarse", "4 · Slices", "5 · Arcs", "6 · Fits", "7 · Result"]
+    expect(page.get_by_role("heading", name=titles[0])).to_be_visible()
+    for k in range(1, 8):
+        page.get_by_role("button", name="Next", exact=True).click()
+        expect(page.get_by_role("heading", name=re.compile("^" + re.escape(titles[k])))).to_be_visible(timeout=20_000)
+        if k == 1:  # the image panel (docked left) shows each scan's projection image in its colour
+            panel = _screenshot(page, "stage1_projection")[:, :600]
+            for i in range(3):
+                assert _colour_pixels(panel, scan_color(i), tol=40) > 300, f"projection of scan {i + 1} missing"
+        if k == 2:
+            expect(page.get_by_text("Similarity", exact=False).first).to_be_visible()
+    result = _screenshot(page, "stage7_result")
+    scene = result[:, 620:1100]  # between the docked panel and the control panel
+    counts = [_colour_pixels(scene, scan_color(i)) for i in range(3)]
+    assert all(c > 200 for c in counts), f"scan colours in the final overlay: {counts}"
+
+    # Change a fine-stage parameter and re-run: only fine and evaluation run again.
+    _go(page, "6 Fits")
+    expect(page.get_by_role("heading", name=re.compile("^6 · Fits"))).to_be_visible()
+    box = page.get_by_label("max iterations", exact=True)
+    box.fill("2")
+    box.press("Enter")
+    expect(page.get_by_text(re.compile("Parameters changed: fine, evaluation must re-run"))).to_be_visible(timeout=10_000)
+    t0 = time.perf_counter()
+    page.get_by_role("button", name="Run", exact=True).click()
+    expect(page.get_by_text(re.compile(r"Ran fine, evaluation in [\d.]+ s"))).to_be_visible(timeout=60_000)
+    print(f"fine + evaluation re-run seen in the browser after {time.perf_counter() - t0:.1f} s: "
+          f"{page.get_by_text(re.compile('Ran fine')).first.inner_text()}")
+
+    # A bad upload: a message, nothing else changes.
+    page.get_by_role("tab", name="Scans").click()
+    with page.expect_file_chooser() as chooser:
+        page.get_by_role("button", name="Add a scan file").click()
+    chooser.value.set_files(files=[{"name": "broken.ply", "mimeType": "application/octet-stream",
+                                    "buffer": b"ply\nformat ascii 1.0\nelement vertex 3\nend_header\n1 2\n"}])
+    expect(page.get_by_text(re.compile("Upload rejected.*broken.ply"))).to_be_visible(timeout=15_000)
+    expect(page.get_by_label(re.compile("^4: "))).to_have_count(0)
+    _wait_all_done(page, 5_000)  # every stage is still done
+
+    # Export: download transforms.json and compare with the demo's truth.
+    page.get_by_role("tab", name="Files").click()
+    page.get_by_role("button", name="Download transforms.json").click()
+    with page.expect_download() as dl:
+        page.get_by_role("link", name=re.compile("transforms.json")).first.click()
+    data = Path(dl.value.path()).read_bytes()
+    saved = out_dir / "downloaded_transforms.json"
+    saved.write_bytes(data)
+    tf = read_transforms(saved)
+    demo = find_demo()
+    truth = read_transforms(demo / "truth.json")
+    assert tf.reference == truth.reference
+    assert json.loads(data)["params"]["fine"]["max_iterations"] == 2  # the parameters used
+    for name in truth.names[1:]:
+        pts = read_points(demo / name)
+        rot = rotation_error_deg(tf.matrix(name), truth.matrix(name))
+        disp = mean_displacement(tf.matrix(name), truth.matrix(name), pts)
+        assert rot < ROT_TOL_DEG and disp < DISP_TOL_M, (name, rot, disp)
+    assert (out_dir / "transforms.json").is_file() and (out_dir / "merged.ply").is_file()  # --out
+    assert not blocked, f"the page tried to load {blocked}"
+    context.close()
+
+
+def test_two_tabs_see_one_state(served, browser):
+    url = served[0]
+    expect = playwright_api.expect
+    ctx1, page1, _ = _open(browser, url)
+    ctx2, page2, _ = _open(browser, url)
+    _go(page1, "3 Coarse")
+    expect(page2.get_by_role("heading", name=re.compile("^3 · Coarse"))).to_be_visible(timeout=10_000)
+    expect(page2.get_by_text(re.compile("^Run when stepping"))).to_be_visible()
+    ctx1.close()
+    ctx2.close()

@@ -83,7 +83,7 @@ def browser():
 
 
 def _open(browser, url):
-    context = browser.new_context(viewport={"width": 1500, "height": 950}, accept_downloads=True)
+    context = browser.new_context(viewport={"width": 1700, "height": 1000}, accept_downloads=True)
     # Offline guard: the app must load nothing but its own server.
     blocked: list[str] = []
 
@@ -170,13 +170,13 @@ def test_walk_through_the_demo(served, browser):
         page.get_by_role("button", name="Next", exact=True).click()
         expect(page.get_by_role("heading", name=re.compile("^" + re.escape(titles[k])))).to_be_visible(timeout=20_000)
         if k == 1:  # the image panel (docked left) shows each scan's projection image in its colour
-            panel = _screenshot(page, "stage1_projection")[:, :600]
+            panel = _screenshot(page, "stage1_projection")[:, :560]
             for i in range(3):
                 assert _colour_pixels(panel, scan_color(i), tol=40) > 300, f"projection of scan {i + 1} missing"
         if k == 2:
             expect(page.get_by_text("Similarity", exact=False).first).to_be_visible()
     result = _screenshot(page, "stage7_result")
-    scene = result[:, 620:1100]  # between the docked panel and the control panel
+    scene = result[:, 580:1300]  # between the docked panel (560 px) and the control panel
     counts = [_colour_pixels(scene, scan_color(i)) for i in range(3)]
     assert all(c > 200 for c in counts), f"scan colours in the final overlay: {counts}"
 

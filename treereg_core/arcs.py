@@ -150,9 +150,10 @@ def separate_arcs(scan: Scan, indices: np.ndarray, p: ArcParams) -> ArcResult:
     phi, varphi = scan.angular_step_deg
     alpha = _relative_azimuth(scan.azimuth_deg[idx])
     beta = scan.elevation_deg[idx]
-    # One raster cell per angular step; floor keeps points of one grid column in one cell column.
-    col = np.floor((alpha - alpha.min()) / phi).astype(np.int64)
-    row = np.floor((beta - beta.min()) / varphi).astype(np.int64)
+    # One raster cell per angular step. Rounding (not flooring) keeps a regular grid's points one
+    # cell apart even when their angles carry floating-point error of either sign.
+    col = np.rint((alpha - alpha.min()) / phi).astype(np.int64)
+    row = np.rint((beta - beta.min()) / varphi).astype(np.int64)
     raw = _label_raster(col, row, p.connectivity)
     if p.max_range_jump_m is not None:
         raw = _split_by_range(raw, np.linalg.norm(scan.points[idx], axis=1), p.max_range_jump_m)

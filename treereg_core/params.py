@@ -153,7 +153,7 @@ class IcpParams:
 
     method: str = _f("point_to_plane", "", "ICP error metric", choices=("point_to_point", "point_to_plane"))
     max_iterations: int = _f(50, "", "ICP iterations", lo=1, hi=1000)
-    trim: float = _f(0.8, "", "fraction of closest correspondences kept each iteration", lo=0.1, hi=1.0)
+    trim: float = _f(0.5, "", "fraction of closest correspondences kept each iteration", lo=0.1, hi=1.0)
     max_distance_m: float = _f(0.5, "m", "correspondences farther than this are ignored", lo=0.001, hi=10.0)
     voxel_m: float = _f(0.02, "m", "voxel size for subsampling before ICP", lo=0.0, hi=1.0)
 

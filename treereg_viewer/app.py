@@ -174,18 +174,19 @@ class TreeregApp:
         self.stages.show_progress(fraction, text)
 
     def _place_camera(self, snap: Snapshot) -> None:
-        """Look from behind the reference scanner at the trees of all scans (in their own frames on
-        stage 0, so up to ~30 m apart), high enough to see the crowns."""
+        """Look at the reference tree from behind its scanner, far enough for the whole crown.
+
+        From stage 3 on every scan is drawn over the reference tree; before that the other scans'
+        trees stand elsewhere (their own frames) and are reached by zooming out.
+        """
         if not snap.scans:
             return
-        centres = np.array([s.points.mean(axis=0) for s in snap.scans])
-        ref = centres[0]
-        height = float(np.ptp(snap.scans[0].points[:, 2])) or 10.0
-        look = np.array([centres[:, 0].mean(), centres[:, 1].mean(), ref[2]])
-        spread = float(np.max(np.linalg.norm(centres[:, :2] - look[:2], axis=1)))
-        d = ref[:2] / (np.linalg.norm(ref[:2]) or 1.0)  # from the reference scanner towards its tree
-        dist = 1.2 * spread + 1.4 * height
-        cam = np.array([look[0] - d[0] * dist, look[1] - d[1] * dist, look[2] + 0.6 * dist])
+        pts = snap.scans[0].points
+        look = pts.mean(axis=0)
+        height = float(np.ptp(pts[:, 2])) or 10.0
+        d = look[:2] / (np.linalg.norm(look[:2]) or 1.0)  # from the reference scanner towards its tree
+        dist = max(2.0 * height, 15.0)
+        cam = np.array([look[0] - d[0] * dist, look[1] - d[1] * dist, look[2] + 0.35 * dist])
         self.server.initial_camera.position = tuple(cam)
         self.server.initial_camera.look_at = tuple(look)
         self.server.initial_camera.up = (0.0, 0.0, 1.0)

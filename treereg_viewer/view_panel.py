@@ -35,7 +35,7 @@ class ViewPanel:
     """The docked panel and its reusable elements."""
 
     server: viser.ViserServer
-    width: int = 680
+    width: int = 560
     _panel: Any = field(init=False)
     _title: Any = field(init=False)
     _text: Any = field(init=False)

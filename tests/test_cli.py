@@ -1,0 +1,76 @@
+"""`treereg register / evaluate / params` as a user runs them."""
+
+import json
+
+import numpy as np
+import pytest
+
+from treereg_core.cli import main
+from treereg_core.rigid import mean_displacement, rotation_error_deg
+from treereg_core.simulate import benchmark_cases, write_case
+from treereg_core.transform_io import parse_cloudcompare_matrix, read_transforms
+
+
+@pytest.fixture(scope="module")
+def case_dir(tmp_path_factory):
+    case = benchmark_cases(3, seed=0, small=True)[1].build()
+    d = tmp_path_factory.mktemp("case")
+    write_case(case, d)
+    return d, case
+
+
+def test_register_writes_transforms_close_to_truth(case_dir, tmp_path, capsys):
+    d, case = case_dir
+    out = tmp_path / "res" / "transforms.json"
+    scans = [str(d / n) for n in case.names]
+    assert main(["register", *scans, "--out", str(out), "--exports"]) == 0
+    tf = read_transforms(out)
+    assert tf.reference == "scan1.ply"
+    assert tf.params["fine"]["max_iterations"] >= 1  # the parameters used are recorded
+    for scan, T_true in zip(case.scans[1:], case.T_ref_scan[1:]):
+        T = tf.matrix(scan.name)
+        assert rotation_error_deg(T, T_true) < 0.5
+        assert mean_displacement(T, T_true, scan.points) < 0.03
+        cc = (out.parent / f"{scan.name[:-4]}.cloudcompare.txt").read_text()
+        assert np.allclose(parse_cloudcompare_matrix(cc), T)
+    assert "scan2.ply" in json.dumps(tf.extra["metrics"])
+
+    capsys.readouterr()
+    assert main(["evaluate", str(out), "--truth", str(d / "truth.json")]) == 0
+    table = capsys.readouterr().out
+    assert "| scan2.ply -> scan1.ply |" in table and "rotation error" in table
+
+
+def test_register_until_coarse_and_paper_preset(case_dir, tmp_path):
+    d, case = case_dir
+    out = tmp_path / "coarse.json"
+    code = main(["register", str(d / "scan1.ply"), str(d / "scan2.ply"), "--until", "coarse", "--out", str(out)])
+    assert code == 0
+    assert read_transforms(out).extra["stage"] == "coarse"
+    # The paper's literal settings may fail; if so the user gets exit status 1 and no file.
+    paper_out = tmp_path / "paper.json"
+    code = main(["register", str(d / "scan1.ply"), str(d / "scan2.ply"), "--preset", "paper", "--until", "coarse",
+                 "--out", str(paper_out)])
+    assert code in (0, 1)
+    assert paper_out.exists() == (code == 0)
+
+
+def test_bad_scan_file_is_one_line_naming_it(tmp_path, case_dir, capsys):
+    d, _ = case_dir
+    bad = tmp_path / "broken.xyz"
+    bad.write_text("1 2 3\nnot numbers here\n")
+    out = tmp_path / "t.json"
+    assert main(["register", str(d / "scan1.ply"), str(bad), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "broken.xyz" in err and "Traceback" not in err
+    assert not out.exists()
+
+
+def test_params_preset_and_bad_config(tmp_path, capsys):
+    assert main(["params", "--preset", "paper"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert d["matching"]["n_pairs"] == 3 and d["coarse"]["estimator"] == "svd"
+    cfg = tmp_path / "p.json"
+    cfg.write_text(json.dumps({"coarse": {"inlier_m": -1}}))
+    assert main(["params", "--config", str(cfg)]) == 2
+    assert "coarse.inlier_m" in capsys.readouterr().err

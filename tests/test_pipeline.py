@@ -1,0 +1,54 @@
+"""The pipeline: stages run in order, cache, and re-run only what a parameter change touches."""
+
+import numpy as np
+import pytest
+
+from treereg_core.params import Params
+from treereg_core.pipeline import STAGES, Pipeline, register
+from treereg_core.rigid import mean_displacement, rotation_error_deg
+from treereg_core.simulate import benchmark_cases
+
+
+@pytest.fixture(scope="module")
+def case():
+    return benchmark_cases(3, seed=0, small=True)[1].build()
+
+
+def test_register_reaches_truth_and_caches(case):
+    pipe = Pipeline(list(case.scans), Params(), case.truth())
+    out = pipe.run("fine")
+    assert out.ok, out.message
+    assert [pipe.status(s) for s in STAGES] == ["done"] * 5 + ["stale"]
+    for scan, T_true in zip(case.scans[1:], case.T_ref_scan[1:]):
+        T = pipe.transforms()[scan.name]
+        assert rotation_error_deg(T, T_true) < 0.5
+        assert mean_displacement(T, T_true, scan.points) < 0.03
+
+    coarse_before = pipe.output("coarse")
+    # A fine-stage parameter leaves coarse (and everything before it) cached...
+    stale = pipe.set_params(pipe.params.with_value("fine", "max_iterations", 2))
+    assert stale == ["fine"]
+    assert pipe.output("coarse") is coarse_before
+    # ...and a preparation parameter invalidates everything.
+    stale = pipe.set_params(pipe.params.with_value("prepare", "ground_band_m", 0.2))
+    assert stale == ["prepare", "projection", "matching", "coarse"]
+    assert all(pipe.status(s) == "stale" for s in STAGES)
+
+
+def test_failed_stage_stops_the_run_with_a_message(case):
+    # Asking for more tie points than RANSAC can ever find makes coarse fail, not raise.
+    params = Params().with_value("coarse", "min_ties", 1000)
+    reg = register(case.scans, params, until="fine")
+    assert not reg.ok
+    assert reg.pipeline.status("coarse") == "failed"
+    assert reg.pipeline.status("fine") == "stale"
+    assert "scan2.ply" in reg.message and reg.message
+    assert set(reg.transforms) == {"scan1.ply"}  # no transform claimed for a failed pair
+
+
+def test_unchanged_params_change_nothing(case):
+    pipe = Pipeline(list(case.scans[:2]), Params())
+    pipe.run("matching")
+    assert pipe.set_params(Params()) == []
+    assert pipe.status("matching") == "done"
+    assert np.isfinite(pipe.output("matching").seconds)

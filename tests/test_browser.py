@@ -82,13 +82,13 @@ def browser():
         b.close()
 
 
-def _open(browser, url):
+def _open(browser, url, scene=True):
+    """A new browser context on `url`, offline-guarded; waits for the GUI (and the scans, if `scene`)."""
     context = browser.new_context(viewport={"width": 1700, "height": 1000}, accept_downloads=True)
-    # Offline guard: the app must load nothing but its own server.
     blocked: list[str] = []
 
-    def guard(route):
-        if route.request.url.startswith("http://127.0.0.1") or route.request.url.startswith("ws://127.0.0.1"):
+    def guard(route):  # the app must load nothing but its own server
+        if route.request.url.startswith(("http://127.0.0.1", "ws://127.0.0.1")):
             route.continue_()
         else:
             blocked.append(route.request.url)
@@ -97,12 +97,22 @@ def _open(browser, url):
     context.route("**/*", guard)
     page = context.new_page()
     page.goto(url)
-    expect = playwright_api.expect
-    expect(page.get_by_role("button", name="Run", exact=True)).to_be_visible(timeout=30_000)
-    page.wait_for_function(
-        "() => !!window.__viserMutable?.nodeRefFromName['/scans/s2/points'] && "
-        "window.__viserTestpoints.rendererInfo.render.frame > 0", timeout=30_000)
+    playwright_api.expect(page.get_by_role("button", name="Run", exact=True)).to_be_visible(timeout=30_000)
+    if scene:
+        page.wait_for_function(
+            "() => !!window.__viserMutable?.nodeRefFromName['/scans/s2/points'] && "
+            "window.__viserTestpoints.rendererInfo.render.frame > 0", timeout=30_000)
     return context, page, blocked
+
+
+class _Laps:
+    """Seconds since the start of a test at named points (shown with `pytest -s`)."""
+
+    def __init__(self) -> None:
+        self.t0 = time.perf_counter()
+
+    def __call__(self, label: str) -> None:
+        print(f"  {time.perf_counter() - self.t0:6.1f} s  {label}")
 
 
 def _close_toast(page):
@@ -116,15 +126,22 @@ def _frame(page) -> int:
     return page.evaluate("() => window.__viserTestpoints.rendererInfo.render.frame")
 
 
+def _settle(page, quiet_ms: int = 300, timeout_s: float = 8.0) -> None:
+    """Rendering is on demand: wait until no new frame was drawn for `quiet_ms`."""
+    deadline = time.monotonic() + timeout_s
+    last = _frame(page)
+    while time.monotonic() < deadline:
+        page.wait_for_timeout(quiet_ms)
+        now = _frame(page)
+        if now == last:
+            return
+        last = now
+
+
 def _screenshot(page, name) -> np.ndarray:
-    before = _frame(page)
-    try:  # rendering is on demand: wait for a frame after the last change
-        page.wait_for_function(f"() => window.__viserTestpoints.rendererInfo.render.frame > {before}", timeout=3000)
-    except playwright_api.TimeoutError:
-        pass
+    _settle(page)
     SHOT_DIR.mkdir(parents=True, exist_ok=True)
-    png = page.screenshot(path=str(SHOT_DIR / f"{name}.png"))
-    return _decode_png(png)
+    return _decode_png(page.screenshot(path=str(SHOT_DIR / f"{name}.png")))
 
 
 def _decode_png(data: bytes) -> np.ndarray:
@@ -155,11 +172,14 @@ def _go(page, label):
 def test_walk_through_the_demo(served, browser):
     url, out_dir, url_seconds, t_start = served
     expect = playwright_api.expect
+    lap = _Laps()
     context, page, blocked = _open(browser, url)
     visible_seconds = time.perf_counter() - t_start
+    lap("page open, scans drawn")
     _close_toast(page)
     _wait_all_done(page)
     ready_seconds = time.perf_counter() - t_start
+    lap("every stage done")
     print(f"\ndemo: URL after {url_seconds:.1f} s, scans drawn in the browser after {visible_seconds:.1f} s, "
           f"every stage done after {ready_seconds:.1f} s")
 
@@ -175,10 +195,12 @@ def test_walk_through_the_demo(served, browser):
                 assert _colour_pixels(panel, scan_color(i), tol=40) > 300, f"projection of scan {i + 1} missing"
         if k == 2:
             expect(page.get_by_text("Similarity", exact=False).first).to_be_visible()
+    lap("stepped through every stage")
     result = _screenshot(page, "stage7_result")
     scene = result[:, 580:1300]  # between the docked panel (560 px) and the control panel
     counts = [_colour_pixels(scene, scan_color(i)) for i in range(3)]
     assert all(c > 200 for c in counts), f"scan colours in the final overlay: {counts}"
+    lap("screenshots checked")
 
     # Change a fine-stage parameter and re-run: only fine and evaluation run again.
     _go(page, "6 Fits")
@@ -192,6 +214,7 @@ def test_walk_through_the_demo(served, browser):
     expect(page.get_by_text(re.compile(r"Ran fine, evaluation in [\d.]+ s"))).to_be_visible(timeout=60_000)
     print(f"fine + evaluation re-run seen in the browser after {time.perf_counter() - t0:.1f} s: "
           f"{page.get_by_text(re.compile('Ran fine')).first.inner_text()}")
+    lap("parameter changed and re-run")
 
     # A bad upload: a message, nothing else changes.
     page.get_by_role("tab", name="Scans").click()
@@ -202,6 +225,7 @@ def test_walk_through_the_demo(served, browser):
     expect(page.get_by_text(re.compile("Upload rejected.*broken.ply"))).to_be_visible(timeout=15_000)
     expect(page.get_by_label(re.compile("^4: "))).to_have_count(0)
     _wait_all_done(page, 5_000)  # every stage is still done
+    lap("bad upload rejected")
 
     # Export: download transforms.json and compare with the demo's truth.
     page.get_by_role("tab", name="Files").click()
@@ -223,16 +247,21 @@ def test_walk_through_the_demo(served, browser):
         assert rot < ROT_TOL_DEG and disp < DISP_TOL_M, (name, rot, disp)
     assert (out_dir / "transforms.json").is_file() and (out_dir / "merged.ply").is_file()  # --out
     assert not blocked, f"the page tried to load {blocked}"
+    lap("exported and checked")
     context.close()
 
 
 def test_two_tabs_see_one_state(served, browser):
     url = served[0]
     expect = playwright_api.expect
-    ctx1, page1, _ = _open(browser, url)
-    ctx2, page2, _ = _open(browser, url)
-    _go(page1, "3 Coarse")
+    lap = _Laps()
+    ctx1, page1, _ = _open(browser, url, scene=False)
+    lap("tab 1 open")
+    ctx2, page2, _ = _open(browser, url, scene=False)
+    lap("tab 2 open")
+    _go(page1, "3 Coarse")  # one tab steps; the other follows: one state for all
+    lap("tab 1 stepped")
     expect(page2.get_by_role("heading", name=re.compile("^3 · Coarse"))).to_be_visible(timeout=10_000)
-    expect(page2.get_by_text(re.compile("^Run when stepping"))).to_be_visible()
+    expect(page2.get_by_label("Stage", exact=True)).to_have_value("3 Coarse")
     ctx1.close()
     ctx2.close()

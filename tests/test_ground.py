@@ -16,8 +16,11 @@ def test_ground_of_a_simulated_scan_is_removed_and_the_tree_kept():
         assert prep.ok and prep.plane is not None
         is_ground = labels == LABEL_GROUND
         assert prep.ground_mask[is_ground].mean() > 0.98
-        # only the tree's lowest band (ground_band_m) goes with the ground
-        assert prep.kept_mask[~is_ground].mean() > 0.95
+        # only the tree's lowest band (ground_band_m) goes with the ground: all of it above is kept
+        height = scan.points @ np.array(prep.plane[:3]) + prep.plane[3]
+        above = ~is_ground & (height > PrepareParams().ground_band_m + 0.05)
+        assert prep.kept_mask[above].mean() > 0.999
+        assert prep.kept_mask[~is_ground].mean() > 0.9
         assert prep.scan.n_points == prep.kept_mask.sum()
         assert np.allclose(prep.scan.points, scan.points[prep.kept_mask])
 

@@ -135,3 +135,12 @@ def test_tie_points_are_pixel_centroids_in_the_scans_own_frame():
     empty = np.argwhere(proj.image == EMPTY)[:1]
     e_xyz, e_cnt = pixel_centroids(proj, scan.points, empty)
     assert e_cnt[0] == 0 and np.isnan(e_xyz).all()
+
+
+def test_sequence_span_never_leaves_relative_headings_uncovered():
+    rng = np.random.default_rng(6)
+    scan = Scan.from_points(_tree_like(rng), "s", angular_step_deg=(0.2, 0.2))
+    paper = build_sequence(scan, ProjectionParams(theta_deg=12.0, min_span_deg=0.0, max_image_px=None), 5)
+    robust = build_sequence(scan, ProjectionParams(theta_deg=12.0), 5)
+    assert (paper.angles_deg[0], paper.angles_deg[-1]) == (-72.0, 72.0)  # 360 / n, n = 5
+    assert robust.angles_deg[0] <= -84.0 and robust.angles_deg[-1] >= 84.0  # two sequences cover +-180

@@ -270,6 +270,37 @@ def test_presets_and_parameter_files_round_trip(small_app, tmp_path):
     assert "matching.n_pairs" in app.stages.message_md.content
 
 
+def test_good_upload_adds_a_scan_in_the_next_colour(small_app, case):
+    app = small_app
+    data = (find_demo() / case.scans[2].name).read_bytes()
+    _upload(app.scans.upload, "extra.ply", data)
+    _idle(app)
+    snap = app.controller.snapshot
+    assert [s.name for s in snap.scans][-1] == "extra.ply" and len(snap.scans) == 4
+    assert not snap.error and "press Run" in snap.message
+    assert [cb.label for cb in app.scans._checkboxes][-1] == "4: extra.ply"
+    node = app.server.scene._handle_from_node_name["/scans/s3/points"]
+    assert np.all(np.asarray(node.colors).reshape(-1, 3) == scan_color(3))
+    assert "extra.ply → scan1.ply" in app.stages.view_controls["target2"].options
+
+
+def test_match_lines_join_the_matched_pixels():
+    from treereg_viewer.drawing import binary_to_rgb, display_xy, draw_lines, hstack
+
+    img = np.full((20, 30), 255, np.uint8)
+    img[5, 7] = 0  # row 5, column 7 (eq. 3 layout: row 0 = lowest elevation)
+    rgb = binary_to_rgb(img, (255, 0, 0))
+    x, y = display_xy([[7, 5]], img.shape)[0]
+    assert tuple(rgb[int(y), int(x)]) == (255, 0, 0)  # shown flipped, the pixel follows its coordinates
+    lay = hstack([rgb, rgb], gap=4)
+    p0 = display_xy([[7, 5]], img.shape) + lay.offsets[0]
+    p1 = display_xy([[7, 5]], img.shape) + lay.offsets[1]
+    canvas = lay.image.copy()
+    draw_lines(canvas, p0, p1, np.array([[0, 200, 0]]))
+    row = canvas[int(p0[0, 1])]
+    assert (row[int(p0[0, 0]) + 1: int(p1[0, 0])] == (0, 200, 0)).all()  # an unbroken line between the two
+
+
 def test_callbacks_from_many_threads_leave_one_consistent_state(small_app):
     """viser runs callbacks on a thread pool: concurrent changes must all land, none half-way."""
     app = small_app

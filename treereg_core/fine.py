@@ -45,8 +45,12 @@ from .slicing import SliceResult, slice_scans
 
 #: Points of the target used to measure how far an update moves it (and for the acceptance measure).
 _SAMPLE = 20_000
+#: Surface pairs count only when their scanner-facing normals agree this well (cosine).
+_NORMAL_AGREEMENT = 0.5
 #: Joint adjustment: a section pair whose RMS exceeds this multiple of the median RMS is dropped.
 _TRIM_FACTOR = 2.5
+#: Joint adjustment: rounds of dropping bad pairs and adjusting again.
+_TRIM_ROUNDS = 6
 
 
 @dataclass(frozen=True)
@@ -202,7 +206,7 @@ def _solve_well_determined(S_data: np.ndarray, S_prior: np.ndarray, b: np.ndarra
     whose noise-propagated standard deviation sigma / sqrt(eigenvalue) exceeds `max_sigma_m` (a
     stem of vertical cylinders says nothing about z, or about a turn about itself) gets no update:
     it stays where coarse put it instead of wandering with noise and model error.
-    Returns (step, number of held directions).
+    Returns (step, held directions as a 6 x h basis of the unscaled pose parameters).
     """
     D = np.r_[[lever_m] * 3, [1.0] * 3]
     Sy = S_data / np.outer(D, D)
@@ -211,12 +215,13 @@ def _solve_well_determined(S_data: np.ndarray, S_prior: np.ndarray, b: np.ndarra
         good = np.ones(6, dtype=bool)
     else:
         good = sigma_m / np.sqrt(np.maximum(lam, 1e-300)) <= max_sigma_m
+    held = V[:, ~good] / D[:, None]
     if not good.any():
-        return np.zeros(6), 6
+        return np.zeros(6), held
     Vg = V[:, good]
     A = Vg.T @ ((Sy + S_prior / np.outer(D, D)) @ Vg)
     dy = -Vg @ np.linalg.solve(A, Vg.T @ (b / D))
-    return dy / D, int((~good).sum())
+    return dy / D, held
 
 
 def _robust_weight(res: np.ndarray, scale: float, loss: str) -> np.ndarray:
@@ -241,7 +246,24 @@ class JointFit:
     radii_m: np.ndarray
     rms_m: np.ndarray
     iterations: int
-    held_directions: int
+    held_basis: np.ndarray
+    centre_m: np.ndarray
+    influence_m: np.ndarray
+    information: np.ndarray
+    lever_m: float
+
+    def weak_basis(self, sigma_m: float, max_sigma_m: float) -> np.ndarray:
+        """6 x h basis of the pose directions the sections determine worse than `max_sigma_m`
+        (noise std at the lever arm, for a residual scale `sigma_m`)."""
+        D = np.r_[[self.lever_m] * 3, [1.0] * 3]
+        lam, V = np.linalg.eigh(self.information / np.outer(D, D))
+        weak = sigma_m / np.sqrt(np.maximum(lam, 1e-300)) > max_sigma_m
+        return V[:, weak] / D[:, None]
+
+    @property
+    def held_directions(self) -> int:
+        """Pose directions the sections did not determine (kept at the prior)."""
+        return int(self.held_basis.shape[1])
 
 
 def adjust_joint(points: np.ndarray, section: np.ndarray, moving: np.ndarray, c0: np.ndarray, a0: np.ndarray,
@@ -286,7 +308,7 @@ def adjust_joint(points: np.ndarray, section: np.ndarray, moving: np.ndarray, c0
     starts = np.flatnonzero(np.r_[True, section[1:] != section[:-1]])
     centre = points.mean(axis=0)
     lever = float(np.sqrt(np.mean(np.sum((points - centre) ** 2, axis=1))))
-    held = 0
+    held = np.zeros((6, 0))
     mv = np.flatnonzero(moving)
     base = points[mv] - centre
     c, a, r = c0.astype(float).copy(), a0.astype(float).copy(), r0.astype(float).copy()
@@ -309,10 +331,8 @@ def adjust_joint(points: np.ndarray, section: np.ndarray, moving: np.ndarray, c0
     def cost(res: np.ndarray, Rt: np.ndarray, t: np.ndarray) -> float:
         return _robust_cost(res, loss_scale_m, loss) + float(prior @ np.r_[_rotvec(Rt), t] ** 2)
 
-    cur, d, along, perp, nrm, res = residuals(R, tau, c, a, r)
-    f = cost(res, Rp, tp)
-    it = 0
-    for it in range(1, max_iterations + 1):
+    def linearise(cur, along, perp, nrm, res, a):
+        """Normal-equation blocks: per section (5 x 5, 5 x 6, 5) and per section's pose part."""
         w = _robust_weight(res, loss_scale_m, loss)
         n = perp / np.maximum(nrm, 1e-12)[:, None]
         e1, e2 = _basis_rows(a)
@@ -322,18 +342,28 @@ def adjust_joint(points: np.ndarray, section: np.ndarray, moving: np.ndarray, c0
         Jp = np.zeros((len(res), 6))
         Jp[mv, :3] = np.cross(cur[mv] - centre, n[mv])
         Jp[mv, 3:] = n[mv]
-        wJs = Js * w[:, None]
+        wJs, wJp = Js * w[:, None], Jp * w[:, None]
         Hss = np.add.reduceat(np.einsum("ni,nj->nij", wJs, Js), starts, axis=0)
         Hsp = np.add.reduceat(np.einsum("ni,nj->nij", wJs, Jp), starts, axis=0)
         gs = np.add.reduceat(wJs * res[:, None], starts, axis=0)
-        Hpp = (Jp * w[:, None]).T @ Jp + np.diag(prior)
-        gp = (Jp * w[:, None]).T @ res + prior * np.r_[_rotvec(Rp), tp]
+        Hpp_k = np.add.reduceat(np.einsum("ni,nj->nij", wJp, Jp), starts, axis=0)
+        gp_k = np.add.reduceat(wJp * res[:, None], starts, axis=0)
         # Levenberg damping on the section blocks keeps near-degenerate sections (tiny arcs) finite.
         Hss = Hss + 1e-9 * eye5 + 1e-6 * np.einsum("kii->ki", Hss)[:, :, None] * eye5
         Hinv = np.linalg.inv(Hss)
         HinvHsp = Hinv @ Hsp
-        S = Hpp - np.einsum("kji,kjl->il", Hsp, HinvHsp)
-        b = gp - np.einsum("kji,kj->i", Hsp, np.einsum("kij,kj->ki", Hinv, gs))
+        # Each section's contribution to the reduced (pose-only) system, its own unknowns eliminated.
+        S_k = Hpp_k - np.einsum("kji,kjl->kil", Hsp, HinvHsp)
+        b_k = gp_k - np.einsum("kji,kj->ki", Hsp, np.einsum("kij,kj->ki", Hinv, gs))
+        return e1, e2, Hinv, HinvHsp, gs, S_k, b_k
+
+    cur, d, along, perp, nrm, res = residuals(R, tau, c, a, r)
+    f = cost(res, Rp, tp)
+    it = 0
+    for it in range(1, max_iterations + 1):
+        e1, e2, Hinv, HinvHsp, gs, S_k, b_k = linearise(cur, along, perp, nrm, res, a)
+        S = S_k.sum(axis=0) + np.diag(prior)
+        b = b_k.sum(axis=0) + prior * np.r_[_rotvec(Rp), tp]
         dp, held = _solve_well_determined(S - np.diag(prior), np.diag(prior), b, lever, loss_scale_m, max_sigma_m)
         ds = -(np.einsum("kij,kj->ki", Hinv, gs) + HinvHsp @ dp)
         step = 1.0
@@ -361,17 +391,36 @@ def adjust_joint(points: np.ndarray, section: np.ndarray, moving: np.ndarray, c0
             break
     counts = np.diff(np.r_[starts, len(res)])
     rms = np.sqrt(np.add.reduceat(res ** 2, starts) / counts)
+    # Influence of each section: how far the pose would move without it (linearised at the
+    # solution, where the summed gradient vanishes: shift = (S - S_k)^-1 b_k), in metres at the lever.
+    # Only directions the sections determine count: in the others the prior alone holds the pose,
+    # and any small gradient would look like a huge influence.
+    _, _, _, _, _, S_k, b_k = linearise(cur, along, perp, nrm, res, a)
+    S_data = S_k.sum(axis=0)
+    D = np.r_[[lever] * 3, [1.0] * 3]
+    lam, V = np.linalg.eigh(S_data / np.outer(D, D))
+    good = np.ones(6, dtype=bool) if max_sigma_m is None else (
+        loss_scale_m / np.sqrt(np.maximum(lam, 1e-300)) <= max_sigma_m)
+    Vg = V[:, good] / D[:, None]
+    A = np.einsum("ia,kij,jb->kab", Vg, S_data[None] + np.diag(prior) - S_k, Vg)
+    y = np.linalg.solve(A + 1e-12 * np.eye(A.shape[1]), (b_k @ Vg)[:, :, None])[:, :, 0]
+    influence = np.linalg.norm((y @ Vg.T) * D, axis=1)
     U = make_transform(R, centre - R @ centre + tau)
-    return JointFit(U, c, a, np.abs(r), rms, it, held)
+    return JointFit(U, c, a, np.abs(r), rms, it, held, centre, influence, S_data, lever)
 
 
 def _estimate_joint(ref_scan: Scan, tgt_scan: Scan, T: np.ndarray, ref: _Sections, tgt: _Sections,
                     corr: Correspondences, fp: FineParams, loss: str,
-                    T_prior: np.ndarray) -> tuple[np.ndarray | None, str, np.ndarray]:
+                    T_prior: np.ndarray) -> tuple[JointFit | None, str, np.ndarray]:
     """Rigid update from one cylinder per section pair fitted to both scans' points at once.
 
     Pairs whose cylinder fits badly (RMS above `_TRIM_FACTOR` times the median and above the loss
-    scale: a wrong pairing or a mis-separated arc) are dropped and the adjustment is repeated. Returns (update or None, message, kept pair mask).
+    scale: a wrong pairing or a mis-separated arc) are dropped and the adjustment is repeated.
+    So is the pair with the largest influence on the pose when it exceeds `fp.influence_factor`
+    times the median and `fp.influence_min_m`: a wrong pair can bend a direction that only a few
+    branches fix (a turn about the stem) so that it fits well itself, yet it still stands out as
+    the one pair the solution hinges on.
+    Returns (adjustment or None, message, kept pair mask).
     """
     K = len(corr.pairs)
     pts, sec, mov = [], [], []
@@ -390,34 +439,107 @@ def _estimate_joint(ref_scan: Scan, tgt_scan: Scan, T: np.ndarray, ref: _Section
         r0[k] = (si.radius_m + sj.radius_m) / 2.0
     P, S, M = np.vstack(pts), np.concatenate(sec), np.concatenate(mov)
     keep = np.ones(K, dtype=bool)
-    for _ in range(4):
+    for _ in range(_TRIM_ROUNDS):
         idx = np.flatnonzero(keep[S])
         remap = np.cumsum(keep) - 1
         fit = adjust_joint(P[idx], remap[S[idx]], M[idx], c0[keep], a0[keep], r0[keep], fp.loss_scale_m,
                            fp.prior_m, fp.prior_deg, loss, fp.max_direction_sigma_m, T @ invert(T_prior),
                            fp.max_solver_iterations)
         bad = fit.rms_m > max(_TRIM_FACTOR * float(np.median(fit.rms_m)), fp.loss_scale_m)
+        worst = int(np.argmax(fit.influence_m))
+        if fp.influence_factor is not None and fit.influence_m[worst] > max(
+                fp.influence_min_m, fp.influence_factor * float(np.median(fit.influence_m))):
+            bad[worst] = True
         if not bad.any() or keep.sum() - bad.sum() < fp.min_pairs:
             break
         keep[np.flatnonzero(keep)[bad]] = False
     if not np.isfinite(fit.U).all():
         return None, "the joint section adjustment diverged", keep
-    return fit.U, "", keep
+    return fit, "", keep
 
 
-def _alignment_measure(ref_pts: np.ndarray, ref_tree: cKDTree, ref_normals: np.ndarray,
-                       tgt_sample: np.ndarray, T: np.ndarray, gate_m: float) -> float:
+@dataclass(frozen=True)
+class Surface:
+    """A scan's surface for point-to-plane terms: voxel centroids and unit normals oriented towards
+    the scanner (the origin of the scan's frame), so that the two sides of a thin branch, each seen
+    by a different station, have opposite normals and are never paired."""
+
+    points: np.ndarray
+    normals: np.ndarray
+    tree: cKDTree
+
+
+def surface_of(points: np.ndarray, voxel_m: float, max_points: int | None = None, seed: int = 0) -> Surface:
+    """Voxel-subsampled surface of a scan (at most `max_points`, a seeded random subset)."""
+    pts = voxel_downsample(points, voxel_m)
+    tree = cKDTree(pts)
+    n = estimate_normals(pts, tree=tree)
+    n *= np.where(np.einsum("ij,ij->i", n, pts) > 0, -1.0, 1.0)[:, None]
+    if max_points is not None and len(pts) > max_points:
+        keep = np.sort(np.random.default_rng(seed).choice(len(pts), max_points, replace=False))
+        pts, n = pts[keep], n[keep]
+        tree = cKDTree(pts)
+    return Surface(pts, n, tree)
+
+
+def _surface_pairs(ref: Surface, tgt: Surface, T: np.ndarray, gate_m: float
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Target points (mapped by T) with a reference neighbour within the gate whose normal agrees.
+
+    Returns (target indices, mapped target points, point-to-plane residuals) of the kept pairs.
+    """
+    moved = apply_transform(T, tgt.points)
+    d, j = ref.tree.query(moved, distance_upper_bound=gate_m)
+    ok = np.flatnonzero(np.isfinite(d))
+    nr = ref.normals[j[ok]]
+    agree = np.einsum("ij,ij->i", nr, tgt.normals[ok] @ T[:3, :3].T) > _NORMAL_AGREEMENT
+    ok, nr = ok[agree], nr[agree]
+    r = np.einsum("ij,ij->i", moved[ok] - ref.points[j[ok]], nr)
+    return ok, moved[ok], r
+
+
+def _alignment_measure(ref: Surface, tgt: Surface, T: np.ndarray, gate_m: float) -> float:
     """RMS of the point-to-plane residuals of the target's points, each truncated at `gate_m`.
 
-    Points without a reference point within `gate_m` count as `gate_m`, so a pose cannot look
-    better by sliding the target out of the overlap.
+    Points without a reference point within `gate_m` (or only one facing the other way) count as
+    `gate_m`, so a pose cannot look better by sliding the target out of the overlap.
     """
-    moved = apply_transform(T, tgt_sample)
-    d, j = ref_tree.query(moved, distance_upper_bound=gate_m)
-    e = np.full(len(moved), gate_m)
-    ok = np.isfinite(d)
-    e[ok] = np.minimum(np.abs(np.einsum("ij,ij->i", moved[ok] - ref_pts[j[ok]], ref_normals[j[ok]])), gate_m)
+    idx, _, r = _surface_pairs(ref, tgt, T, gate_m)
+    e = np.full(len(tgt.points), gate_m)
+    e[idx] = np.minimum(np.abs(r), gate_m)
     return float(np.sqrt(np.mean(e ** 2)))
+
+
+def _refine_held(ref: Surface, tgt: Surface, T: np.ndarray, centre: np.ndarray, basis: np.ndarray,
+                 fp: FineParams) -> np.ndarray:
+    """Point-to-plane refinement of `T` along the pose directions in `basis` only.
+
+    The sections fix the other directions to millimetres. Point-to-plane alignment of the whole
+    target against the reference's surface (twigs, leaves, ground: all that the sections ignore)
+    uses only pairs whose oriented normals agree, and a Cauchy loss of scale `fp.loss_scale_m`;
+    it is used only where the sections are silent.
+    """
+    B = basis
+    for _ in range(fp.surface_iterations):
+        idx, q, r = _surface_pairs(ref, tgt, T, fp.surface_gate_m)
+        if len(idx) < 10 * B.shape[1]:
+            break
+        n = tgt.normals[idx] @ T[:3, :3].T
+        w = _robust_weight(r, fp.loss_scale_m, "cauchy")
+        # d r / d pose uses the reference normal; the target's (agreeing) normal is close to it.
+        J = np.c_[np.cross(q - centre, n), n] @ B
+        H = J.T @ (J * w[:, None])
+        try:
+            y = -np.linalg.solve(H + 1e-12 * np.eye(len(H)), J.T @ (w * r))
+        except np.linalg.LinAlgError:
+            break
+        x = B @ y
+        R = _skew_rotation(x[:3])
+        U = make_transform(R, centre - R @ centre + x[3:])
+        T = U @ T
+        if _mean_move(U, q) < 1e-5:
+            break
+    return T
 
 
 def _mean_move(U: np.ndarray, pts: np.ndarray) -> float:
@@ -455,6 +577,7 @@ def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, params: Params,
     T = T0.copy()
     updates: list[float] = []
     ref_secs: _Sections | None = None
+    joint: JointFit | None = None
     note = ""
     it = 0
     for it in range(1, fp.max_iterations + 1):
@@ -476,8 +599,9 @@ def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, params: Params,
         if fp.method == "ties":
             U, note = _estimate_ties(ref_secs, tgt_secs, corr, fp)
         else:
-            U, note, _ = _estimate_joint(ref, tgt, T, ref_secs, tgt_secs, corr, fp,
-                                         "soft_l1" if it == 1 else fp.refine_loss, T0)
+            joint, note, _ = _estimate_joint(ref, tgt, T, ref_secs, tgt_secs, corr, fp,
+                                             "soft_l1" if it == 1 else fp.refine_loss, T0)
+            U = None if joint is None else joint.U
         if U is None:
             it -= 1
             break
@@ -487,11 +611,16 @@ def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, params: Params,
         if move < fp.tolerance_m:
             break
     progress(fp.max_iterations / (fp.max_iterations + 1), "acceptance test")
-    ref_pts = voxel_downsample(ref.points, fp.measure_voxel_m)
-    tree = cKDTree(ref_pts)
-    normals = estimate_normals(ref_pts, tree=tree)
-    m0 = _alignment_measure(ref_pts, tree, normals, sample, T0, fp.measure_gate_m)
-    m1 = _alignment_measure(ref_pts, tree, normals, sample, T, fp.measure_gate_m) if updates else m0
+    ref_surf = surface_of(ref.points, fp.measure_voxel_m)
+    tgt_surf = surface_of(tgt.points, fp.measure_voxel_m, _SAMPLE)
+    weak = np.zeros((6, 0)) if joint is None else joint.weak_basis(fp.loss_scale_m, fp.surface_sigma_m)
+    held = weak.shape[1]
+    if held and updates and fp.surface_refine:
+        # Directions the sections barely fix (z along a bare stem, a turn about it, which only a
+        # few branches see) are taken from the surfaces.
+        T = _refine_held(ref_surf, tgt_surf, T, joint.centre_m, weak, fp)
+    m0 = _alignment_measure(ref_surf, tgt_surf, T0, fp.measure_gate_m)
+    m1 = _alignment_measure(ref_surf, tgt_surf, T, fp.measure_gate_m) if updates else m0
     accepted = bool(updates)
     message = ""
     if not updates:
@@ -512,6 +641,7 @@ def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, params: Params,
     metrics = (
         Metric("fine accepted", "", "yes" if accepted else "no"),
         Metric("fine iterations", "", it),
+        Metric("pose directions not fixed by sections", "", held),
         Metric("fine update (last iteration)", "m", updates[-1] if updates else 0.0),
         Metric("corresponding sections", "", int(len(corr.pairs))),
         Metric("alignment residual, coarse", "m", m0),

@@ -140,14 +140,19 @@ def icp(ref_points: np.ndarray, tgt_points: np.ndarray, T_init: np.ndarray, p: I
                              "the start transform is too far off", (Metric("ICP iterations", "", it),),
                              np.asarray(T_init, dtype=float).copy(), np.nan, 0.0, it, False)
         idx = np.flatnonzero(valid)
+        # Trim by the residual the metric minimises: for point-to-plane that is the distance along
+        # the normal (trimming by point distance would keep a sliding, biased subset).
+        if normals is not None:
+            err = np.abs(np.einsum("ij,ij->i", moved[idx] - ref[j[idx]], normals[j[idx]]))
+        else:
+            err = d[idx]
         n_keep = max(6, int(np.ceil(p.trim * len(idx))))
-        idx = idx[np.argsort(d[idx], kind="stable")[:n_keep]]
+        keep = np.argsort(err, kind="stable")[:n_keep]
+        idx, resid = idx[keep], err[keep]
         if normals is not None:
             step = point_to_plane_step(moved[idx], ref[j[idx]], normals[j[idx]])
-            resid = np.einsum("ij,ij->i", moved[idx] - ref[j[idx]], normals[j[idx]])
         else:
             step = kabsch(moved[idx], ref[j[idx]])
-            resid = d[idx]
         rmse = float(np.sqrt(np.mean(resid ** 2)))
         fit = len(idx) / len(src)
         T = step @ T

@@ -52,6 +52,7 @@ class ProjectionParams:
     relative_azimuth: bool = _f(True, "", "measure azimuth from the scan centroid's azimuth, so a tree never straddles +-180 deg")
     theta_deg: float = _f(10.0, "deg", "rotation step of the image sequence (paper: 10)", lo=0.5, hi=90.0)
     span_deg: float | None = _f(None, "deg", "sequence covers [-span, +span]; None = 360/n, n = number of scans (paper)", lo=0.0, hi=180.0)
+    min_span_deg: float = _f(90.0, "deg", "never span less than this: two sequences of +-90 deg cover any relative heading (paper: 0, so n > 4 scans leave gaps)", lo=0.0, hi=180.0)
     max_image_px: int | None = _f(700, "px", "enlarge pixels so no image is longer than this (ORB cost); None = no limit (paper)", lo=64, hi=20000)
 
 
@@ -142,6 +143,12 @@ class FineParams:
     max_section_points: int = _f(150, "points", "joint: points per section and scan used in the adjustment", lo=10, hi=100000)
     prior_m: float = _f(0.05, "m", "joint: prior std of the translation away from coarse (holds directions the sections hardly constrain)", lo=0.001, hi=100.0)
     prior_deg: float = _f(2.0, "deg", "joint: prior std of the rotation away from coarse", lo=0.001, hi=180.0)
+    influence_factor: float | None = _f(None, "", "joint: drop the pair the pose hinges on when its influence exceeds this times the median (None = off)", lo=1.0, hi=1000.0)
+    influence_min_m: float = _f(0.002, "m", "joint: influences below this are never a reason to drop a pair", lo=0.0, hi=1.0)
+    surface_refine: bool = _f(True, "", "joint: pose directions the sections leave open are refined point-to-plane against the reference's surface")
+    surface_sigma_m: float = _f(0.003, "m", "surface refinement: pose directions the sections determine worse than this (noise std) are refined from the surfaces", lo=1e-6, hi=10.0)
+    surface_gate_m: float = _f(0.05, "m", "surface refinement: points farther than this from the reference are ignored", lo=0.001, hi=1.0)
+    surface_iterations: int = _f(20, "", "surface refinement: iterations", lo=1, hi=1000)
     max_solver_iterations: int = _f(30, "", "joint: Gauss-Newton iterations per adjustment", lo=1, hi=1000)
     measure_voxel_m: float = _f(0.01, "m", "acceptance measure: voxel size of the reference's surface", lo=0.0, hi=0.5)
     measure_gate_m: float = _f(0.03, "m", "acceptance measure: point-to-plane residuals are truncated here", lo=0.001, hi=1.0)
@@ -208,7 +215,7 @@ def _paper() -> Params:
     return replace(
         p,
         prepare=replace(p.prepare, remove_ground=False),
-        projection=replace(p.projection, relative_azimuth=False, max_image_px=None),
+        projection=replace(p.projection, relative_azimuth=False, max_image_px=None, min_span_deg=0.0),
         matching=replace(p.matching, n_pairs=3, matches_per_pair=5, beta_check=True, image_mode="binary", snap_px=0),
         coarse=replace(p.coarse, estimator="svd", dof=6, refit_6dof=False, final_inlier_m=None),
         slicing=replace(p.slicing, quantiles=(0.25, 0.5, 0.75), thickness_m=0.1),

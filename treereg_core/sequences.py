@@ -28,7 +28,9 @@ class ImageSequence:
     Attributes
     ----------
     angles_deg : rotation of the points (about +z through `centre_xy`) for each image.
-    projections : one Projection per angle: image, per-point flat pixel labels, geometry.
+    projections : one Projection per angle: image, per-point flat pixel labels, geometry. Labels
+        index the points of the scan the sequence was built from (`points_of_pixel` gives them back);
+        a pixel's alpha interval is an azimuth of the points *as rotated* for that image.
     centre_xy : (x_mean, y_mean) of the scan's points, metres: the rotation axis.
     azimuth_ref_deg : azimuth that alpha is measured from (the centre's azimuth; 0 = absolute alpha).
     pixel_deg : (d_alpha, d_beta) pixel size of every image, degrees.
@@ -103,7 +105,8 @@ def build_sequence(scan: Scan, p: ProjectionParams, n_scans: int) -> ImageSequen
     ----------
     scan : the (prepared) scan.
     p : projection parameters (pixel factor k, borders, theta, span, relative azimuth, size cap).
-    n_scans : number of scans registered together; the span is 360 / n_scans unless `p.span_deg`.
+    n_scans : number of scans registered together; the span is 360 / n_scans unless `p.span_deg`,
+        and at least `p.min_span_deg`.
 
     Returns
     -------
@@ -113,6 +116,7 @@ def build_sequence(scan: Scan, p: ProjectionParams, n_scans: int) -> ImageSequen
         raise ValueError(f"{scan.label}: no points left to project")
     centre = scan.points[:, :2].mean(axis=0)
     span = p.span_deg if p.span_deg is not None else 360.0 / max(int(n_scans), 1)
+    span = max(span, p.min_span_deg)
     angles = sequence_angles_deg(p.theta_deg, span)
     # The centre's azimuth does not change under rotation about the centre: one reference for all
     # images. Turning the whole scan by -az_ref about the scanner first puts the centre on +x, so

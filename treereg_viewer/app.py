@@ -185,7 +185,7 @@ class TreeregApp:
         look = pts.mean(axis=0)
         height = float(np.ptp(pts[:, 2])) or 10.0
         d = look[:2] / (np.linalg.norm(look[:2]) or 1.0)  # from the reference scanner towards its tree
-        dist = max(2.0 * height, 15.0)
+        dist = max(1.5 * height, 12.0)
         cam = np.array([look[0] - d[0] * dist, look[1] - d[1] * dist, look[2] + 0.35 * dist])
         self.server.initial_camera.position = tuple(cam)
         self.server.initial_camera.look_at = tuple(look)

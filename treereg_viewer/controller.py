@@ -271,7 +271,8 @@ class Controller:
                 continue
             scan = _unique_name(scan, {s.name for s in pipe.scans})
             pipe.set_scans([*pipe.scans, scan], pipe.truth)
-            message, error = f"Added {scan.name} ({scan.n_points:,} points) as scan {len(pipe.scans)}.", False
+            message, error = (f"Added {scan.name} ({scan.n_points:,} points) as scan {len(pipe.scans)}; "
+                              "press Run to register it."), False
         if req.scans is not None or req.uploads or req.params_changed or req.run_until:
             self._crashed.clear()  # new inputs or an explicit run: try again
         if req.params_changed or desired != pipe.params:

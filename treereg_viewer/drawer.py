@@ -17,7 +17,7 @@ import viser
 
 from .controller import Snapshot
 from .renderers import coarse, fine, matching, projection, result
-from .renderers.scans import apply_poses, draw_scan_layer, render_scans_stage, scan_poses
+from .renderers.scans import apply_poses, context_only, draw_scan_layer, render_scans_stage, scan_poses, scans_shown
 from .stages import APP_STAGES
 from .view_panel import PanelContent, ViewPanel
 from .view_state import ViewState
@@ -121,7 +121,7 @@ class Drawer:
         with self.server.atomic():
             # The scan layer: points change only with the scans, preparation and display options.
             prep = snap.output("prepare")
-            key = (tuple(id(s) for s in snap.scans), id(prep), view.stage == 0, view.point_size,
+            key = (tuple(id(s) for s in snap.scans), id(prep), view.stage == 0, context_only(view), view.point_size,
                    view.max_points, view.show_stations)
             if self._keys.get("scans") != key:
                 self._replace("scans", [])
@@ -134,7 +134,7 @@ class Drawer:
             for i, s in enumerate(snap.scans):
                 h = self._scan_frames.get(i)
                 if h is not None:
-                    h.visible = s.name not in view.hidden_scans
+                    h.visible = s.name not in view.hidden_scans and scans_shown(view)
             # The current stage's layer; the others are hidden (the scans stay).
             stage = APP_STAGES[view.stage]
             fn, fields = RENDERERS[stage.index]

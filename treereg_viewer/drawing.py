@@ -25,11 +25,24 @@ def binary_to_rgb(image: np.ndarray, color: tuple[int, int, int], ramp: bool = F
     return np.ascontiguousarray(rgb[::-1, ::-1].astype(np.uint8))
 
 
-def display_xy(xy: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    """Image (x = column, y = row) coordinates -> coordinates in the flipped display image."""
+def upscale(image: np.ndarray, factor: int) -> np.ndarray:
+    """Nearest-neighbour enlargement by an integer factor (small binary images stay crisp)."""
+    if factor <= 1:
+        return image
+    return np.ascontiguousarray(np.repeat(np.repeat(image, factor, axis=0), factor, axis=1))
+
+
+def fit_factor(width: int, target: int = 540, most: int = 4) -> int:
+    """The integer enlargement that brings `width` closest to `target` without exceeding it."""
+    return int(max(1, min(most, target // max(width, 1))))
+
+
+def display_xy(xy: np.ndarray, shape: tuple[int, int], factor: int = 1) -> np.ndarray:
+    """Image (x = column, y = row) coordinates -> coordinates in the flipped (and enlarged) display image."""
     xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
     rows, cols = shape
-    return np.stack([cols - 1 - xy[:, 0], rows - 1 - xy[:, 1]], axis=1)
+    flipped = np.stack([cols - 1 - xy[:, 0], rows - 1 - xy[:, 1]], axis=1)
+    return flipped * factor + (factor - 1) / 2.0
 
 
 @dataclass(frozen=True)

@@ -47,20 +47,28 @@ class ViewPanel:
     def __post_init__(self) -> None:
         gui = self.server.gui
         self._panel = gui.add_panel()
-        with self._panel.add_tab("Stage view", viser.Icon.PHOTO):
-            self._title = gui.add_markdown("### Scans")
-            self._text = gui.add_markdown("")
+        self._tab = self._panel.add_tab("Stage view", viser.Icon.PHOTO)
+        with self._tab:
+            self._title = gui.add_markdown("### Scans", order=0)
+            self._text = gui.add_markdown("", order=1)
             blank = np.full((8, 8, 3), 255, np.uint8)
-            for _ in range(MAX_IMAGES):
-                self._captions.append(gui.add_markdown("", visible=False))
-                self._images.append(gui.add_image(blank, format="png", visible=False))
-            import plotly.graph_objects as go
-
-            for _ in range(MAX_PLOTS):
-                self._plots.append(gui.add_plotly(go.Figure(), aspect=1.6, visible=False))
-            self._table = gui.add_markdown("")
+            for k in range(MAX_IMAGES):
+                self._captions.append(gui.add_markdown("", visible=False, order=2 + 2 * k))
+                self._images.append(gui.add_image(blank, format="png", visible=False, order=3 + 2 * k))
+            self._table = gui.add_markdown("", order=20)
         self._panel.dock_left()
         self._panel.set_width(self.width)
+
+    def _ensure_plots(self) -> None:
+        # Made on first use: the first plot sends plotly's 3 MB script to every browser, which
+        # would otherwise delay the first view of the scans by about two seconds.
+        if self._plots:
+            return
+        import plotly.graph_objects as go
+
+        with self._tab:
+            for k in range(MAX_PLOTS):
+                self._plots.append(self.server.gui.add_plotly(go.Figure(), aspect=1.6, visible=False, order=10 + k))
 
     def show(self, content: PanelContent) -> None:
         """Replace the panel's content (call inside `server.atomic()` with the scene updates)."""
@@ -76,6 +84,8 @@ class ViewPanel:
             else:
                 cap.visible = False
                 img.visible = False
+        if content.plots:
+            self._ensure_plots()
         for k, plot in enumerate(self._plots):
             if k < len(content.plots):
                 fig, aspect = content.plots[k]

@@ -40,6 +40,24 @@ def _status_text(snap: Snapshot, t: int, f: Any) -> str:
     return text
 
 
+def _slice_points(scene: viser.SceneApi, root: str, t: int, f: Any, ref: Any, tgt: Any, size: float) -> list[Any]:
+    """Every slice's points of both scans in the reference frame, in the scans' colours."""
+    handles: list[Any] = []
+    sl = f.slices
+    if sl is None:
+        return handles
+    for k in range(sl.n_slices):
+        r_idx, t_idx = sl.ref_indices[k], sl.tgt_indices[k]
+        if len(r_idx):
+            handles.append(scene.add_point_cloud(f"{root}/ref{k}", ref.points[r_idx], scan_color(0), point_size=size,
+                                                 point_shape="circle", precision="float32"))
+        if len(t_idx):
+            pts = apply_transform(f.T_ref_tgt, tgt.points[t_idx])
+            handles.append(scene.add_point_cloud(f"{root}/tgt{k}", pts, scan_color(t + 1), point_size=size,
+                                                 point_shape="circle", precision="float32"))
+    return handles
+
+
 def render_slices(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> tuple[list[Any], PanelContent]:
     ctx = _fine_context(snap, view)
     if ctx is None:
@@ -49,16 +67,9 @@ def render_slices(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewSt
     handles: list[Any] = []
     rows = []
     if sl is not None:
-        size = 2.0 * view.point_size
+        handles += _slice_points(scene, root, t, f, ref, tgt, 2.0 * view.point_size)
         for k, h in enumerate(sl.heights_m):
             r_idx, t_idx = sl.ref_indices[k], sl.tgt_indices[k]
-            if len(r_idx):
-                handles.append(scene.add_point_cloud(f"{root}/ref{k}", ref.points[r_idx], scan_color(0), point_size=size,
-                                                     point_shape="circle", precision="float32"))
-            if len(t_idx):
-                pts = apply_transform(f.T_ref_tgt, tgt.points[t_idx])
-                handles.append(scene.add_point_cloud(f"{root}/tgt{k}", pts, scan_color(t + 1), point_size=size,
-                                                     point_shape="circle", precision="float32"))
             anchor = ref.points[r_idx].mean(axis=0) if len(r_idx) else np.array([0.0, 0.0, h])
             handles.append(scene.add_label(f"{root}/label{k}", f"z = {h:.2f} m", position=(anchor[0], anchor[1], h),
                                            anchor="center-left"))
@@ -140,7 +151,9 @@ def render_fits(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewStat
         return [], PanelContent("6 · Fits", text=not_ready_text(snap, "fine"))
     t, f, ref, tgt = ctx
     thick = f.slices.thickness_m if f.slices is not None else snap.params.slicing.thickness_m
-    handles: list[Any] = []
+    # The scans are hidden on this stage (points on a fitted surface would hide it): the fitted
+    # slices' points stay as context.
+    handles: list[Any] = _slice_points(scene, root, t, f, ref, tgt, view.point_size)
     rows = []
     for who, secs, color, name in (("ref", f.ref_sections, scan_color(0), snap.scans[0].name),
                                    ("tgt", f.tgt_sections, scan_color(t + 1), snap.scans[t + 1].name)):
@@ -163,7 +176,8 @@ def render_fits(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewStat
                                              point_size=0.05, point_shape="circle", precision="float32"))
     n_corr = len(f.correspondences.pairs) if f.correspondences is not None else 0
     text = (_status_text(snap, t, f) + f" {n_corr} corresponding sections give {len(f.tie_points_ref)} tie points "
-            "(yellow lines join partners). Grey fits were judged implausible and not used.")
+            "(yellow lines join partners). Grey fits were judged implausible and not used. Only the sliced "
+            "points are shown with the fits.")
     table = md_table(("scan", "slice", "fit", "radius (cm)", "RMS (mm)", "arc (°)", "plausible"), rows)
     table += "\n\n" + metrics_table({pair_label(snap, t): f.metrics})
     return handles, PanelContent(f"6 · Fits: {pair_label(snap, t)}", text=text, table=table)

@@ -16,7 +16,7 @@ import plotly.graph_objects as go
 import viser
 
 from ..controller import Snapshot
-from ..drawing import binary_to_rgb, display_xy, draw_lines, draw_markers, fit_width, hstack
+from ..drawing import binary_to_rgb, display_xy, draw_lines, draw_markers, fit_factor, fit_width, hstack, upscale
 from ..palette import HIGHLIGHT, KEPT, REJECTED, scan_color
 from ..view_panel import PanelContent
 from ..view_state import ViewState
@@ -56,16 +56,17 @@ def similarity_figure(match: Any, angles_ref: tuple[float, ...], angles_tgt: tup
 def matches_image(pair: Any, img_ref: np.ndarray, img_tgt: np.ndarray, color_ref: tuple[int, int, int],
                   color_tgt: tuple[int, int, int]) -> np.ndarray:
     """The pair's two images side by side (reference left) with kept (green) and rejected (grey) matches."""
-    a, b = binary_to_rgb(img_ref, color_ref), binary_to_rgb(img_tgt, color_tgt)
+    k = fit_factor(img_ref.shape[1] + img_tgt.shape[1] + 16)
+    a, b = upscale(binary_to_rgb(img_ref, color_ref), k), upscale(binary_to_rgb(img_tgt, color_tgt), k)
     lay = hstack([a, b], gap=16)
     canvas = lay.image
-    p0 = display_xy(pair.xy_ref, img_ref.shape) + lay.offsets[0]
-    p1 = display_xy(pair.xy_tgt, img_tgt.shape) + lay.offsets[1]
+    p0 = display_xy(pair.xy_ref, img_ref.shape, k) + lay.offsets[0]
+    p1 = display_xy(pair.xy_tgt, img_tgt.shape, k) + lay.offsets[1]
     kept = np.asarray(pair.kept, dtype=bool)
     colors = np.where(kept[:, None], np.array(KEPT, np.uint8), np.array(REJECTED, np.uint8))
     order = np.argsort(kept, kind="stable")  # rejected first, kept drawn on top
     draw_lines(canvas, p0[order], p1[order], colors[order], thickness=1)
-    draw_markers(canvas, np.vstack([p0, p1]), np.vstack([colors, colors]), radius=2)
+    draw_markers(canvas, np.vstack([p0, p1]), np.vstack([colors, colors]), radius=1 + k // 2)
     return fit_width(canvas)
 
 
@@ -92,17 +93,21 @@ def render_matching(scene: viser.SceneApi, root: str, snap: Snapshot, view: View
             f"{tgt_name} at θ = {pair.angle_tgt_deg:+.0f}° (right); {n_kept} of {len(pair.kept)} matches kept "
             f"(green), {len(pair.kept) - n_kept} rejected by the β check (grey)."
         )))
-    texts.append(f"{m.n_ties} tie points from {len(m.pairs)} image pairs. In 3-D: each tie point in its own scan's "
-                 "frame, joined to its partner (the scans are not registered yet).")
+    texts.append(f"{m.n_ties} tie points from {len(m.pairs)} image pairs. In 3-D: the tie points of the pair shown "
+                 "below, each in its own scan's frame, joined to its partner (the scans are not registered yet).")
     handles: list[Any] = []
-    if m.n_ties:
-        ref_xyz, tgt_xyz = np.asarray(m.ref_xyz), np.asarray(m.tgt_xyz)
-        segs = np.stack([ref_xyz, tgt_xyz], axis=1).astype(np.float32)
-        handles.append(scene.add_line_segments(f"{root}/ties", segs, HIGHLIGHT, thickness=1.5, thickness_units="screen"))
-        handles.append(scene.add_point_cloud(f"{root}/ties_ref", ref_xyz, scan_color(0), point_size=0.12,
-                                             point_shape="circle", precision="float32"))
-        handles.append(scene.add_point_cloud(f"{root}/ties_tgt", tgt_xyz, scan_color(t + 1), point_size=0.12,
-                                             point_shape="circle", precision="float32"))
+    if m.n_ties and m.pairs:
+        # The tie points of the image pair shown in the panel (all pairs' ties would hide the trees).
+        sel = np.asarray(m.tie_pair) == min(view.match_pair, len(m.pairs) - 1)
+        ref_xyz, tgt_xyz = np.asarray(m.ref_xyz)[sel], np.asarray(m.tgt_xyz)[sel]
+        if len(ref_xyz):
+            segs = np.stack([ref_xyz, tgt_xyz], axis=1).astype(np.float32)
+            handles.append(scene.add_line_segments(f"{root}/ties", segs, HIGHLIGHT, thickness=1.5,
+                                                   thickness_units="screen"))
+            handles.append(scene.add_point_cloud(f"{root}/ties_ref", ref_xyz, scan_color(0), point_size=0.06,
+                                                 point_shape="circle", precision="float32"))
+            handles.append(scene.add_point_cloud(f"{root}/ties_tgt", tgt_xyz, scan_color(t + 1), point_size=0.06,
+                                                 point_shape="circle", precision="float32"))
     table = metrics_table({pair_label(snap, i): it.metrics for i, it in enumerate(out.items)})
     return handles, PanelContent(title, text="\n\n".join(x for x in texts if x), images=tuple(images),
                                  plots=tuple(plots), table=table)

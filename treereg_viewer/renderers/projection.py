@@ -15,7 +15,7 @@ import viser
 from treereg_core.rigid import make_transform, rotation_z
 
 from ..controller import Snapshot
-from ..drawing import binary_to_rgb, fit_width, vstack
+from ..drawing import binary_to_rgb, fit_factor, fit_width, hstack, upscale, vstack
 from ..palette import scan_color
 from ..view_panel import PanelContent
 from ..view_state import ViewState
@@ -64,7 +64,13 @@ def render_projection(scene: viser.SceneApi, root: str, snap: Snapshot, view: Vi
     k0 = step_index(first, view.projection_step)
     images = []
     if tiles:
-        images.append((fit_width(vstack(tiles, gap=12).image), "Top to bottom: " + ", ".join(names)))
+        # Tree images are tall and narrow: side by side unless that makes a very wide strip.
+        side = sum(t.shape[1] for t in tiles) <= 2 * max(t.shape[0] for t in tiles)
+        width = sum(t.shape[1] + 12 for t in tiles) if side else max(t.shape[1] for t in tiles)
+        k = fit_factor(width)
+        tiles = [upscale(t, k) for t in tiles]
+        lay = hstack(tiles, gap=12) if side else vstack(tiles, gap=12)
+        images.append((fit_width(lay.image), ("Left to right: " if side else "Top to bottom: ") + ", ".join(names)))
     text = (
         f"Step {k0 + 1} of {len(first.angles_deg)}: points rotated by θ = {first.angles_deg[k0]:+.1f}° about the "
         f"vertical axis through each scan's centre. Black in the paper, here each scan's colour: pixels holding "

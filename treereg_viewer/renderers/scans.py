@@ -52,6 +52,16 @@ def scan_poses(snap: Snapshot, view: ViewState) -> list[np.ndarray]:
     return poses
 
 
+def context_only(view: ViewState) -> bool:
+    """Stages whose own drawings (slices, arcs) matter more than the scans: scans fade to a tint."""
+    return view.stage in (4, 5)
+
+
+def scans_shown(view: ViewState) -> bool:
+    """The Fits stage hides the scans: points on a fitted surface would hide the surface."""
+    return view.stage != 6
+
+
 def draw_scan_layer(scene: viser.SceneApi, snap: Snapshot, view: ViewState) -> list[Any]:
     """Every scan's points in its colour (ground grey on stage 0), its station axes and name."""
     handles: list[Any] = []
@@ -59,6 +69,8 @@ def draw_scan_layer(scene: viser.SceneApi, snap: Snapshot, view: ViewState) -> l
     for i, scan in enumerate(snap.scans):
         prep = prepared.items[i] if prepared is not None and i < len(prepared.items) else None
         color = np.array(scan_color(i), dtype=np.uint8)
+        if context_only(view):  # slices, arcs and fits are the subject: the scans fade to a tint
+            color = (0.3 * color + 0.7 * 255).astype(np.uint8)
         if view.stage == 0 or prep is None or not getattr(prep, "ok", False):
             # Stage 0 shows what was measured, with what preparation removes in grey.
             pts = scan.points

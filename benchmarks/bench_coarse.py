@@ -140,7 +140,7 @@ def failures(rows: list[Row]) -> str:
 #: One setting of the robust default changed at a time: (label, section, field, value).
 ABLATIONS: tuple[tuple[str, str, str, object], ...] = (
     ("bare binary image for ORB (no ramp)", "matching", "image_mode", "binary"),
-    ("no snapping of keypoints", "matching", "snap_px", 0),
+    ("snap keypoints to occupied pixels within 3 px", "matching", "snap_px", 3),
     ("beta check on (4.1)", "matching", "beta_check", True),
     ("3 pairs x 5 matches (paper counts)", "matching", "n_pairs", 3),
     ("similarity: iou", "matching", "similarity", "iou"),

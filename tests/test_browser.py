@@ -259,7 +259,9 @@ def test_two_tabs_see_one_state(served, browser):
     lap("tab 1 open")
     ctx2, page2, _ = _open(browser, url, scene=False)
     lap("tab 2 open")
-    _go(page1, "3 Coarse")  # one tab steps; the other follows: one state for all
+    page1.get_by_label("Stage", exact=True).click()
+    lap("tab 1 dropdown open")
+    page1.get_by_role("option", name="3 Coarse", exact=True).click()  # one tab steps; the other follows
     lap("tab 1 stepped")
     expect(page2.get_by_role("heading", name=re.compile("^3 · Coarse"))).to_be_visible(timeout=10_000)
     expect(page2.get_by_label("Stage", exact=True)).to_have_value("3 Coarse")

@@ -7,7 +7,6 @@ from treereg_core import similarity
 from treereg_core.features import beta_check, detect, match, orb_input, snap_to_occupied
 from treereg_core.params import MatchingParams, ProjectionParams
 from treereg_core.projection import EMPTY, OCCUPIED, wrap_deg
-from treereg_core.rigid import rotation_z
 from treereg_core.sequences import build_sequence
 from treereg_core.simulate import simulate_case
 

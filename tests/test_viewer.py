@@ -168,6 +168,12 @@ def test_parameter_change_reruns_only_that_stage_and_later(env, case):
     assert "fine" in snap.message and "Ran" in snap.message
     T = snap.transforms[case.scans[1].name]
     assert rotation_error_deg(T, case.truth()[case.scans[1].name]) < ROT_TOL_DEG
+    # Nothing stale from the Result stage on: Run re-runs that stage only.
+    app.select_stage(7)
+    app.stages.run_button.value = True
+    _idle(app)
+    again = ctl.snapshot
+    assert again.output("fine") is snap.output("fine") and again.output("evaluation") is not snap.output("evaluation")
 
 
 def test_invalid_parameter_is_rejected_and_the_input_shows_what_is_in_force(env):

@@ -219,13 +219,26 @@ def match_sequences(
     )
     progress(1.0, "tie points ready")
     if len(ref_xyz) < MIN_TIES_ANY:
-        hint = ("use more image pairs or matches per pair, a smaller theta (e.g. 5 deg), "
-                "or the ramp image mode")
         what = f"{n_matches} ORB matches" + (f", {n_kept} after the beta check" if p.beta_check else "")
-        return _fail_match(f"only {len(ref_xyz)} tie points ({what}); {hint}", sim, p.similarity,
-                           tuple(pairs), metrics, t0)
+        return _fail_match(f"only {len(ref_xyz)} tie points ({what}); try {match_hints(p)}", sim,
+                           p.similarity, tuple(pairs), metrics, t0)
     return MatchResult(True, "", metrics, sim, p.similarity, tuple(pairs), ref_xyz, tgt_xyz,
                        np.concatenate(tie_pair), np.concatenate(tie_match), time.perf_counter() - t0)
+
+
+def match_hints(p: MatchingParams) -> str:
+    """What a user can change when there are too few tie points, given the current settings."""
+    hints = []
+    if p.n_pairs < 15:
+        hints.append(f"more image pairs (n_pairs {p.n_pairs} -> 15)")
+    if p.matches_per_pair < 60:
+        hints.append(f"more matches per pair ({p.matches_per_pair} -> 60)")
+    if p.image_mode == "binary":
+        hints.append("image_mode = ramp")
+    if p.beta_check:
+        hints.append("beta_check off")
+    hints.append("a smaller theta (e.g. 5 deg)")
+    return ", ".join(hints)
 
 
 def _with_kept(pm: PairMatches, kept: np.ndarray) -> PairMatches:

@@ -9,8 +9,10 @@ and scaled to 0..255 (occupied pixels stay 0). The ramp keeps the shape and give
 gradients to sample.
 
 A keypoint is often placed on an empty pixel next to a branch; such a pixel has no points and can
-not give a tie point, so keypoints are snapped to the nearest occupied pixel within `snap_px`
-(0 = only keypoints that lie on an occupied pixel are kept) and dropped otherwise.
+not give a tie point. With `snap_px` > 0 it is moved to the nearest occupied pixel within that
+radius; with 0 (the default: on sparse scans snapping moved keypoints onto the wrong branch and
+made results worse) only keypoints on occupied pixels are kept. Unusable keypoints are dropped
+before matching.
 """
 
 from __future__ import annotations

@@ -36,7 +36,7 @@ from . import robust
 from .arcs import ArcResult, separate_arcs
 from .correspondence import Correspondences, match_sections
 from .fitting import Section, _basis, check_taper, fit_section
-from .icp import _skew_rotation, estimate_normals, voxel_downsample
+from .icp import NORMAL_K, _skew_rotation, voxel_downsample
 from .params import ArcParams, FineParams, FitParams, Params
 from .results import Metric, Progress, no_progress
 from .rigid import apply_transform, invert, kabsch, make_transform
@@ -252,13 +252,15 @@ class JointFit:
     information: np.ndarray
     lever_m: float
 
-    def weak_basis(self, sigma_m: float, max_sigma_m: float) -> np.ndarray:
-        """6 x h basis of the pose directions the sections determine worse than `max_sigma_m`
-        (noise std at the lever arm, for a residual scale `sigma_m`)."""
+    def weak_basis(self, sigma_m: float, max_sigma_m: float) -> tuple[np.ndarray, np.ndarray]:
+        """The pose directions the sections determine worse than `max_sigma_m` (noise std at the
+        lever arm, for a residual scale `sigma_m`): a 6 x h basis of the pose parameters, whose
+        unit coefficient moves the data by one metre at the lever arm, and each direction's std."""
         D = np.r_[[self.lever_m] * 3, [1.0] * 3]
         lam, V = np.linalg.eigh(self.information / np.outer(D, D))
-        weak = sigma_m / np.sqrt(np.maximum(lam, 1e-300)) > max_sigma_m
-        return V[:, weak] / D[:, None]
+        std = sigma_m / np.sqrt(np.maximum(lam, 1e-300))
+        weak = std > max_sigma_m
+        return V[:, weak] / D[:, None], std[weak]
 
     @property
     def held_directions(self) -> int:
@@ -384,8 +386,9 @@ def adjust_joint(points: np.ndarray, section: np.ndarray, moving: np.ndarray, c0
             break
         R, tau, Rp, tp, c, a, r = R_n, tau_n, Rp_n, tp_n, c_n, a_n, r_n
         cur, d, along, perp, nrm, res = out
-        converged = f - f_n <= 1e-10 * max(f, 1e-12) or (
-            np.linalg.norm(step * dp[:3]) < 1e-7 and np.linalg.norm(step * dp[3:]) < 1e-6)
+        # Converged when the cost stalls or the pose moves by less than about 10 micrometres.
+        converged = f - f_n <= 1e-7 * max(f, 1e-12) or (
+            np.linalg.norm(step * dp[:3]) * lever < 1e-5 and np.linalg.norm(step * dp[3:]) < 1e-5)
         f = f_n
         if converged:
             break
@@ -462,24 +465,41 @@ def _estimate_joint(ref_scan: Scan, tgt_scan: Scan, T: np.ndarray, ref: _Section
 class Surface:
     """A scan's surface for point-to-plane terms: voxel centroids and unit normals oriented towards
     the scanner (the origin of the scan's frame), so that the two sides of a thin branch, each seen
-    by a different station, have opposite normals and are never paired."""
+    by a different station, have opposite normals and are never paired.
+
+    `points` are the points used (all voxel centroids, or a seeded subset); normals come from the
+    neighbours among all centroids and are computed when first needed (`normals_at`), since only
+    the points that ever pair need one.
+    """
 
     points: np.ndarray
-    normals: np.ndarray
     tree: cKDTree
+    cloud: np.ndarray
+    cloud_tree: cKDTree
+    _normals: np.ndarray
+
+    def normals_at(self, idx: np.ndarray) -> np.ndarray:
+        """Oriented unit normals of `points[idx]`."""
+        todo = np.unique(idx[np.isnan(self._normals[idx, 0])])
+        if len(todo):
+            k = min(NORMAL_K, len(self.cloud))
+            _, nb = self.cloud_tree.query(self.points[todo], k=k)
+            q = self.cloud[nb] - self.cloud[nb].mean(axis=1, keepdims=True)
+            n = np.linalg.eigh(np.einsum("nki,nkj->nij", q, q))[1][:, :, 0]
+            n *= np.where(np.einsum("ij,ij->i", n, self.points[todo]) > 0, -1.0, 1.0)[:, None]
+            self._normals[todo] = n
+        return self._normals[idx]
 
 
 def surface_of(points: np.ndarray, voxel_m: float, max_points: int | None = None, seed: int = 0) -> Surface:
-    """Voxel-subsampled surface of a scan (at most `max_points`, a seeded random subset)."""
-    pts = voxel_downsample(points, voxel_m)
-    tree = cKDTree(pts)
-    n = estimate_normals(pts, tree=tree)
-    n *= np.where(np.einsum("ij,ij->i", n, pts) > 0, -1.0, 1.0)[:, None]
-    if max_points is not None and len(pts) > max_points:
-        keep = np.sort(np.random.default_rng(seed).choice(len(pts), max_points, replace=False))
-        pts, n = pts[keep], n[keep]
+    """Voxel-subsampled surface of a scan (at most `max_points` used, a seeded random subset)."""
+    cloud = voxel_downsample(points, voxel_m)
+    cloud_tree = cKDTree(cloud)
+    pts, tree = cloud, cloud_tree
+    if max_points is not None and len(cloud) > max_points:
+        pts = cloud[np.sort(np.random.default_rng(seed).choice(len(cloud), max_points, replace=False))]
         tree = cKDTree(pts)
-    return Surface(pts, n, tree)
+    return Surface(pts, tree, cloud, cloud_tree, np.full((len(pts), 3), np.nan))
 
 
 def _surface_pairs(ref: Surface, tgt: Surface, T: np.ndarray, gate_m: float
@@ -491,8 +511,8 @@ def _surface_pairs(ref: Surface, tgt: Surface, T: np.ndarray, gate_m: float
     moved = apply_transform(T, tgt.points)
     d, j = ref.tree.query(moved, distance_upper_bound=gate_m)
     ok = np.flatnonzero(np.isfinite(d))
-    nr = ref.normals[j[ok]]
-    agree = np.einsum("ij,ij->i", nr, tgt.normals[ok] @ T[:3, :3].T) > _NORMAL_AGREEMENT
+    nr = ref.normals_at(j[ok])
+    agree = np.einsum("ij,ij->i", nr, tgt.normals_at(ok) @ T[:3, :3].T) > _NORMAL_AGREEMENT
     ok, nr = ok[agree], nr[agree]
     r = np.einsum("ij,ij->i", moved[ok] - ref.points[j[ok]], nr)
     return ok, moved[ok], r
@@ -514,17 +534,22 @@ def _refine_held(ref: Surface, tgt: Surface, T: np.ndarray, centre: np.ndarray, 
                  fp: FineParams) -> np.ndarray:
     """Point-to-plane refinement of `T` along the pose directions in `basis` only.
 
+    Returns the coefficients y of the refinement: it is `_pose_update(basis @ y, centre) @ T`.
+
     The sections fix the other directions to millimetres. Point-to-plane alignment of the whole
     target against the reference's surface (twigs, leaves, ground: all that the sections ignore)
     uses only pairs whose oriented normals agree, and a Cauchy loss of scale `fp.loss_scale_m`;
     it is used only where the sections are silent.
     """
     B = basis
+    T0 = T
+    y_total = np.zeros(B.shape[1])
     for _ in range(fp.surface_iterations):
+        T = _pose_update(B @ y_total, centre) @ T0
         idx, q, r = _surface_pairs(ref, tgt, T, fp.surface_gate_m)
         if len(idx) < 10 * B.shape[1]:
             break
-        n = tgt.normals[idx] @ T[:3, :3].T
+        n = tgt.normals_at(idx) @ T[:3, :3].T
         w = _robust_weight(r, fp.loss_scale_m, "cauchy")
         # d r / d pose uses the reference normal; the target's (agreeing) normal is close to it.
         J = np.c_[np.cross(q - centre, n), n] @ B
@@ -533,13 +558,16 @@ def _refine_held(ref: Surface, tgt: Surface, T: np.ndarray, centre: np.ndarray, 
             y = -np.linalg.solve(H + 1e-12 * np.eye(len(H)), J.T @ (w * r))
         except np.linalg.LinAlgError:
             break
-        x = B @ y
-        R = _skew_rotation(x[:3])
-        U = make_transform(R, centre - R @ centre + x[3:])
-        T = U @ T
-        if _mean_move(U, q) < 1e-5:
+        y_total = y_total + y
+        if _mean_move(_pose_update(B @ y, centre), q) < 1e-5:
             break
-    return T
+    return y_total
+
+
+def _pose_update(x: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """4x4 of the pose parameters x = (rotation vector about `centre`, translation)."""
+    R = _skew_rotation(x[:3])
+    return make_transform(R, centre - R @ centre + x[3:])
 
 
 def _mean_move(U: np.ndarray, pts: np.ndarray) -> float:
@@ -578,6 +606,7 @@ def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, params: Params,
     updates: list[float] = []
     ref_secs: _Sections | None = None
     joint: JointFit | None = None
+    drawn: tuple | None = None
     note = ""
     it = 0
     for it in range(1, fp.max_iterations + 1):
@@ -587,6 +616,7 @@ def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, params: Params,
             ref_secs = _fit_scan_sections(ref, sl.ref_indices, sl.heights_m, np.eye(4), ap, fitp)
         tgt_secs = _fit_scan_sections(tgt, sl.tgt_indices, sl.heights_m, T, ap, fitp)
         corr = _match(ref_secs, tgt_secs, fitp)
+        drawn = (T, sl, tgt_secs, corr)
         if it > 1 and corr.ok and fp.gate_factor is not None:
             # Once the pose is close, right pairs sit far closer than the coarse gate: a pair much
             # farther apart than the median (a fork mistaken for a stem) is dropped.
@@ -613,12 +643,18 @@ def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, params: Params,
     progress(fp.max_iterations / (fp.max_iterations + 1), "acceptance test")
     ref_surf = surface_of(ref.points, fp.measure_voxel_m)
     tgt_surf = surface_of(tgt.points, fp.measure_voxel_m, _SAMPLE)
-    weak = np.zeros((6, 0)) if joint is None else joint.weak_basis(fp.loss_scale_m, fp.surface_sigma_m)
-    held = weak.shape[1]
-    if held and updates and fp.surface_refine:
+    held = 0
+    if joint is not None and updates and fp.surface_refine:
         # Directions the sections barely fix (z along a bare stem, a turn about it, which only a
-        # few branches see) are taken from the surfaces.
-        T = _refine_held(ref_surf, tgt_surf, T, joint.centre_m, weak, fp)
+        # few branches see) are taken from the surfaces; directions they fix only fairly are
+        # checked against the surfaces and taken from them when the two disagree clearly (one
+        # wrong branch pair can bend such a direction while fitting well itself).
+        B, std = joint.weak_basis(fp.loss_scale_m, fp.surface_check_sigma_m)
+        if B.shape[1]:
+            y = _refine_held(ref_surf, tgt_surf, T, joint.centre_m, B, fp)
+            use = (std > fp.surface_sigma_m) | (np.abs(y) > fp.surface_check_factor * std + fp.surface_tolerance_m)
+            held = int(use.sum())
+            T = _pose_update(B @ np.where(use, y, 0.0), joint.centre_m) @ T
     m0 = _alignment_measure(ref_surf, tgt_surf, T0, fp.measure_gate_m)
     m1 = _alignment_measure(ref_surf, tgt_surf, T, fp.measure_gate_m) if updates else m0
     accepted = bool(updates)
@@ -631,12 +667,16 @@ def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, params: Params,
                    f"{m1 * 1000:.1f} mm after fine); kept the coarse transform")
     if not accepted:
         T = T0.copy()
-    # What the app draws: slices, arcs, fits and ties at the pose finally returned.
-    sl = slice_scans(ref, tgt, T, sp)
-    if ref_secs is None:
-        ref_secs = _fit_scan_sections(ref, sl.ref_indices, sl.heights_m, np.eye(4), ap, fitp)
-    tgt_secs = _fit_scan_sections(tgt, sl.tgt_indices, sl.heights_m, T, ap, fitp)
-    corr = _match(ref_secs, tgt_secs, fitp)
+    # What the app draws: slices, arcs, fits and ties at the pose finally returned (the last
+    # iteration's, unless the pose has moved since by more than the tolerance).
+    if drawn is None or _mean_move(T @ invert(drawn[0]), apply_transform(drawn[0], sample)) > fp.tolerance_m:
+        sl = slice_scans(ref, tgt, T, sp)
+        if ref_secs is None:
+            ref_secs = _fit_scan_sections(ref, sl.ref_indices, sl.heights_m, np.eye(4), ap, fitp)
+        tgt_secs = _fit_scan_sections(tgt, sl.tgt_indices, sl.heights_m, T, ap, fitp)
+        corr = _match(ref_secs, tgt_secs, fitp)
+    else:
+        _, sl, tgt_secs, corr = drawn
     ties_r, ties_t = _ties(ref_secs, tgt_secs, corr) if corr.ok else (np.empty((0, 3)), np.empty((0, 3)))
     metrics = (
         Metric("fine accepted", "", "yes" if accepted else "no"),

@@ -60,8 +60,10 @@ def voxel_downsample(points: np.ndarray, voxel_m: float) -> np.ndarray:
     if voxel_m <= 0 or len(pts) == 0:
         return pts.copy()
     keys = np.floor((pts - pts.min(axis=0)) / voxel_m).astype(np.int64)
-    _, inv, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
-    inv = inv.ravel()
+    # One int64 per voxel: a 1-D unique is far faster than unique over rows.
+    dims = keys.max(axis=0) + 1
+    flat = (keys[:, 0] * dims[1] + keys[:, 1]) * dims[2] + keys[:, 2]
+    _, inv, counts = np.unique(flat, return_inverse=True, return_counts=True)
     out = np.empty((len(counts), 3))
     for k in range(3):
         out[:, k] = np.bincount(inv, weights=pts[:, k], minlength=len(counts)) / counts

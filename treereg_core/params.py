@@ -72,7 +72,7 @@ class MatchingParams:
     orb_fast_threshold: int = _f(10, "", "ORB: FAST corner threshold", lo=1, hi=100)
     matches_per_pair: int = _f(60, "matches", "best Hamming matches kept per image pair (paper: 5)", lo=1, hi=5000)
     beta_check: bool = _f(False, "", "paper 4.1: drop matches whose |beta1-beta2| lies outside mean +- sigma")
-    snap_px: int = _f(3, "px", "move a keypoint on an empty pixel to the nearest occupied pixel within this radius", lo=0, hi=20)
+    snap_px: int = _f(0, "px", "move a keypoint on an empty pixel to the nearest occupied pixel within this radius (0 = drop it; snapping measured worse on sparse scans)", lo=0, hi=20)
 
 
 @dataclass(frozen=True)
@@ -147,11 +147,14 @@ class FineParams:
     influence_min_m: float = _f(0.002, "m", "joint: influences below this are never a reason to drop a pair", lo=0.0, hi=1.0)
     surface_refine: bool = _f(True, "", "joint: pose directions the sections leave open are refined point-to-plane against the reference's surface")
     surface_sigma_m: float = _f(0.003, "m", "surface refinement: pose directions the sections determine worse than this (noise std) are refined from the surfaces", lo=1e-6, hi=10.0)
-    surface_gate_m: float = _f(0.05, "m", "surface refinement: points farther than this from the reference are ignored", lo=0.001, hi=1.0)
+    surface_check_sigma_m: float = _f(0.001, "m", "surface check: directions determined worse than this are compared with the surfaces", lo=1e-6, hi=10.0)
+    surface_check_factor: float = _f(3.0, "", "surface check: the surfaces win where they differ by more than this many stds (plus the tolerance)", lo=0.0, hi=100.0)
+    surface_tolerance_m: float = _f(0.002, "m", "surface check: differences below this (the surfaces' own bias) never count", lo=0.0, hi=1.0)
+    surface_gate_m: float = _f(0.015, "m", "surface refinement: points farther than this from the reference are ignored (a wide gate pairs points past the edge of the other scan's view)", lo=0.001, hi=1.0)
     surface_iterations: int = _f(20, "", "surface refinement: iterations", lo=1, hi=1000)
     max_solver_iterations: int = _f(30, "", "joint: Gauss-Newton iterations per adjustment", lo=1, hi=1000)
     measure_voxel_m: float = _f(0.01, "m", "acceptance measure: voxel size of the reference's surface", lo=0.0, hi=0.5)
-    measure_gate_m: float = _f(0.03, "m", "acceptance measure: point-to-plane residuals are truncated here", lo=0.001, hi=1.0)
+    measure_gate_m: float = _f(0.02, "m", "acceptance measure: point-to-plane residuals are truncated here", lo=0.001, hi=1.0)
 
 
 @dataclass(frozen=True)

@@ -129,11 +129,16 @@ class TreeregApp:
 
     # ---- actions ---------------------------------------------------------------------------------
     def run_current(self) -> None:
-        """Run: re-run the current stage and the ones after it, reusing earlier results."""
+        """Run: bring this stage and the ones after it up to date, reusing earlier results.
+
+        Stale stages run; when nothing from here on is stale, this stage is re-run (and so are the
+        later ones, which depend on it).
+        """
         snap = self.controller.snapshot
         stage = APP_STAGES[self.view.stage].pipeline_stage
-        rerun = stage if snap.status(stage) != "stale" else None
-        self.controller.request_run(STAGES[-1], rerun_from=rerun)
+        later = STAGES[STAGES.index(stage):]
+        anything_stale = any(snap.status(s) != "done" for s in later) or self.controller.params != snap.params
+        self.controller.request_run(STAGES[-1], rerun_from=None if anything_stale else stage)
 
     def on_param_change(self, section: str, name: str, value: Any) -> str | None:
         try:
@@ -191,24 +196,13 @@ class TreeregApp:
         self.server.initial_camera.look_at = tuple(look)
         self.server.initial_camera.up = (0.0, 0.0, 1.0)
 
-def serve(
-    controller: Controller,
-    host: str = "127.0.0.1",
-    port: int = 8080,
-    out_dir: Path | None = None,
-    ready: Any = None,
-) -> None:
-    """Start the server and the app, print the URL, block until Ctrl-C.
-
-    `ready(url)` is called once the app is up (the CLI prints it; tests read it).
-    """
+def serve(controller: Controller, host: str = "127.0.0.1", port: int = 8080, out_dir: Path | None = None) -> None:
+    """Start the server and the app, print the URL (tests read it), block until Ctrl-C."""
     t0 = time.perf_counter()
     server = viser.ViserServer(host=host, port=port, verbose=False)
     app = TreeregApp(server, controller, out_dir=out_dir)
     url = f"http://{host}:{server.get_port()}/"
     print(f"treereg view: {url}  (app ready in {time.perf_counter() - t0:.1f} s; Ctrl-C to stop)", flush=True)
-    if ready is not None:
-        ready(url)
     try:
         while True:
             time.sleep(1.0)

@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING, Any
 import viser
 
 from treereg_core import params as P
-from treereg_core.errors import ConfigError
+from treereg_core.errors import ConfigError, ScanError
 
 from . import export
 
@@ -49,13 +49,13 @@ class ExportPanel:
         snap = self.app.controller.snapshot
         try:
             bundle = export.export_bundle(snap, cloud_format=self.cloud_format.value)
-        except export.ExportError as e:
-            self.app.controller.note(str(e), error=True)
+            written = ""
+            if self.app.out_dir is not None:
+                paths = export.write_bundle(bundle, self.app.out_dir)
+                written = f" Written to `{self.app.out_dir}` ({len(paths)} files)."
+        except (export.ExportError, ConfigError, ScanError, OSError) as e:
+            self.app.controller.note(f"Export failed: {e}", error=True)
             return
-        written = ""
-        if self.app.out_dir is not None:
-            paths = export.write_bundle(bundle, self.app.out_dir)
-            written = f" Written to `{self.app.out_dir}` ({len(paths)} files)."
         if only is not None:
             self.app.send_file(client, only, bundle.files[only])
         else:

@@ -21,11 +21,11 @@ KEPT = (20, 200, 60)
 REJECTED = (170, 170, 170)
 HIGHLIGHT = (250, 200, 0)
 
-#: Categorical colours (Tableau 10) for arcs and other per-component drawings.
+#: Categorical colours for arcs (Tableau 10, its grey swapped for indigo: grey means 'not in an arc').
 CATEGORICAL = np.array(
     [
         (31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 103, 189),
-        (140, 86, 75), (227, 119, 194), (127, 127, 127), (188, 189, 34), (23, 190, 207),
+        (140, 86, 75), (227, 119, 194), (57, 59, 121), (188, 189, 34), (23, 190, 207),
     ],
     dtype=np.uint8,
 )

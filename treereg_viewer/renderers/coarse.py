@@ -60,7 +60,7 @@ def render_coarse(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewSt
         colors = np.where(inl[:, None], np.array(KEPT, np.uint8), np.array(REJECTED, np.uint8))
         handles.append(scene.add_line_segments(
             f"{root}/ties", segs, np.repeat(colors[:, None, :], 2, axis=1), thickness=1.5, thickness_units="screen"))
-        handles.append(scene.add_point_cloud(f"{root}/inlier_ties", ref[inl], KEPT, point_size=0.1,
+        handles.append(scene.add_point_cloud(f"{root}/inlier_ties", ref[inl], KEPT, point_size=0.05,
                                              point_shape="circle", precision="float32"))
         plots.append((residual_figure(c, snap.params.coarse.inlier_m), 1.6))
     table = metrics_table({pair_label(snap, i): it.metrics for i, it in enumerate(out.items)})

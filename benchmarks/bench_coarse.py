@@ -31,7 +31,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from treereg_core.coarse import estimate_coarse, match_sequences, register_coarse  # noqa: E402
 from treereg_core.ground import prepare_scan  # noqa: E402
-from treereg_core.params import PRESETS, write_text_atomic  # noqa: E402
+from treereg_core.atomic import write_text_atomic  # noqa: E402
+from treereg_core.params import PRESETS  # noqa: E402
 from treereg_core.rigid import mean_displacement, rotation_error_deg  # noqa: E402
 from treereg_core.sequences import build_sequence  # noqa: E402
 from treereg_core.simulate import CaseSpec, SimulatedCase, benchmark_cases, simulate_case  # noqa: E402

@@ -83,7 +83,7 @@ def estimate_normals(points: np.ndarray, k: int = NORMAL_K, tree: cKDTree | None
     return np.linalg.eigh(cov)[1][:, :, 0]
 
 
-def _skew_rotation(w: np.ndarray) -> np.ndarray:
+def rotation_from_vector(w: np.ndarray) -> np.ndarray:
     """Rotation matrix of the rotation vector `w` (Rodrigues)."""
     th = float(np.linalg.norm(w))
     if th < 1e-15:
@@ -105,7 +105,7 @@ def point_to_plane_step(src: np.ndarray, dst: np.ndarray, normals: np.ndarray,
         x = np.linalg.solve(H + 1e-9 * np.eye(6), g)
     except np.linalg.LinAlgError:
         return np.eye(4)
-    return make_transform(_skew_rotation(x[:3]), x[3:])
+    return make_transform(rotation_from_vector(x[:3]), x[3:])
 
 
 def icp(ref_points: np.ndarray, tgt_points: np.ndarray, T_init: np.ndarray, p: IcpParams,

@@ -130,7 +130,7 @@ class FineParams:
     inlier_m: float = _f(0.05, "m", "RANSAC inlier distance of the fine tie points", lo=0.001, hi=1.0)
     max_iterations: int = _f(5, "", "re-slice with the new pose until the update is below the tolerance (paper: 1)", lo=1, hi=50)
     tolerance_m: float = _f(0.001, "m", "stop iterating when the update moves points less than this", lo=0.0, hi=1.0)
-    accept_test: bool = _f(True, "", "keep the fine update only when the independent alignment measure improves")
+    accept_test: bool = _f(True, "", "keep the fine update unless the independent alignment measure clearly worsens")
     method: str = _f("joint", "", "tie points of separately fitted sections (paper) or one cylinder per section pair fitted to both scans with the pose",
                      choices=("ties", "joint"))
     min_pairs: int = _f(3, "pairs", "fewest corresponding sections to estimate an update", lo=1, hi=1000)
@@ -143,9 +143,8 @@ class FineParams:
     max_section_points: int = _f(150, "points", "joint: points per section and scan used in the adjustment", lo=10, hi=100000)
     prior_m: float = _f(0.05, "m", "joint: prior std of the translation away from coarse (holds directions the sections hardly constrain)", lo=0.001, hi=100.0)
     prior_deg: float = _f(2.0, "deg", "joint: prior std of the rotation away from coarse", lo=0.001, hi=180.0)
-    influence_factor: float | None = _f(None, "", "joint: drop the pair the pose hinges on when its influence exceeds this times the median (None = off)", lo=1.0, hi=1000.0)
-    influence_min_m: float = _f(0.002, "m", "joint: influences below this are never a reason to drop a pair", lo=0.0, hi=1.0)
     surface_refine: bool = _f(True, "", "joint: pose directions the sections leave open are refined point-to-plane against the reference's surface")
+    surface_fallback: bool = _f(True, "", "joint: with too few corresponding sections, align the surfaces instead (the acceptance test still guards it)")
     surface_sigma_m: float = _f(0.003, "m", "surface refinement: pose directions the sections determine worse than this (noise std) are refined from the surfaces", lo=1e-6, hi=10.0)
     surface_check_sigma_m: float = _f(0.001, "m", "surface check: directions determined worse than this are compared with the surfaces", lo=1e-6, hi=10.0)
     surface_check_factor: float = _f(3.0, "", "surface check: the surfaces win where they differ by more than this many stds (plus the tolerance)", lo=0.0, hi=100.0)
@@ -154,7 +153,9 @@ class FineParams:
     surface_iterations: int = _f(20, "", "surface refinement: iterations", lo=1, hi=1000)
     max_solver_iterations: int = _f(30, "", "joint: Gauss-Newton iterations per adjustment", lo=1, hi=1000)
     measure_voxel_m: float = _f(0.01, "m", "acceptance measure: voxel size of the reference's surface", lo=0.0, hi=0.5)
-    measure_gate_m: float = _f(0.02, "m", "acceptance measure: point-to-plane residuals are truncated here", lo=0.001, hi=1.0)
+    measure_gate_m: float = _f(0.02, "m", "acceptance measure: a target point pairs with a reference point within this distance", lo=0.001, hi=1.0)
+    measure_tolerance_m: float = _f(0.005, "m", "acceptance measure: a paired point lies on the surface when its point-to-plane distance is below this", lo=0.0001, hi=1.0)
+    accept_margin: float = _f(0.01, "", "acceptance test: reject fine when the surface agreement falls by more than this (fraction of points)", lo=0.0, hi=1.0)
 
 
 @dataclass(frozen=True)

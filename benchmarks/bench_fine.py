@@ -231,6 +231,8 @@ ABLATIONS: tuple[tuple[str, str, str, object], ...] = (
     ("no range-jump split of arcs", "arcs", "max_range_jump_m", None),
     ("slices 0.2 m thick", "slicing", "thickness_m", 0.2),
     ("no acceptance test", "fine", "accept_test", False),
+    ("surfaces polish all six directions", "fine", "surface_polish", True),
+    ("surfaces only (no sections: fallback forced)", "fine", "min_pairs", 1000),
 )
 
 

@@ -151,6 +151,25 @@ def _load_params(args: argparse.Namespace):
     return base
 
 
+def _add_param_args(p: argparse.ArgumentParser) -> None:
+    """--config, --preset, --angular-step: how every command that registers gets its parameters."""
+    p.add_argument("--config", help="parameter JSON file (as saved by the app or `treereg params`)")
+    p.add_argument("--preset", choices=("robust", "paper"), help="start from a preset (paper = the paper's literal settings)")
+    p.add_argument("--angular-step", nargs="+", type=float, metavar=("H", "V"),
+                   help="instrument angular steps in degrees (phi [varphi]); estimated from the data when absent")
+
+
+def _read_scans(files: list[str], params) -> list:
+    """Read scan files with the parameters' angular steps; base names must differ (they key the transforms)."""
+    from .io import read_scan
+
+    scans = [read_scan(f, angular_step_deg=params.prepare.angular_step_deg) for f in files]
+    names = [s.name for s in scans]
+    if len(set(names)) != len(names):
+        raise ConfigError(f"scan files must have distinct base names, got {names}")
+    return scans
+
+
 def _add_register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "register",
@@ -161,10 +180,7 @@ def _add_register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("scans", nargs="+", metavar="SCAN", help="scan files (first = reference): PLY, LAS/LAZ, XYZ/TXT/CSV, NPY/NPZ")
     p.add_argument("--out", default="transforms.json", help="transform file to write (default: transforms.json)")
     p.add_argument("--until", choices=("coarse", "fine"), default="fine", help="last stage to run (default: fine)")
-    p.add_argument("--config", help="parameter JSON file (as saved by the app or `treereg params`)")
-    p.add_argument("--preset", choices=("robust", "paper"), help="start from a preset (paper = the paper's literal settings)")
-    p.add_argument("--angular-step", nargs="+", type=float, metavar=("H", "V"),
-                   help="instrument angular steps in degrees (phi [varphi]); estimated from the data when absent")
+    _add_param_args(p)
     p.add_argument("--exports", action="store_true", help="also write CloudCompare and PDAL matrix files beside --out")
     p.set_defaults(func=_run_register)
 
@@ -172,7 +188,6 @@ def _add_register(sub: argparse._SubParsersAction) -> None:
 def _run_register(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from .io import read_scan
     from .params import to_dict
     from .pipeline import register
     from .transform_io import TransformFile, write_exports, write_transforms
@@ -180,11 +195,7 @@ def _run_register(args: argparse.Namespace) -> int:
     if len(args.scans) < 2:
         raise ConfigError("register needs at least two scans (the first is the reference)")
     params = _load_params(args)
-    step = params.prepare.angular_step_deg
-    scans = [read_scan(f, angular_step_deg=step) for f in args.scans]
-    names = [s.name for s in scans]
-    if len(set(names)) != len(names):
-        raise ConfigError(f"scan files must have distinct base names, got {names}")
+    scans = _read_scans(args.scans, params)
     bar = ProgressBar("register")
     t0 = time.perf_counter()
     reg = register(scans, params, until=args.until, progress=bar)
@@ -270,10 +281,7 @@ def _add_view(sub: argparse._SubParsersAction) -> None:
         "editable, exports as downloads. Without SCAN files it opens the demo case in assets/.",
     )
     p.add_argument("scans", nargs="*", metavar="SCAN", help="scan files (first = reference); none = the demo")
-    p.add_argument("--config", help="parameter JSON file (as saved by the app or `treereg params`)")
-    p.add_argument("--preset", choices=("robust", "paper"), help="start from a preset (paper = the paper's literal settings)")
-    p.add_argument("--angular-step", nargs="+", type=float, metavar=("H", "V"),
-                   help="instrument angular steps in degrees (phi [varphi]); estimated from the data when absent")
+    _add_param_args(p)
     p.add_argument("--truth", help="truth.json with the true transforms (default: the one beside the scans, if any)")
     p.add_argument("--out", help="folder to also write exports to (besides the browser downloads)")
     p.add_argument("--port", type=int, default=8080, help="port (default 8080; 0 = any free port)")
@@ -288,21 +296,15 @@ def _run_view(args: argparse.Namespace) -> int:
     from treereg_viewer.controller import Controller
     from treereg_viewer.demo import find_demo, load_case, read_truth, truth_beside
 
-    from .io import read_scan
-
     params = _load_params(args)
-    step = params.prepare.angular_step_deg
     if args.scans:
-        scans = [read_scan(f, angular_step_deg=step) for f in args.scans]
-        names = [s.name for s in scans]
-        if len(set(names)) != len(names):
-            raise ConfigError(f"scan files must have distinct base names, got {names}")
+        scans = _read_scans(args.scans, params)
         truth_path = Path(args.truth) if args.truth else truth_beside([Path(f) for f in args.scans])
         truth = read_truth(truth_path) if truth_path else None
     else:
         folder = find_demo()
         print(f"treereg view: no scans given, opening the demo in {folder}", flush=True)
-        scans, truth = load_case(folder, angular_step_deg=step)
+        scans, truth = load_case(folder, angular_step_deg=params.prepare.angular_step_deg)
         if args.truth:
             truth = read_truth(Path(args.truth))
     serve(Controller(scans, params, truth), host=args.host, port=args.port,

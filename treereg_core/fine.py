@@ -240,6 +240,11 @@ def _surface_check(ref_surf: Surface, tgt_surf: Surface, T: np.ndarray, joint: J
     two disagree clearly: one wrong branch pair can bend such a direction while fitting well itself.
     Returns the transform and how many directions came from the surfaces.
     """
+    if fp.surface_polish:
+        # All six directions from the surfaces, started where the sections put the target.
+        y = refine_along(ref_surf, tgt_surf, T, joint.centre_m, np.eye(6), fp.surface_gate_m, fp.loss_scale_m,
+                         fp.surface_iterations)
+        return pose_update(y, joint.centre_m) @ T, 6
     B, std = joint.weak_basis(fp.loss_scale_m, fp.surface_check_sigma_m)
     if not B.shape[1]:
         return T, 0

@@ -144,6 +144,7 @@ class FineParams:
     prior_m: float = _f(0.05, "m", "joint: prior std of the translation away from coarse (holds directions the sections hardly constrain)", lo=0.001, hi=100.0)
     prior_deg: float = _f(2.0, "deg", "joint: prior std of the rotation away from coarse", lo=0.001, hi=180.0)
     surface_refine: bool = _f(True, "", "joint: pose directions the sections leave open are refined point-to-plane against the reference's surface")
+    surface_polish: bool = _f(False, "", "joint: finish with all six pose directions from the surfaces (not only the weak ones)")
     surface_fallback: bool = _f(True, "", "joint: with too few corresponding sections, align the surfaces instead (the acceptance test still guards it)")
     surface_sigma_m: float = _f(0.003, "m", "surface refinement: pose directions the sections determine worse than this (noise std) are refined from the surfaces", lo=1e-6, hi=10.0)
     surface_check_sigma_m: float = _f(0.001, "m", "surface check: directions determined worse than this are compared with the surfaces", lo=1e-6, hi=10.0)

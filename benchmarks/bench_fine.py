@@ -222,6 +222,7 @@ def paper_metric_summary(rows: list[tuple[str, dict[str, float]]]) -> str:
 #: One setting of the robust fine changed at a time: (label, section, field, value).
 ABLATIONS: tuple[tuple[str, str, str, object], ...] = (
     ("tie points + RANSAC (paper estimator, robust rest)", "fine", "method", "ties"),
+    ("no influence check of pairs", "fine", "influence_factor", None),
     ("3 slices at the quartiles", "slicing", "quantiles", (0.25, 0.5, 0.75)),
     ("one iteration", "fine", "max_iterations", 1),
     ("no surface refinement of weak directions", "fine", "surface_refine", False),

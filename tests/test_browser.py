@@ -222,7 +222,9 @@ def test_walk_through_the_demo(served, browser):
         page.get_by_role("button", name="Add a scan file").click()
     chooser.value.set_files(files=[{"name": "broken.ply", "mimeType": "application/octet-stream",
                                     "buffer": b"ply\nformat ascii 1.0\nelement vertex 3\nend_header\n1 2\n"}])
-    expect(page.get_by_text(re.compile("Upload rejected.*broken.ply"))).to_be_visible(timeout=15_000)
+    # The message names the file the user picked (not the temporary copy the server read).
+    expect(page.get_by_text(re.compile("Upload rejected — broken.ply: "))).to_be_visible(timeout=15_000)
+    assert "treereg-upload-" not in page.evaluate("() => document.body.innerText")
     expect(page.get_by_label(re.compile("^4: "))).to_have_count(0)
     _wait_all_done(page, 5_000)  # every stage is still done
     lap("bad upload rejected")

@@ -121,3 +121,35 @@ def test_paper_preset_runs_the_literal_tie_point_method(cases):
     assert res.slices is not None and res.slices.n_slices == 3
     # Tie points: circle centres (lowest slice) and two per cylinder.
     assert len(res.tie_points_ref) >= len(res.correspondences.pairs)
+
+
+def test_surfaces_take_over_when_there_are_too_few_sections(cases):
+    scans, T_true = cases[1]
+    rng = np.random.default_rng(11)
+    start = _perturbed(T_true[2], scans[2].points, rng)
+    p = Params()
+    res = register_fine(scans[0], scans[2], start, replace(p, fine=replace(p.fine, min_pairs=1000)))
+    assert res.accepted and "aligned by the surfaces" in res.message
+    rot, disp = _errors(res.T_ref_tgt, T_true[2], scans[2].points)
+    assert disp < 0.01 and rot < 0.3
+    assert res.measure_fine > res.measure_coarse
+
+
+def test_slices_are_taken_at_reference_heights_with_the_target_mapped(cases):
+    from treereg_core.params import SlicingParams
+    from treereg_core.slicing import slice_scans
+
+    scans, T_true = cases[2]
+    p = SlicingParams(quantiles=(0.25, 0.5, 0.75), thickness_m=0.1)
+    sl = slice_scans(scans[0], scans[1], T_true[1], p)
+    lo, hi = sl.z_extent_m
+    assert np.allclose(sl.heights_m, lo + np.array([0.25, 0.5, 0.75]) * (hi - lo))
+    z_tgt = apply_transform(T_true[1], scans[1].points)[:, 2]
+    for h, ir, it in zip(sl.heights_m, sl.ref_indices, sl.tgt_indices):
+        assert np.all(np.abs(scans[0].points[ir, 2] - h) <= 0.05)
+        assert np.all(np.abs(z_tgt[it] - h) <= 0.05)
+        assert len(it) == np.count_nonzero(np.abs(z_tgt - h) <= 0.05)
+    # Lifting the target by 20 cm in the reference frame selects other target points.
+    lifted = slice_scans(scans[0], scans[1], make_transform(np.eye(3), [0, 0, 0.2]) @ T_true[1], p)
+    assert not np.array_equal(lifted.tgt_indices[1], sl.tgt_indices[1])
+    assert all(np.array_equal(a, b) for a, b in zip(lifted.ref_indices, sl.ref_indices))

@@ -7,8 +7,10 @@ pipeline once, the tests then step, re-run and export from it.
 
 from __future__ import annotations
 
+import io
 import json
 import threading
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -98,6 +100,10 @@ def test_app_runs_every_stage_and_matches_truth(env, case):
     for i in range(len(case.scans)):
         assert f"/scans/s{i}/points" in _nodes(server)
     assert "✗" not in app.stages.status_md.content and "○" not in app.stages.status_md.content
+    assert "⚠" not in app.stages.status_md.content  # the demo registers: nothing to warn about
+    # Before registration all scanners sit at one point: their names must not print over each other.
+    heights = [server.scene._handle_from_node_name[f"/scans/s{i}/station/name"].position[2] for i in range(3)]
+    assert len(set(np.round(heights, 3))) == 3
 
 
 def test_next_steps_through_every_stage_and_draws_its_layer(env, case):
@@ -129,6 +135,13 @@ def test_next_steps_through_every_stage_and_draws_its_layer(env, case):
         if k == 3:  # targets at their coarse pose
             T = snap.output("coarse").items[0].T_ref_target
             assert np.allclose(app.drawer._scan_frames[1].position, T[:3, 3], atol=1e-6)
+            # The residual histogram's dashed line is the distance that split inliers from outliers.
+            c = snap.output("coarse").items[0]
+            line = app.panel.plots[0].figure.layout.shapes[0].x0
+            res, inl = np.asarray(c.residuals_m), np.asarray(c.inliers)
+            assert np.mean(res[inl] < line) > 0.95 and np.mean(res[~inl] >= line) > 0.95, line
+        if k in (2, 3, 7):  # viser's client draws a plot `aspect` times as tall as wide: ours are wide
+            assert app.panel.plots[0].visible and app.panel.plots[0].aspect < 1.0
         if k == 5:  # arcs coloured per component: branch slices hold several arcs, several colours
             handles = [h for n, h in server.scene._handle_from_node_name.items() if n.startswith("/stage5/ref")]
             colours = np.unique(np.concatenate([np.asarray(h.colors).reshape(-1, 3) for h in handles]), axis=0)
@@ -195,18 +208,31 @@ def test_invalid_parameter_is_rejected_and_the_input_shows_what_is_in_force(env)
     assert all(ctl.snapshot.output(s) is before.output(s) for s in STAGES)
 
 
-def test_bad_upload_shows_a_message_and_changes_nothing(env):
+def test_bad_upload_shows_a_message_and_changes_nothing(env, case):
     server, app = env
     ctl = app.controller
     before = ctl.snapshot
-    _upload(app.scans.upload, "broken.ply", b"ply\nformat nonsense\nend_header\n\x00\x01")
-    _idle(app)
-    snap = ctl.snapshot
-    assert snap.error and "broken.ply" in snap.message
-    assert "broken.ply" in app.stages.message_md.content
-    assert snap.scans == before.scans
-    assert all(snap.output(s) is before.output(s) for s in STAGES)
-    assert len(app.scans._checkboxes) == len(before.scans)
+    pts = case.scans[1].points
+    bad = {  # file -> what the message must say
+        "broken.ply": (b"ply\nformat nonsense\nend_header\n\x00\x01", "broken.ply"),
+        "empty.xyz": (b"", "empty"),
+        "notes.txt": (b"hello world\nthis is not a point cloud\n", "not a number"),
+        "millimetres.xyz": ("\n".join(f"{x:.1f} {y:.1f} {z:.1f}" for x, y, z in pts[:3000] * 1000).encode(),
+                            "millimetres"),
+        "allnan.xyz": (b"nan nan nan\n" * 200, "NaN"),
+    }
+    for name, (data, why) in bad.items():
+        _upload(app.scans.upload, name, data)
+        _idle(app)
+        snap = ctl.snapshot
+        assert snap.error and snap.message.startswith(f"Upload rejected — {name}:"), snap.message
+        assert why in snap.message, snap.message
+        # The user never saw the temporary file the upload went through: its path must not show.
+        assert "treereg-upload-" not in snap.message and "/tmp" not in snap.message
+        assert name in app.stages.message_md.content
+        assert snap.scans == before.scans
+        assert all(snap.output(s) is before.output(s) for s in STAGES)
+        assert len(app.scans._checkboxes) == len(before.scans)
 
 
 def test_export_files_match_truth(env, case, tmp_path):
@@ -215,7 +241,17 @@ def test_export_files_match_truth(env, case, tmp_path):
     bundle = export_bundle(snap, cloud_format="ply")
     assert bundle.stage == "fine"
     app.out_dir = tmp_path  # as `treereg view --out DIR`
+    sent: list[tuple[str, bytes]] = []
+    app.send_file = lambda client, name, data: sent.append((name, data))
+    app.files.cloud_format.value = "las"
+    app.files.download_all.value = True
+    assert sent[-1][0] == "treereg_fine_las.zip"  # PLY and LAS downloads can be told apart
+    with zipfile.ZipFile(io.BytesIO(sent[-1][1])) as z:
+        assert "merged.las" in z.namelist() and "merged.ply" not in z.namelist()
+    app.files.cloud_format.value = "ply"
     app.files.download_all.value = True  # click: writes every file and sends a zip
+    assert sent[-1][0] == "treereg_fine_ply.zip"
+    del app.send_file
     names = {p.name for p in tmp_path.iterdir()}
     stems = [Path(s.name).stem for s in case.scans]
     assert {"transforms.json", "params.json", "merged.ply"} <= names
@@ -243,6 +279,7 @@ def test_failed_stage_shows_its_message_and_later_stages_stay_stale(small_app):
     assert snap.status("coarse") == "failed"
     assert snap.status("fine") == "stale" and snap.status("evaluation") == "stale"
     assert "coarse failed" in app.stages.message_md.content
+    assert app.stages.progress.value == pytest.approx(50.0)  # 3 of 6 stages up to date, not a full bar
     assert "Failed" in app.panel._text.content
     assert "Traceback" not in app.stages.message_md.content + app.panel._text.content
     app.select_stage(4)  # a failure upstream: stepping on does not run anything
@@ -288,6 +325,114 @@ def test_good_upload_adds_a_scan_in_the_next_colour(small_app, case):
     node = app.server.scene._handle_from_node_name["/scans/s3/points"]
     assert np.all(np.asarray(node.colors).reshape(-1, 3) == scan_color(3))
     assert "extra.ply → scan1.ply" in app.stages.view_controls["target2"].options
+    # Rows with NaN are dropped by the reader: the message says so, the scan is added.
+    pts = case.scans[1].points[:3000].copy()
+    pts[::4, 2] = np.nan
+    _upload(app.scans.upload, "holes.xyz", "\n".join(" ".join(f"{v:.4f}" for v in r) for r in pts).encode())
+    _idle(app)
+    snap = app.controller.snapshot
+    assert snap.scans[-1].name == "holes.xyz" and snap.scans[-1].n_points == 2250
+    assert "dropped 750 of 3000 points with NaN" in app.stages.message_md.content
+    assert "treereg-upload-" not in snap.message
+    # A wrong upload can be taken back: remove both, in the Scans tab.
+    for name in ("holes.xyz", "extra.ply"):
+        app.scans.remove_choice.value = name
+        app.scans.remove_button.value = True
+        _idle(app)
+        assert name not in app.controller.snapshot.scan_names and f"Removed {name}" in app.stages.message_md.content
+    assert app.controller.snapshot.scan_names == [s.name for s in case.scans]
+    assert [cb.label for cb in app.scans._checkboxes] == [f"{i + 1}: {s.name}" for i, s in enumerate(case.scans)]
+    assert app.scans.remove_choice.options == tuple(s.name for s in case.scans[1:])
+    app.controller.remove_scan(case.scans[0].name)  # the reference stays
+    _idle(app)
+    assert app.controller.snapshot.scan_names == [s.name for s in case.scans]
+    assert app.controller.snapshot.error and "reference" in app.controller.snapshot.message
+
+
+def test_paper_preset_runs_and_its_failure_is_explained(small_app, case):
+    """The paper's literal settings: the app says what they change and why they fail, and marks every
+    target whose registration is off (judged against the demo's truth) with ⚠ -- and no other."""
+    app = small_app
+    ctl = app.controller
+    app.files.preset.value = "paper"
+    note = app.files.preset_md.content
+    assert "Why it often fails" in note and "| coarse.estimator | ransac | svd |" in note
+    app.files.apply_preset.value = True
+    _idle(app)
+    assert "preset paper in force" in app.stages.message_md.content and "often give a wrong" in app.stages.message_md.content
+    app.stages.run_button.value = True
+    _idle(app)
+    snap = ctl.snapshot
+    assert [snap.status(s) for s in STAGES] == ["done"] * len(STAGES)  # every stage "succeeds" ...
+    truth = case.truth()
+    failed = [s.name for s in case.scans[1:]
+              if rotation_error_deg(snap.transforms[s.name], truth[s.name]) > 1.0
+              or mean_displacement(snap.transforms[s.name], truth[s.name], s.points) > 0.05]
+    status, message = app.stages.status_md.content, app.stages.message_md.content
+    assert ("⚠ 7 Result" in status) == bool(failed) and ("✓ 7 Result" in status) == (not failed)
+    for s in case.scans[1:]:  # ... but each failed registration is named, and only those
+        assert (f"{s.name} → {case.scans[0].name}: the final transform is" in message) == (s.name in failed)
+    app.select_stage(7)
+    _idle(app)
+    assert app.panel._text.content.count("**no**") >= len(failed)
+    sent: list[tuple[str, bytes]] = []
+    app.send_file = lambda client, name, data: sent.append((name, data))
+    app.files.download_transforms.value = True
+    assert sent and (("⚠" in app.files.export_md.content) == bool(failed))
+
+
+def test_an_upside_down_coarse_transform_is_flagged(env):
+    """SVD over all tie points always returns a transform; one that turns a scan over is wrong."""
+    from dataclasses import replace
+
+    from treereg_viewer.checks import coarse_warnings, stage_warnings
+
+    server, app = env
+    snap = app.controller.snapshot
+    assert coarse_warnings(snap) == []
+    coarse = snap.output("coarse")
+    flip = np.diag([1.0, -1.0, -1.0, 1.0])  # 180 deg about x
+    items = (replace(coarse.items[0], T_ref_target=coarse.items[0].T_ref_target @ flip), *coarse.items[1:])
+    bad = replace(snap, outputs={**snap.outputs, "coarse": replace(coarse, items=items)})
+    warnings = coarse_warnings(bad)
+    assert len(warnings) == 1 and "tilts the scan by 180°" in warnings[0]
+    assert warnings[0].startswith(f"{snap.scans[1].name} → {snap.scans[0].name}")
+    assert "coarse" in stage_warnings(bad)
+
+
+def test_frame_view_shows_the_stage_content(env, case):
+    """Stages 0-2: every scan (own frames, scattered) in view; from 3 on: the reference tree, whole."""
+    from treereg_viewer.camera import FOV_Y_RAD, SCENE_ASPECT, frame
+
+    server, app = env
+    snap = app.controller.snapshot
+    half_x = np.arctan(np.tan(FOV_Y_RAD / 2) * SCENE_ASPECT)
+
+    def angle(pose, p):
+        a, b = np.asarray(p) - pose.position, np.asarray(pose.look_at) - pose.position
+        return np.arccos(a @ b / np.linalg.norm(a) / np.linalg.norm(b))
+
+    pose = frame(snap, 0)
+    for s in case.scans:
+        assert angle(pose, s.points.mean(axis=0)) < half_x
+    pose = frame(snap, 4)
+    tree = snap.output("prepare").items[0].scan.points
+    top, bottom = tree[np.argmax(tree[:, 2])], tree[np.argmin(tree[:, 2])]
+    assert angle(pose, top) < FOV_Y_RAD / 2 and angle(pose, bottom) < FOV_Y_RAD / 2
+    assert np.linalg.norm(np.subtract(pose.position, pose.look_at)) < 3 * np.ptp(tree[:, 2])  # not lost in the distance
+
+
+def test_a_note_is_not_hidden_by_the_parameters_changed_line(small_app):
+    """A preset applied: its note and the parameter change reach the worker together; the note wins."""
+    from treereg_core.params import PRESETS
+    from treereg_viewer.controller import _Requests
+
+    app = small_app
+    ctl = app.controller
+    _idle(app)
+    ctl._handle(_Requests(params_changed=True, notes=[("Parameters from preset paper in force.", False)]),
+                PRESETS["paper"])
+    assert ctl.snapshot.message == "Parameters from preset paper in force."
 
 
 def test_match_lines_join_the_matched_pixels():

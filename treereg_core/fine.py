@@ -9,18 +9,20 @@ Two estimators (`FineParams.method`):
   plus the point one unit along the axis towards +z, as tie points; SVD (or RANSAC) over them.
   Its weaknesses, measured in our feasibility trial: a fit to one scan's partial arc has a centre
   error of several cm, and tie points at equal slice heights never constrain z.
-* ``"joint"`` (default) — a model-to-point adjustment: for every pair of corresponding sections one
-  cylinder is fitted to the points of *both* scans at once, while the target's points move with
-  the unknown rigid update. Both scans see different sides of a stem, so together they cover far
-  more arc than either alone; a shared radius removes the partial-arc ambiguity. A cylinder only
-  constrains motion across its axis, so oblique branches fix z and sections at several heights
-  fix the tilts. A prior centred on the coarse pose holds directions no section constrains.
+* ``"joint"`` (default, `joint.py`) — a model-to-point adjustment: for every pair of corresponding
+  sections one cylinder is fitted to the points of *both* scans at once, while the target's
+  points move with the unknown rigid update. Both scans see different sides of a stem, so
+  together they cover far more arc than either alone; a shared radius removes the partial-arc
+  ambiguity. Oblique branches fix z, sections at several heights fix the tilts. Bad pairs are
+  dropped by their residual and by their influence (the one pair the pose hinges on); a prior
+  centred on the coarse pose holds what no section constrains.
 
 Pose directions the sections fix only weakly (z along a bare stem; a turn about the stem, which
-only a few branches see) are checked against the surfaces: a point-to-plane refinement of the
-whole target against the reference, along those directions only, pairing only points whose
-scanner-facing normals agree (the two sides of a thin branch never pair). Where the sections say
-next to nothing, or the surfaces disagree with them clearly, the surfaces' value is taken.
+only a few branches see) are taken from the surfaces (`surface.py`): a point-to-plane refinement
+of the whole target against the reference along those directions only, the pairing gate
+narrowing from 10 cm to 1.5 cm, pairing only points whose scanner-facing normals agree (the two
+sides of a thin branch never pair). With too few sections (a leaf-on crown, a stem thinner than
+the point spacing) all six directions come from the surfaces, kept only if they agree better.
 
 Iterate (`max_iterations`, `tolerance_m`): re-slice with the new pose until the update moves the
 target by less than the tolerance. Acceptance test (`accept_test`): the update is kept unless an
@@ -40,7 +42,7 @@ import numpy as np
 from . import robust
 from .arcs import ArcResult, separate_arcs
 from .correspondence import Correspondences, match_sections
-from .fitting import Section, check_taper, fit_section
+from .fitting import Section, check_taper, fit_section, unfitted_section
 from .joint import JointFit, adjust_joint
 from .params import ArcParams, FineParams, FitParams, Params
 from .results import Metric, Progress, no_progress
@@ -53,6 +55,9 @@ from .surface import Surface, mean_move, pose_update, refine_along, surface_fitn
 _SAMPLE = 20_000
 #: Joint adjustment: a section pair whose RMS exceeds this multiple of the median RMS is dropped.
 _TRIM_FACTOR = 2.5
+#: The drawn slices and fits are redone at the final pose only if it moved more than this (the app
+#: cannot show less, and a pass of slicing and fitting costs a third of the stage).
+_REDRAW_M = 0.005
 #: Joint adjustment: rounds of dropping bad pairs and adjusting again.
 _TRIM_ROUNDS = 6
 
@@ -121,17 +126,36 @@ class _Sections:
 
 
 def _fit_scan_sections(scan: Scan, slice_idx: Sequence[np.ndarray], heights: np.ndarray, T: np.ndarray,
-                       ap: ArcParams, fp: FitParams) -> _Sections:
-    """Separate every slice of `scan` into arcs and fit each arc (points mapped by `T`)."""
+                       ap: ArcParams, fp: FitParams, guide: _Sections | None = None) -> _Sections:
+    """Separate every slice of `scan` into arcs and fit each arc (points mapped by `T`).
+
+    With a `guide` (the other scan's sections), an arc is fitted only if its centroid lies within
+    reach of a plausible guide section of the same slice (the gate plus three radii: the centroid
+    of a visible arc sits up to a radius from the centre): leaves and twigs that have no
+    counterpart cost no fit. The others get an unfitted, implausible section.
+    """
     arcs: list[ArcResult] = []
     sections: list[Section] = []
     members: list[np.ndarray] = []
+    near: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    if guide is not None:
+        for s in guide.sections:
+            if s.plausible:
+                c, r = near.get(s.slice_index, (np.empty((0, 3)), np.empty(0)))
+                near[s.slice_index] = (np.vstack([c, s.centre_m]), np.r_[r, s.radius_m])
     for k, (idx, h) in enumerate(zip(slice_idx, heights)):
         ar = separate_arcs(scan, idx, ap)
         arcs.append(ar)
         circle = fp.circle_lowest and k == 0
         for j, members_j in enumerate(ar.arcs()):
             pts = apply_transform(T, scan.points[members_j])
+            if guide is not None:
+                c, r = near.get(k, (np.empty((0, 3)), np.empty(0)))
+                d = np.linalg.norm(c[:, :2] - pts[:, :2].mean(axis=0), axis=1)
+                if not np.any(d <= fp.gate_m + 3.0 * r):
+                    sections.append(unfitted_section(len(pts), k, j, float(h), "no section of the other scan nearby"))
+                    members.append(members_j)
+                    continue
             sections.append(fit_section(pts, k, j, float(h), circle, fp))
             members.append(members_j)
     if fp.taper_check:
@@ -222,6 +246,13 @@ def _estimate_joint(ref_scan: Scan, tgt_scan: Scan, T: np.ndarray, ref: _Section
                            fp.prior_m, fp.prior_deg, loss, fp.max_direction_sigma_m, T @ invert(T_prior),
                            fp.max_solver_iterations)
         bad = fit.rms_m > max(_TRIM_FACTOR * float(np.median(fit.rms_m)), fp.loss_scale_m)
+        if fp.influence_factor is not None and len(fit.influence_m) > 2:
+            # One wrong pair can bend a direction only a few branches fix while fitting well
+            # itself; it then stands out as the pair the solution hinges on.
+            order = np.argsort(fit.influence_m)
+            worst, second = fit.influence_m[order[-1]], fit.influence_m[order[-2]]
+            if worst > max(fp.influence_min_m, fp.influence_factor * second):
+                bad[order[-1]] = True
         if not bad.any() or keep.sum() - bad.sum() < fp.min_pairs:
             break
         keep[np.flatnonzero(keep)[bad]] = False
@@ -230,43 +261,42 @@ def _estimate_joint(ref_scan: Scan, tgt_scan: Scan, T: np.ndarray, ref: _Section
     return fit, "", keep
 
 
-def _surface_check(ref_surf: Surface, tgt_surf: Surface, T: np.ndarray, joint: JointFit,
-                   fp: FineParams) -> tuple[np.ndarray, int]:
-    """Weak pose directions of the section adjustment, checked against (or taken from) the surfaces.
+#: Surface refinement: pairing gates (m), widest first, each run for `_GATE_ITERATIONS`, then the
+#: final narrow gate (`FineParams.surface_gate_m`) for `FineParams.surface_iterations`. Directions
+#: the sections leave weak still carry the coarse error, centimetres: a narrow gate alone would
+#: never see it.
+_GATES_M = (0.1, 0.05, 0.03)
+_GATE_ITERATIONS = 10
 
-    Directions the sections barely fix (z along a bare stem, a turn about it that only a few
-    branches see: std above `fp.surface_sigma_m`) are taken from the surfaces. Directions they fix
-    only fairly (std above `fp.surface_check_sigma_m`) are taken from the surfaces only when the
-    two disagree clearly: one wrong branch pair can bend such a direction while fitting well itself.
-    Returns the transform and how many directions came from the surfaces.
+
+def _from_surfaces(ref_surf: Surface, tgt_surf: Surface, T: np.ndarray, centre: np.ndarray, B: np.ndarray,
+                   fp: FineParams) -> np.ndarray:
+    """`T` refined point-to-plane along the pose directions `B` only, the pairing gate narrowing."""
+    for gate in _GATES_M + (fp.surface_gate_m,):
+        final = gate == fp.surface_gate_m
+        y = refine_along(ref_surf, tgt_surf, T, centre, B, max(gate, fp.surface_gate_m),
+                         max(fp.loss_scale_m, gate / 4), fp.surface_iterations if final else _GATE_ITERATIONS)
+        T = pose_update(B @ y, centre) @ T
+    return T
+
+
+def _weak_from_surfaces(ref_surf: Surface, tgt_surf: Surface, T: np.ndarray, joint: JointFit,
+                        fp: FineParams) -> tuple[np.ndarray, int]:
+    """The pose directions the sections fix only weakly, taken from the surfaces instead.
+
+    Weak: a noise std above `fp.surface_sigma_m` (z along a bare stem; a turn about the stem that
+    only a few branches see). With `fp.surface_polish`, all six directions come from the surfaces,
+    started where the sections put the target. Returns the transform and how many directions came
+    from the surfaces.
     """
-    if fp.surface_polish:
-        # All six directions from the surfaces, started where the sections put the target.
-        y = refine_along(ref_surf, tgt_surf, T, joint.centre_m, np.eye(6), fp.surface_gate_m, fp.loss_scale_m,
-                         fp.surface_iterations)
-        return pose_update(y, joint.centre_m) @ T, 6
-    B, std = joint.weak_basis(fp.loss_scale_m, fp.surface_check_sigma_m)
+    B = np.eye(6) if fp.surface_polish else joint.weak_basis(fp.loss_scale_m, fp.surface_sigma_m)[0]
     if not B.shape[1]:
         return T, 0
-    y = refine_along(ref_surf, tgt_surf, T, joint.centre_m, B, fp.surface_gate_m, fp.loss_scale_m, fp.surface_iterations)
-    use = (std > fp.surface_sigma_m) | (np.abs(y) > fp.surface_check_factor * std + fp.surface_tolerance_m)
-    return pose_update(B @ np.where(use, y, 0.0), joint.centre_m) @ T, int(use.sum())
-
-
-#: Surface fallback: the pairing gates (m), widest first, and iterations at each.
-_FALLBACK_GATES_M = (0.1, 0.05, 0.03)
-_FALLBACK_ITERATIONS = 10
-
-
-def _surface_fallback(ref_surf: Surface, tgt_surf: Surface, T0: np.ndarray, fp: FineParams) -> np.ndarray:
-    """All six pose directions from the surfaces alone, the pairing gate narrowing step by step."""
-    T = T0
-    centre = apply_transform(T0, tgt_surf.points).mean(axis=0)
-    for gate in _FALLBACK_GATES_M + (fp.surface_gate_m,):
-        y = refine_along(ref_surf, tgt_surf, T, centre, np.eye(6), max(gate, fp.surface_gate_m),
-                         max(fp.loss_scale_m, gate / 4), _FALLBACK_ITERATIONS)
-        T = pose_update(y, centre) @ T
-    return T
+    if fp.surface_polish:
+        T = pose_update(B @ refine_along(ref_surf, tgt_surf, T, joint.centre_m, B, fp.surface_gate_m,
+                                         fp.loss_scale_m, fp.surface_iterations), joint.centre_m) @ T
+        return T, 6
+    return _from_surfaces(ref_surf, tgt_surf, T, joint.centre_m, B, fp), int(B.shape[1])
 
 
 def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, params: Params,
@@ -309,7 +339,7 @@ def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, params: Params,
         sl = slice_scans(ref, tgt, T, sp)
         if ref_secs is None:  # reference slices never move: fit them once
             ref_secs = _fit_scan_sections(ref, sl.ref_indices, sl.heights_m, np.eye(4), ap, fitp)
-        tgt_secs = _fit_scan_sections(tgt, sl.tgt_indices, sl.heights_m, T, ap, fitp)
+        tgt_secs = _fit_scan_sections(tgt, sl.tgt_indices, sl.heights_m, T, ap, fitp, ref_secs)
         corr = _match(ref_secs, tgt_secs, fitp)
         drawn = (T, sl, tgt_secs, corr)
         if it > 1 and corr.ok and fp.gate_factor is not None:
@@ -340,12 +370,12 @@ def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, params: Params,
     tgt_surf = surface_of(tgt.points, fp.measure_voxel_m, _SAMPLE)
     from_surface = 0
     if joint is not None and updates and fp.surface_refine:
-        T, from_surface = _surface_check(ref_surf, tgt_surf, T, joint, fp)
+        T, from_surface = _weak_from_surfaces(ref_surf, tgt_surf, T, joint, fp)
     fallback = not updates and fp.method == "joint" and fp.surface_fallback
     if fallback:
         # Too few sections (a leaf-on crown, a stem too thin for the point spacing): align the
         # surfaces instead, gate narrowing from the coarse error down; the acceptance test guards it.
-        T = _surface_fallback(ref_surf, tgt_surf, T0, fp)
+        T = _from_surfaces(ref_surf, tgt_surf, T0, apply_transform(T0, tgt_surf.points).mean(axis=0), np.eye(6), fp)
         updates.append(mean_move(T @ invert(T0), apply_transform(T0, sample)))
         from_surface = 6
     m0 = surface_fitness(ref_surf, tgt_surf, T0, fp.measure_gate_m, fp.measure_tolerance_m)
@@ -367,11 +397,11 @@ def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, params: Params,
         T = T0.copy()
     # What the app draws: slices, arcs, fits and ties at the pose finally returned (the last
     # iteration's, unless the pose has moved since by more than the tolerance).
-    if drawn is None or mean_move(T @ invert(drawn[0]), apply_transform(drawn[0], sample)) > fp.tolerance_m:
+    if drawn is None or mean_move(T @ invert(drawn[0]), apply_transform(drawn[0], sample)) > max(fp.tolerance_m, _REDRAW_M):
         sl = slice_scans(ref, tgt, T, sp)
         if ref_secs is None:
             ref_secs = _fit_scan_sections(ref, sl.ref_indices, sl.heights_m, np.eye(4), ap, fitp)
-        tgt_secs = _fit_scan_sections(tgt, sl.tgt_indices, sl.heights_m, T, ap, fitp)
+        tgt_secs = _fit_scan_sections(tgt, sl.tgt_indices, sl.heights_m, T, ap, fitp, ref_secs)
         corr = _match(ref_secs, tgt_secs, fitp)
     else:
         _, sl, tgt_secs, corr = drawn

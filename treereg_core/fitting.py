@@ -25,6 +25,7 @@ from .params import FitParams
 MAX_FIT_POINTS = 400
 #: Neighbours per point for the surface normals that seed the cylinder axis.
 _NORMAL_K = 8
+_NORMAL_SAMPLES = 48
 
 
 @dataclass(frozen=True)
@@ -115,8 +116,10 @@ def _taubin(xy: np.ndarray) -> tuple[np.ndarray, float] | None:
     m = xy.mean(axis=0)
     X, Y = xy[:, 0] - m[0], xy[:, 1] - m[1]
     Z = X * X + Y * Y
-    Mxx, Myy, Mxy = (X * X).mean(), (Y * Y).mean(), (X * Y).mean()
-    Mxz, Myz, Mzz = (X * Z).mean(), (Y * Z).mean(), (Z * Z).mean()
+    # All six moments in one product (many small numpy calls cost more than the arithmetic).
+    V = np.stack([X, Y, Z])
+    M = (V @ V.T) / len(X)
+    Mxx, Myy, Mxy, Mxz, Myz, Mzz = M[0, 0], M[1, 1], M[0, 1], M[0, 2], M[1, 2], M[2, 2]
     Mz = Mxx + Myy
     cov_xy = Mxx * Myy - Mxy * Mxy
     var_z = Mzz - Mz * Mz
@@ -185,11 +188,16 @@ def _basis(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _normal_axis(xyz: np.ndarray) -> np.ndarray | None:
-    """Cylinder axis as the direction most perpendicular to the local surface normals."""
+    """Cylinder axis as the direction most perpendicular to the local surface normals.
+
+    Normals at up to `_NORMAL_SAMPLES` points (neighbours from all points) are plenty for one
+    direction.
+    """
     k = min(_NORMAL_K, len(xyz))
     if k < 5:
         return None
-    _, nb = cKDTree(xyz).query(xyz, k=k)
+    at = xyz if len(xyz) <= _NORMAL_SAMPLES else xyz[np.linspace(0, len(xyz) - 1, _NORMAL_SAMPLES).astype(int)]
+    _, nb = cKDTree(xyz).query(at, k=k)
     q = xyz[nb] - xyz[nb].mean(axis=1, keepdims=True)
     cov = np.einsum("nki,nkj->nij", q, q)
     normals = np.linalg.eigh(cov)[1][:, :, 0]
@@ -200,14 +208,15 @@ def _normal_axis(xyz: np.ndarray) -> np.ndarray | None:
 def _circle_about(xyz: np.ndarray, a: np.ndarray) -> tuple[np.ndarray, float, float] | None:
     """Circle fit of the points projected on the plane normal to `a`: (axis point, radius, rms)."""
     e1, e2 = _basis(a)
-    uv = np.c_[xyz @ e1, xyz @ e2]
+    uva = xyz @ np.stack([e1, e2, a], axis=1)
+    uv = uva[:, :2]
     res = _taubin(uv)
     if res is None:
         return None
     c, r = res
-    rms = float(np.sqrt(np.mean((np.hypot(*(uv - c).T) - r) ** 2)))
-    along = float((xyz @ a).mean())
-    return c[0] * e1 + c[1] * e2 + along * a, r, rms
+    d = uv - c
+    rms = float(np.sqrt(np.mean((np.sqrt(d[:, 0] ** 2 + d[:, 1] ** 2) - r) ** 2)))
+    return c[0] * e1 + c[1] * e2 + float(uva[:, 2].mean()) * a, r, rms
 
 
 def fit_cylinder(xyz: np.ndarray, axis_hint: np.ndarray | None = None, loss_scale_m: float = 0.005,
@@ -377,6 +386,13 @@ def fit_section(points: np.ndarray, slice_index: int, arc: int, height_m: float,
             centre = fit.point_m.copy()
     return Section(slice_index, arc, float(height_m), fit, centre, axis, float(fit.radius_m),
                    bool(fit.plausible), fit.reason)
+
+
+def unfitted_section(n_points: int, slice_index: int, arc: int, height_m: float, reason: str) -> Section:
+    """A section left unfitted on purpose (implausible, with the reason)."""
+    fit = _nan_cylinder(n_points, reason)
+    return Section(slice_index, arc, float(height_m), fit, np.full(3, np.nan), np.full(3, np.nan), float("nan"),
+                   False, reason)
 
 
 def check_taper(sections: list[Section], tolerance: float, gate_m: float) -> list[Section]:

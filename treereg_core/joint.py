@@ -95,6 +95,8 @@ class JointFit:
         points from it (rotations times the lever arm are metres).
     information
         6 x 6 information matrix of the update from the sections alone (their own unknowns eliminated).
+    influence_m
+        Per section, how far the update would move without it (see `_influence`).
     """
 
     U: np.ndarray
@@ -107,6 +109,7 @@ class JointFit:
     centre_m: np.ndarray
     information: np.ndarray
     lever_m: float
+    influence_m: np.ndarray
 
     def weak_basis(self, sigma_m: float, max_sigma_m: float) -> tuple[np.ndarray, np.ndarray]:
         """The pose directions the sections determine worse than `max_sigma_m` (noise std at the
@@ -250,6 +253,26 @@ def adjust_joint(points: np.ndarray, section: np.ndarray, moving: np.ndarray, c0
             break
     counts = np.diff(np.r_[starts, len(res)])
     rms = np.sqrt(np.add.reduceat(res ** 2, starts) / counts)
-    _, _, _, _, _, S_k, _ = linearise(cur, along, perp, nrm, res, a)
+    _, _, _, _, _, S_k, b_k = linearise(cur, along, perp, nrm, res, a)
     U = make_transform(R, centre - R @ centre + tau)
-    return JointFit(U, c, a, np.abs(r), rms, it, held, centre, S_k.sum(axis=0), lever)
+    return JointFit(U, c, a, np.abs(r), rms, it, held, centre, S_k.sum(axis=0), lever,
+                    _influence(S_k, b_k, np.diag(prior), lever, loss_scale_m, max_sigma_m))
+
+
+def _influence(S_k: np.ndarray, b_k: np.ndarray, S_prior: np.ndarray, lever_m: float, sigma_m: float,
+               max_sigma_m: float | None) -> np.ndarray:
+    """How far the pose would move without each section (metres at the lever arm).
+
+    Linearised at the solution, where the summed gradient vanishes: the shift is (S - S_k)^-1 b_k.
+    It measures conflict, not information: a section that alone fixes a direction, and that the
+    others do not contradict, has a near-zero gradient there. Only directions the sections
+    determine count; in the others the prior alone holds the pose and any gradient would look huge.
+    """
+    S = S_k.sum(axis=0)
+    D = np.r_[[lever_m] * 3, [1.0] * 3]
+    lam, V = np.linalg.eigh(S / np.outer(D, D))
+    good = np.ones(6, dtype=bool) if max_sigma_m is None else sigma_m / np.sqrt(np.maximum(lam, 1e-300)) <= max_sigma_m
+    Vg = V[:, good] / D[:, None]
+    A = np.einsum("ia,kij,jb->kab", Vg, S[None] + S_prior - S_k, Vg)
+    y = np.linalg.solve(A + 1e-12 * np.eye(A.shape[1]), (b_k @ Vg)[:, :, None])[:, :, 0]
+    return np.linalg.norm((y @ Vg.T) * D, axis=1)

@@ -27,6 +27,7 @@ from treereg_core.errors import ConfigError
 from treereg_core.params import Params
 from treereg_core.pipeline import STAGES
 
+from . import camera
 from .controller import Controller, Snapshot
 from .drawer import Drawer
 from .export_panel import ExportPanel
@@ -37,6 +38,9 @@ from .view_panel import ViewPanel
 from .view_state import ViewState
 
 log = logging.getLogger(__name__)
+
+#: Width of the docked control panel (viser's "large" control width).
+CONTROL_WIDTH_PX = 400
 
 
 class TreeregApp:
@@ -67,6 +71,10 @@ class TreeregApp:
                                    titlebar_content=None)
         server.scene.set_up_direction("+z")
         self.panel = ViewPanel(server)
+        # Docked, not floating: a floating control panel covers the right third of the scene, where
+        # the trees of the other scans stand; docked, the scene is the free space between the panels.
+        server.gui.main_panel.dock_right()
+        server.gui.main_panel.set_width(CONTROL_WIDTH_PX)
         gui = server.gui
         gui.add_markdown("**treereg** · marker-free registration of single-tree TLS scans (rotating projection, "
                          "then stem and branch centres)")
@@ -101,7 +109,12 @@ class TreeregApp:
 
     def select_stage(self, index: int) -> None:
         index = int(np.clip(index, 0, len(APP_STAGES) - 1))
+        before = self.view.stage
         self.set_view(stage=index)
+        if (before < 3) != (index < 3):
+            # Between the scattered scans (own frames) and the registered tree the content moves:
+            # follow it. Within a group the camera stays where the user put it.
+            self.frame_view()
         self.stages.show_stage(index)
         snap = self.controller.snapshot
         self.stages.show_snapshot(snap, index)
@@ -149,10 +162,10 @@ class TreeregApp:
             return str(e)
         return None
 
-    def load_params(self, params: Params, source: str) -> None:
+    def load_params(self, params: Params, source: str, note: str = "") -> None:
         self.controller.set_params(params)
         self.stages.sync_params(params)
-        self.controller.note(f"Parameters from {source} in force; press Run to apply them.")
+        self.controller.note(f"Parameters from {source} in force; press Run to apply them. {note}".rstrip())
 
     def send_file(self, client: Any, filename: str, data: bytes) -> None:
         """A browser download for the tab that asked (all tabs when there is no client, as in tests)."""
@@ -179,22 +192,28 @@ class TreeregApp:
         self.stages.show_progress(fraction, text)
 
     def _place_camera(self, snap: Snapshot) -> None:
-        """Look at the reference tree from behind its scanner, far enough for the whole crown.
-
-        From stage 3 on every scan is drawn over the reference tree; before that the other scans'
-        trees stand elsewhere (their own frames) and are reached by zooming out.
-        """
-        if not snap.scans:
+        """The camera a new browser tab starts with (and "Reset View" returns to): stage 0's view."""
+        pose = camera.frame(snap, 0)
+        if pose is None:
             return
-        pts = snap.scans[0].points
-        look = pts.mean(axis=0)
-        height = float(np.ptp(pts[:, 2])) or 10.0
-        d = look[:2] / (np.linalg.norm(look[:2]) or 1.0)  # from the reference scanner towards its tree
-        dist = max(1.5 * height, 12.0)
-        cam = np.array([look[0] - d[0] * dist, look[1] - d[1] * dist, look[2] + 0.35 * dist])
-        self.server.initial_camera.position = tuple(cam)
-        self.server.initial_camera.look_at = tuple(look)
+        self.server.initial_camera.position = pose.position
+        self.server.initial_camera.look_at = pose.look_at
         self.server.initial_camera.up = (0.0, 0.0, 1.0)
+
+    def frame_view(self) -> None:
+        """Point every tab's camera at what the current stage draws (the "Frame the view" button)."""
+        pose = camera.frame(self.controller.snapshot, self.view.stage)
+        if pose is None:
+            return
+        for client in self.server.get_clients().values():
+            try:
+                with client.atomic():
+                    # viser moves look_at along with position: set position first, then look_at.
+                    client.camera.position = pose.position
+                    client.camera.look_at = pose.look_at
+            except (AssertionError, ValueError):  # a tab that has not reported its camera yet
+                log.debug("camera of client %s not ready", client.client_id)
+
 
 def serve(controller: Controller, host: str = "127.0.0.1", port: int = 8080, out_dir: Path | None = None) -> None:
     """Start the server and the app, print the URL (tests read it), block until Ctrl-C."""

@@ -13,6 +13,7 @@ import logging
 import tempfile
 import threading
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
@@ -63,8 +64,9 @@ class Snapshot:
 
 Listener = Callable[[Snapshot], None]
 ProgressListener = Callable[[float, str], None]
-#: Turns an uploaded file (its name and bytes) into a Scan, raising ScanError when it cannot.
-ScanParser = Callable[[str, bytes], Scan]
+#: Turns an uploaded file (its name and bytes) into a Scan and the notes a user should read (rows
+#: repaired, ...), raising ScanError when it cannot.
+ScanParser = Callable[[str, bytes], "tuple[Scan, list[str]]"]
 
 
 @dataclass
@@ -75,16 +77,22 @@ class _Requests:
     run_until: str | None = None
     rerun_from: str | None = None
     uploads: list[tuple[str, bytes]] = field(default_factory=list)
+    removals: list[str] = field(default_factory=list)
     scans: list[Scan] | None = None
     truth: dict[str, np.ndarray] | None = None
     notes: list[tuple[str, bool]] = field(default_factory=list)
 
     def pending(self) -> bool:
-        return bool(self.params_changed or self.run_until or self.uploads or self.scans is not None or self.notes)
+        return bool(self.params_changed or self.run_until or self.uploads or self.removals or self.scans is not None
+                    or self.notes)
 
 
-def parse_scan_upload(filename: str, data: bytes) -> Scan:
-    """Read an uploaded scan file with treereg_core.io (via a temporary file of the same suffix)."""
+def parse_scan_upload(filename: str, data: bytes) -> tuple[Scan, list[str]]:
+    """Read an uploaded scan file with treereg_core.io (via a temporary file of the same suffix).
+
+    Returns the scan and what the reader repaired (its warnings, e.g. rows with NaN dropped). Errors
+    and notes name the uploaded file, never the temporary path the user has not seen.
+    """
     from treereg_core.io import read_scan
 
     name = Path(filename).name or "upload"
@@ -93,9 +101,16 @@ def parse_scan_upload(filename: str, data: bytes) -> Scan:
     with tempfile.TemporaryDirectory(prefix="treereg-upload-") as tmp:
         path = Path(tmp) / name
         path.write_bytes(data)
-        scan = read_scan(path)
+        try:
+            # Only the worker thread reads uploads, so recording warnings here catches its own.
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                scan = read_scan(path)
+        except ScanError as e:
+            raise ScanError(name, e.problem.replace(str(path), name)) from None
+    notes = [str(w.message).replace(str(path), name) for w in caught if issubclass(w.category, UserWarning)]
     # The temporary directory is gone: name the scan after the uploaded file, not the temp path.
-    return Scan(scan.points, scan.name, scan.angular_step_deg, Path(name), scan.step_estimated)
+    return Scan(scan.points, scan.name, scan.angular_step_deg, Path(name), scan.step_estimated), notes
 
 
 class Controller:
@@ -197,6 +212,12 @@ class Controller:
             self._req.uploads.append((filename, bytes(data)))
             self._notify()
 
+    def remove_scan(self, name: str) -> None:
+        """Queue the removal of a target scan (the reference stays: every transform is onto it)."""
+        with self._wake:
+            self._req.removals.append(name)
+            self._notify()
+
     def set_scans(self, scans: Sequence[Scan], truth: Mapping[str, np.ndarray] | None = None) -> None:
         """Replace all scans (first = reference); every stage becomes stale."""
         with self._wake:
@@ -259,9 +280,19 @@ class Controller:
         if req.scans is not None:
             pipe.set_scans(req.scans, req.truth)
             message, error = f"Loaded {len(req.scans)} scans.", False
+        for name in req.removals:
+            names = [s.name for s in pipe.scans]
+            if name not in names:
+                message, error = f"{name} is not loaded.", True
+            elif names.index(name) == 0:
+                message, error = f"{name} is the reference (scan 1): every other scan is registered onto it, so it stays.", True
+            else:
+                truth = {k: v for k, v in pipe.truth.items() if k != name} if pipe.truth else None
+                pipe.set_scans([s for s in pipe.scans if s.name != name], truth)
+                message, error = f"Removed {name}; {len(pipe.scans)} scans remain.", False
         for filename, data in req.uploads:
             try:
-                scan = self._parse_upload(filename, data)
+                scan, notes = self._parse_upload(filename, data)
             except (ScanError, ConfigError) as e:
                 message, error = f"Upload rejected — {e}", True
                 continue
@@ -273,13 +304,16 @@ class Controller:
             pipe.set_scans([*pipe.scans, scan], pipe.truth)
             message, error = (f"Added {scan.name} ({scan.n_points:,} points) as scan {len(pipe.scans)}; "
                               "press Run to register it."), False
-        if req.scans is not None or req.uploads or req.params_changed or req.run_until:
+            if notes:  # repaired rows and the like: the user should know what was not read
+                message += " Note: " + "; ".join(notes) + "."
+        if req.scans is not None or req.uploads or req.removals or req.params_changed or req.run_until:
             self._crashed.clear()  # new inputs or an explicit run: try again
         if req.params_changed or desired != pipe.params:
             stale = pipe.set_params(desired)
             if stale and not req.run_until:
-                message = f"Parameters changed: {', '.join(stale)} must re-run (press Run)."
-                error = False
+                changed = f"Parameters changed: {', '.join(stale)} must re-run (press Run)."
+                # A note from the same moment (a preset applied, a value rejected) says more: keep it.
+                message, error = (message, error) if req.notes else (changed, False)
         self._publish(message=message, error=error)
         if req.run_until:
             self._run(req.run_until, req.rerun_from)

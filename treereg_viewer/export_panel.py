@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 from typing import TYPE_CHECKING, Any
 
 import viser
@@ -11,9 +12,13 @@ from treereg_core import params as P
 from treereg_core.errors import ConfigError, ScanError
 
 from . import export
+from .checks import stage_warnings
+from .presets import ABOUT_SHORT, preset_note
 
 if TYPE_CHECKING:
     from .app import TreeregApp
+
+log = logging.getLogger(__name__)
 
 
 class ExportPanel:
@@ -35,11 +40,14 @@ class ExportPanel:
         with gui.add_folder("Parameters"):
             self.preset = gui.add_dropdown("Preset", tuple(P.PRESETS), initial_value="robust",
                                            hint="robust: our defaults; paper: the paper's settings taken literally.")
+            self.preset_md = gui.add_markdown(preset_note(self.preset.value))
             self.apply_preset = gui.add_button("Apply preset")
             self.download_params = gui.add_button("Download parameters (JSON)", icon=viser.Icon.DOWNLOAD)
             self.load_params = gui.add_upload_button("Load parameters (JSON)", icon=viser.Icon.UPLOAD,
                                                      mime_type="application/json")
-        self.apply_preset.on_click(lambda _: app.load_params(P.PRESETS[self.preset.value], f"preset {self.preset.value}"))
+        self.preset.on_update(lambda _: setattr(self.preset_md, "content", preset_note(self.preset.value)))
+        self.apply_preset.on_click(lambda _: app.load_params(P.PRESETS[self.preset.value], f"preset {self.preset.value}",
+                                                             ABOUT_SHORT.get(self.preset.value, "")))
         self.download_params.on_click(
             lambda e: app.send_file(e.client, "params.json", (json.dumps(P.to_dict(app.controller.params), indent=2) + "\n").encode())
         )
@@ -56,11 +64,19 @@ class ExportPanel:
         except (export.ExportError, ConfigError, ScanError, OSError) as e:
             self.app.controller.note(f"Export failed: {e}", error=True)
             return
+        except Exception as e:  # a writer bug: one line for the user, the traceback in the log
+            log.exception("export failed")
+            self.app.controller.note(f"Export failed: {type(e).__name__}: {e}", error=True)
+            return
         if only is not None:
             self.app.send_file(client, only, bundle.files[only])
         else:
-            self.app.send_file(client, "treereg_exports.zip", export.zip_bundle(bundle))
-        self.export_md.content = f"Exported the {bundle.stage} transforms of {len(bundle.transforms)} scans.{written}"
+            # Named by what is inside: downloads with one name for PLY and LAS could not be told apart.
+            self.app.send_file(client, f"treereg_{bundle.stage}_{self.cloud_format.value}.zip", export.zip_bundle(bundle))
+        warned = stage_warnings(snap)
+        caution = (" **⚠ These transforms carry warnings (see the message at the top): check them before use.**"
+                   if warned else "")
+        self.export_md.content = f"Exported the {bundle.stage} transforms of {len(bundle.transforms)} scans.{written}{caution}"
 
     def _load_params(self, uploaded: Any) -> None:
         try:

@@ -36,6 +36,15 @@ class ScanPanel:
         self.upload.on_upload(lambda _: app.controller.add_scan_bytes(self.upload.value.name, self.upload.value.content))
         gui.add_markdown("Uploaded scans are registered onto scan 1. A file that cannot be read is "
                          "reported above and changes nothing.")
+        # A wrong upload must be undoable without restarting the app.
+        self.remove_choice = gui.add_dropdown("Scan to remove", ("(none)",), hint="A target scan (scan 1 is the reference and stays).")
+        self.remove_button = gui.add_button("Remove scan", icon=viser.Icon.TRASH, color="gray", disabled=True)
+        self.remove_button.on_click(lambda _: self._remove())
+
+    def _remove(self) -> None:
+        name = self.remove_choice.value
+        if name in self._names[1:]:
+            self.app.controller.remove_scan(name)
 
     def show_snapshot(self, snap: Snapshot) -> None:
         """Rebuild the show/hide checkboxes when the set of scans changed."""
@@ -43,6 +52,9 @@ class ScanPanel:
         if names == self._names:
             return
         self._names = names
+        targets = names[1:]
+        self.remove_choice.options = targets or ("(none)",)
+        self.remove_button.disabled = not targets
         for cb in self._checkboxes:
             cb.remove()
         self._checkboxes = []

@@ -14,7 +14,8 @@ from treereg_core.pipeline import STAGES
 
 from .controller import Snapshot
 from .param_widgets import SectionWidgets
-from .stages import APP_STAGES, AppStage, stage_by_label
+from .checks import stage_warnings
+from .stages import APP_STAGES, FIRST_APP_STAGE, AppStage, stage_by_label
 
 if TYPE_CHECKING:
     from .app import TreeregApp
@@ -36,6 +37,9 @@ class StagePanel:
                                          hint="Run this stage and the ones after it (earlier results are reused).")
         self.auto_run = gui.add_checkbox("Run when stepping", True,
                                          hint="Run a stale stage when you step onto it.")
+        self.frame_button = gui.add_button("Frame the view", icon=viser.Icon.FOCUS_CENTERED, color="gray",
+                                           hint="Point the camera at what this stage draws.")
+        self.frame_button.on_click(lambda _: app.frame_view())
         self.progress = gui.add_progress_bar(0.0, animated=False)
         self.progress_text = gui.add_markdown("")
         self.message_md = gui.add_markdown("")
@@ -91,25 +95,29 @@ class StagePanel:
 
     def show_snapshot(self, snap: Snapshot, stage_index: int) -> None:
         """Status line per stage, message, Run button state, view-control ranges."""
+        warned = stage_warnings(snap) if not snap.busy else {}
         parts = []
         for s in APP_STAGES:
             st = snap.status(s.pipeline_stage)
-            mark = _STATUS_ICON[st]
+            # Done but implausible (e.g. an SVD transform that turns a scan upside down): not a ✓.
+            mark = "⚠" if s.pipeline_stage in warned and FIRST_APP_STAGE[s.pipeline_stage] is s else _STATUS_ICON[st]
             name = f"**{s.index} {s.title}**" if s.index == stage_index else f"{s.index} {s.title}"
             parts.append(f"{mark} {name}")
         self.status_md.content = " · ".join(parts)
         self.run_button.disabled = snap.busy
+        lines = []
         if snap.message:
-            self.message_md.content = (f"**⚠ {snap.message}**" if snap.error else snap.message)
+            lines.append(f"**⚠ {snap.message}**" if snap.error else snap.message)
         elif not snap.busy:
             failed = [s for s in STAGES if snap.status(s) == "failed"]
             if failed:
                 why = snap.crashed.get(failed[0]) or snap.outputs[failed[0]].message
-                self.message_md.content = f"**⚠ {failed[0]} failed:** {why}"
-            else:
-                self.message_md.content = ""
+                lines.append(f"**⚠ {failed[0]} failed:** {why}")
+        lines += [f"**⚠** {w}" for ws in warned.values() for w in ws]
+        self.message_md.content = "\n\n".join(lines)
         if not snap.busy:
-            self.progress.value = 100.0 if all(snap.status(s) == "done" for s in STAGES) else self.progress.value
+            # At rest the bar shows how much of the pipeline is up to date (a failure stops it there).
+            self.progress.value = 100.0 * sum(snap.status(s) == "done" for s in STAGES) / len(STAGES)
             self.progress.animated = False
         else:
             self.progress.animated = True

@@ -19,6 +19,16 @@ MAX_IMAGES = 2
 MAX_PLOTS = 2
 
 
+def plot_aspect(width_over_height: float) -> float:
+    """The `aspect` viser 1.1's plotly element wants for a plot `width_over_height` wide.
+
+    viser documents `aspect` as width/height, but its client sizes the plot as
+    `height = width * aspect`: passed as documented, a wide plot comes out tall and its lower half
+    is scrolled out of the panel.
+    """
+    return 1.0 / max(float(width_over_height), 1e-3)
+
+
 @dataclass(frozen=True)
 class PanelContent:
     """What one stage shows in the panel: a heading, images with captions, plots, tables."""
@@ -26,7 +36,7 @@ class PanelContent:
     title: str
     text: str = ""
     images: tuple[tuple[np.ndarray, str], ...] = ()
-    plots: tuple[tuple[Any, float], ...] = ()  # (plotly figure, aspect width/height)
+    plots: tuple[tuple[Any, float], ...] = ()  # (plotly figure, width / height)
     table: str = ""
 
 
@@ -68,7 +78,7 @@ class ViewPanel:
 
         with self._tab:
             for k in range(MAX_PLOTS):
-                self._plots.append(self.server.gui.add_plotly(go.Figure(), aspect=1.6, visible=False, order=10 + k))
+                self._plots.append(self.server.gui.add_plotly(go.Figure(), aspect=plot_aspect(1.6), visible=False, order=10 + k))
 
     def show(self, content: PanelContent) -> None:
         """Replace the panel's content (call inside `server.atomic()` with the scene updates)."""
@@ -90,7 +100,7 @@ class ViewPanel:
             if k < len(content.plots):
                 fig, aspect = content.plots[k]
                 plot.figure = fig
-                plot.aspect = aspect
+                plot.aspect = plot_aspect(aspect)
                 plot.visible = True
             else:
                 plot.visible = False

@@ -15,6 +15,7 @@ import viser
 
 from treereg_core.rigid import apply_transform
 
+from ..checks import coarse_warnings
 from ..controller import Snapshot
 from ..palette import KEPT, REJECTED, hex_color
 from ..view_panel import PanelContent
@@ -22,20 +23,47 @@ from ..view_state import ViewState
 from .common import item_message, metrics_table, not_ready_text, pair_label
 
 
-def residual_figure(c: Any, inlier_m: float) -> go.Figure:
+def inlier_threshold(c: Any, p: Any) -> float:
+    """The inlier distance that produced `c.inliers`.
+
+    RANSAC with `final_inlier_m` halves its distance from `inlier_m` down to `final_inlier_m` and
+    may stop early, so the threshold in force is one of those steps: the one that best separates
+    inliers from outliers (exactly, unless a 6-DOF refit moved the residuals a little after the
+    inliers were chosen). Drawing `inlier_m` instead would put outliers left of the line.
+    """
     res = np.asarray(c.residuals_m, dtype=float)
     inl = np.asarray(c.inliers, dtype=bool)
-    fig = go.Figure()
+    steps = [float(p.inlier_m)]
+    if p.estimator == "ransac" and p.final_inlier_m is not None:
+        while steps[-1] > p.final_inlier_m * 1.0001:
+            steps.append(max(steps[-1] / 2.0, float(p.final_inlier_m)))
+    mismatches = [int(np.count_nonzero((res < th) != inl)) for th in steps]
+    return steps[int(np.argmin(mismatches))]
+
+
+def residual_figure(c: Any, threshold_m: float) -> go.Figure:
+    """Histogram of tie residuals, inliers green and outliers grey, around the inlier distance.
+
+    The x range is four times the inlier distance: the decision happens there. Farther residuals
+    (wrong matches, often metres off) are gathered in the last bar, as the title says.
+    """
+    res = np.asarray(c.residuals_m, dtype=float)
+    inl = np.asarray(c.inliers, dtype=bool)
     fin = np.isfinite(res)
-    top = float(np.nanpercentile(res[fin], 95)) * 1.2 if fin.any() else 1.0
-    bins = dict(start=0.0, end=max(top, 2 * inlier_m), size=max(top, 2 * inlier_m) / 40)
-    fig.add_trace(go.Histogram(x=res[fin & inl], name="inliers", marker_color=hex_color(KEPT), xbins=bins))
-    fig.add_trace(go.Histogram(x=res[fin & ~inl], name="outliers", marker_color=hex_color(REJECTED), xbins=bins))
-    fig.add_vline(x=inlier_m, line_dash="dash", annotation_text="inlier distance")
+    end = 4.0 * threshold_m
+    size = end / 40.0
+    shown = np.minimum(res, end - size / 2)  # beyond the range: into the last bar
+    n_far = int(np.count_nonzero(fin & (res >= end)))
+    bins = dict(start=0.0, end=end, size=size)
+    fig = go.Figure()
+    fig.add_trace(go.Histogram(x=shown[fin & inl], name="inliers", marker_color=hex_color(KEPT), xbins=bins))
+    fig.add_trace(go.Histogram(x=shown[fin & ~inl], name="outliers", marker_color=hex_color(REJECTED), xbins=bins))
+    fig.add_vline(x=threshold_m, line_dash="dash", annotation_text=f"inlier distance {threshold_m:g} m")
+    far = f"; the last bar holds {n_far} beyond {end:g} m" if n_far else ""
     fig.update_layout(barmode="stack", margin=dict(l=50, r=10, t=30, b=40),
-                      title=dict(text="Tie-point residuals after the coarse transform", font=dict(size=12)),
+                      title=dict(text=f"Tie-point residuals after the coarse transform{far}", font=dict(size=12)),
                       xaxis_title="residual |T·p_target − p_ref| (m)", yaxis_title="tie points",
-                      xaxis_range=[0, bins["end"]], legend=dict(x=0.7, y=0.95))
+                      xaxis_range=[0, end], legend=dict(x=0.7, y=0.95))
     return fig
 
 
@@ -62,6 +90,9 @@ def render_coarse(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewSt
             f"{root}/ties", segs, np.repeat(colors[:, None, :], 2, axis=1), thickness=1.5, thickness_units="screen"))
         handles.append(scene.add_point_cloud(f"{root}/inlier_ties", ref[inl], KEPT, point_size=0.05,
                                              point_shape="circle", precision="float32"))
-        plots.append((residual_figure(c, snap.params.coarse.inlier_m), 1.6))
+        plots.append((residual_figure(c, inlier_threshold(c, snap.params.coarse)), 1.6))
+    warnings = coarse_warnings(snap)
+    if warnings:
+        text += "\n\n" + "\n\n".join(f"**⚠** {w}" for w in warnings)
     table = metrics_table({pair_label(snap, i): it.metrics for i, it in enumerate(out.items)})
     return handles, PanelContent(f"3 · Coarse: {pair_label(snap, t)}", text=text, plots=tuple(plots), table=table)

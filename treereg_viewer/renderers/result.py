@@ -14,6 +14,7 @@ import numpy as np
 import plotly.graph_objects as go
 import viser
 
+from ..checks import TRUTH_DISP_M, TRUTH_ROT_DEG, coarse_warnings, truth_rows, truth_warnings
 from ..controller import Snapshot
 from ..palette import scan_color
 from ..view_panel import PanelContent
@@ -53,7 +54,9 @@ def branch_figure(evs: dict[str, Any], target: str) -> go.Figure | None:
         ))
     if not any_rows:
         return None
-    fig.update_layout(barmode="group", margin=dict(l=50, r=10, t=30, b=40), legend=dict(orientation="h", y=1.15),
+    # Legend under the axis title: above the plot it printed over the title.
+    fig.update_layout(barmode="group", margin=dict(l=50, r=10, t=30, b=70),
+                      legend=dict(orientation="h", x=0.5, xanchor="center", y=-0.3, yanchor="top"),
                       title=dict(text=f"{target}: mean centre distance per branch (eq. 8)", font=dict(size=12)),
                       xaxis_title="branch (bottom to top)", yaxis_title="d̄ (cm)", xaxis_type="category")
     return fig
@@ -92,12 +95,20 @@ def render_result(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewSt
             if not f.accepted and f.message:
                 notes.append(f"{pair_label(snap, k)}: {f.message}.")
     if snap.truth:
-        text += "Errors against truth come from the demo's `truth.json`."
+        text += "Errors against truth come from the case's `truth.json`."
     else:
         text += "No truth is known for these scans: the paper's branch measure d̄ is the yardstick."
     text += " Yellow segments in 3-D join the centre points of the evaluated branch layers (the dᵢ of eq. 8)."
+    truth = truth_rows(snap)
+    if truth:  # the analyst's first question, answered above the plot
+        text += "\n\n" + md_table(
+            ("target", "registration", "rotation error (°)", "mean displacement (mm)",
+             f"within {TRUTH_ROT_DEG:g}° and {TRUTH_DISP_M * 100:g} cm"),
+            [(pair, label, f"{rot:.3f}", f"{disp * 1000:.1f}", "yes" if good else "**no**")
+             for pair, label, rot, disp, good in truth_rows(snap, names_only=True)])
     if notes:
         text += "\n\n" + "\n\n".join(notes)
+    text += "".join(f"\n\n**⚠** {w}" for w in truth_warnings(snap) + coarse_warnings(snap))
     if not report.ok and report.message:
         text += f"\n\n**Evaluation:** {report.message}"
     plots = []

@@ -26,6 +26,11 @@ def scan_node(i: int) -> str:
     return f"/scans/s{i}"
 
 
+def station_label_height(i: int) -> float:
+    """Height (m, above its scanner) of scan `i`'s name: one line apart per scan."""
+    return 1.3 + 0.5 * i
+
+
 def scan_poses(snap: Snapshot, view: ViewState) -> list[np.ndarray]:
     """The pose of every scan for the current stage: its `T_ref_scan`, or identity.
 
@@ -94,7 +99,10 @@ def draw_scan_layer(scene: viser.SceneApi, snap: Snapshot, view: ViewState) -> l
         )
         if view.show_stations:
             handles.append(scene.add_frame(f"{node}/station", axes_length=1.0, axes_radius=0.04))
-            handles.append(scene.add_label(f"{node}/station/name", f"{i + 1}: {scan.name}", position=(0.0, 0.0, 1.3)))
+            # Before registration every scanner sits at the origin of its own frame, i.e. at the same
+            # point on screen: stack the names so they do not print over each other.
+            handles.append(scene.add_label(f"{node}/station/name", f"{i + 1}: {scan.name}",
+                                           position=(0.0, 0.0, station_label_height(i))))
     return handles
 
 

@@ -1,0 +1,69 @@
+"""Where the camera should stand to show a stage: a view choice, not registration geometry.
+
+Before registration (stages 0-2) every scan stands in its own scanner frame, so the trees are
+scattered around the common origin and the view frames them all; from stage 3 on every scan is
+drawn over the reference tree, and the view frames that tree without its ground. The camera looks
+from behind the reference scanner towards its tree, slightly from above, far enough that the
+whole extent fits the vertical field of view and the narrower horizontal one between the panels.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .controller import Snapshot
+from .renderers.common import display_subset
+
+#: viser's vertical field of view (75 deg) and the scene's width/height between the two docked
+#: panels at a common 1700 x 1000 window: the horizontal half-angle is the tighter one.
+FOV_Y_RAD = np.radians(75.0)
+SCENE_ASPECT = 0.75
+#: Spare room around the framed points (the half-angle is divided by this).
+MARGIN = 1.1
+#: The camera looks down on the tree by this much.
+ELEVATION_DEG = 15.0
+
+
+@dataclass(frozen=True)
+class CameraPose:
+    position: tuple[float, float, float]
+    look_at: tuple[float, float, float]
+
+
+def _points_to_frame(snap: Snapshot, stage: int) -> list[np.ndarray]:
+    prep = snap.output("prepare")
+    if stage >= 3:
+        if prep is not None and prep.items and getattr(prep.items[0], "scan", None) is not None:
+            return [prep.items[0].scan.points]
+        return [snap.scans[0].points]
+    return [s.points for s in snap.scans]
+
+
+def frame(snap: Snapshot, stage: int) -> CameraPose | None:
+    """A camera pose showing what stage `stage` draws (None when there are no scans)."""
+    if not snap.scans:
+        return None
+    parts = [p[display_subset(len(p), 5000, seed=7)] for p in _points_to_frame(snap, stage)]
+    pts = np.concatenate(parts)
+    lo, hi = np.percentile(pts, 0.5, axis=0), np.percentile(pts, 99.5, axis=0)  # far strays don't count
+    look = (lo + hi) / 2.0
+    # From the reference scanner (its origin) towards its tree, i.e. the reference scan's view,
+    # from a little above (elevation ELEVATION_DEG).
+    tree = snap.scans[0].points.mean(axis=0)
+    d = tree[:2] / (np.linalg.norm(tree[:2]) or 1.0)
+    e = np.radians(ELEVATION_DEG)
+    back = np.array([-d[0] * np.cos(e), -d[1] * np.cos(e), np.sin(e)])
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    # The farthest corner must fit the narrower (horizontal) half-angle, with some room to spare.
+    half = np.arctan(np.tan(FOV_Y_RAD / 2.0) * SCENE_ASPECT) / MARGIN
+    dist = float(np.linalg.norm(hi - lo)) / 2.0 or 1.0
+    for _ in range(60):  # grow until everything fits; a few steps of 10 %
+        pos = look + back * dist
+        rays = corners - pos
+        cos = rays @ (look - pos) / (np.linalg.norm(rays, axis=1) * dist)
+        if np.all(np.arccos(np.clip(cos, -1.0, 1.0)) < half):
+            break
+        dist *= 1.1
+    return CameraPose(tuple(float(v) for v in pos), tuple(float(v) for v in look))

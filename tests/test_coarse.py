@@ -127,3 +127,33 @@ def test_too_few_matches_fail_with_an_actionable_message(small_cases):
     assert not r.ok
     assert "tie points" in r.message and ("image pairs" in r.message or "theta" in r.message)
     assert np.allclose(r.T_ref_target, np.eye(4))
+
+
+def _demo_like_match():
+    case = benchmark_cases(3, seed=0, small=True)[1].build()
+    p = Params()
+    scans = [prepare_scan(s, p.prepare).scan for s in case.scans[:2]]
+    seqs = [build_sequence(s, p.projection, 3) for s in scans]
+    return match_sequences(seqs[0], seqs[1], scans[0], scans[1], p.matching)
+
+
+def test_implausible_svd_transforms_are_rejected_not_returned_as_success():
+    """Plain SVD always yields a transform; one most ties disagree with, or one that turns the
+    scanner over, must come back as a failure that says what to change."""
+    match = _demo_like_match()
+    svd = replace(PRESETS["paper"].coarse, max_tilt_deg=30.0)
+    # 15 scrambled ties (the paper's count): whatever SVD returns, few ties agree with it.
+    rng = np.random.default_rng(0)
+    keep = rng.choice(match.n_ties, 15, replace=False)
+    scrambled = replace(match, ref_xyz=match.ref_xyz[keep], tgt_xyz=match.tgt_xyz[rng.permutation(keep)])
+    res = estimate_coarse(scrambled, replace(svd, max_tilt_deg=None))
+    assert not res.ok
+    assert "agree" in res.message and "ransac" in res.message
+    # Ties that agree perfectly on an upside-down pose: rejected by the tilt check.
+    flip = np.diag([1.0, -1.0, -1.0, 1.0])
+    upside_down = replace(match, ref_xyz=apply_transform(flip, match.tgt_xyz))
+    res = estimate_coarse(upside_down, svd)
+    assert not res.ok and "tilts the scan by 180" in res.message
+    assert res.n_inliers == res.n_ties  # the check is about the pose, not the fit
+    # With the check switched off the same transform is returned as the paper would.
+    assert estimate_coarse(upside_down, replace(svd, max_tilt_deg=None)).ok

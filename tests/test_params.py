@@ -154,3 +154,10 @@ def test_sections_are_frozen():
     with pytest.raises(Exception):
         p.coarse.inlier_m = 1.0  # type: ignore[misc]
     assert [f.name for f in fields(P.Params)] == list(P.SECTIONS)
+
+
+@pytest.mark.parametrize("section, name", [("slicing", "quantiles"), ("evaluation", "quantiles")])
+def test_quantiles_outside_zero_one_are_rejected(section, name):
+    with pytest.raises(ConfigError, match=rf"{section}\.{name}: 1\.5 is outside \[0\.0, 1\.0\]"):
+        P.Params().with_value(section, name, (0.25, 0.5, 1.5))
+    assert getattr(P.Params().with_value(section, name, "0.1, 0.9"), section).__getattribute__(name) == (0.1, 0.9)

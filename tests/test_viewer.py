@@ -381,23 +381,19 @@ def test_paper_preset_runs_and_its_failure_is_explained(small_app, case):
     assert sent and (("⚠" in app.files.export_md.content) == bool(failed))
 
 
-def test_an_upside_down_coarse_transform_is_flagged(env):
-    """SVD over all tie points always returns a transform; one that turns a scan over is wrong."""
-    from dataclasses import replace
+def test_started_with_the_paper_preset_the_files_tab_says_so(case):
+    """`treereg view --preset paper`: the preset selector must not claim "robust"."""
+    from treereg_core.params import PRESETS
 
-    from treereg_viewer.checks import coarse_warnings, stage_warnings
-
-    server, app = env
-    snap = app.controller.snapshot
-    assert coarse_warnings(snap) == []
-    coarse = snap.output("coarse")
-    flip = np.diag([1.0, -1.0, -1.0, 1.0])  # 180 deg about x
-    items = (replace(coarse.items[0], T_ref_target=coarse.items[0].T_ref_target @ flip), *coarse.items[1:])
-    bad = replace(snap, outputs={**snap.outputs, "coarse": replace(coarse, items=items)})
-    warnings = coarse_warnings(bad)
-    assert len(warnings) == 1 and "tilts the scan by 180°" in warnings[0]
-    assert warnings[0].startswith(f"{snap.scans[1].name} → {snap.scans[0].name}")
-    assert "coarse" in stage_warnings(bad)
+    server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    app = TreeregApp(server, Controller(case.scans, PRESETS["paper"], truth=case.truth()), autorun=False)
+    try:
+        _idle(app)
+        assert app.files.preset.value == "paper" and "Why it often fails" in app.files.preset_md.content
+        assert "often give a wrong coarse transform" in app.stages.message_md.content
+    finally:
+        app.close()
+        server.stop()
 
 
 def test_frame_view_shows_the_stage_content(env, case):

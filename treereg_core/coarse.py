@@ -311,7 +311,28 @@ def estimate_coarse(match: MatchResult, p: CoarseParams) -> CoarseResult:
         Metric("tilt", "deg", tilt),
         Metric("rotation angle", "deg", rotation_angle_deg(R)),
     )
-    return CoarseResult(True, "", metrics, T, inl, res, n, n_in, match, time.perf_counter() - t0)
+    problem = _implausible(n_in, n, tilt, p)
+    # A failed check keeps its transform, so the app can show how wrong it is.
+    return CoarseResult(not problem, problem, metrics, T, inl, res, n, n_in, match, time.perf_counter() - t0)
+
+
+def _implausible(n_inliers: int, n_ties: int, tilt_deg: float, p: CoarseParams) -> str:
+    """Why a computed transform cannot be trusted ('' when it can).
+
+    Plain SVD (the paper) always returns a transform, even when wrong matches dominate and the scan
+    comes out upside down: a result is only kept when enough ties agree with it, and when it leaves
+    the scanner nearly level (TLS instruments level themselves).
+    """
+    fix = ("plain SVD has no defence against wrong matches: use estimator = ransac"
+           if p.estimator == "svd" else
+           "try more image pairs or matches per pair, or removing the ground")
+    if n_inliers < p.min_ties:
+        return (f"only {n_inliers} of {n_ties} tie points agree with the transform within {p.inlier_m:g} m "
+                f"(at least {p.min_ties} needed), so it is unreliable; {fix}")
+    if p.max_tilt_deg is not None and tilt_deg > p.max_tilt_deg:
+        return (f"the transform tilts the scan by {tilt_deg:.1f} deg, but scanners stand nearly level "
+                f"(max_tilt_deg = {p.max_tilt_deg:g}), so its tie points are wrong; {fix}")
+    return ""
 
 
 def register_coarse(ref: Scan, tgt: Scan, params: Params, n_scans: int,

@@ -87,6 +87,7 @@ class CoarseParams:
     iterations: int = _f(2000, "", "RANSAC iterations", lo=10, hi=100000)
     min_ties: int = _f(4, "pairs", "fewest tie pairs (or inliers) accepted for a transform (paper: > 4)", lo=3, hi=1000)
     seed: int = _f(0, "", "random seed of RANSAC")
+    max_tilt_deg: float | None = _f(30.0, "deg", "reject a transform that tilts the scan more than this (scanners stand nearly level); None = no check", lo=0.0, hi=180.0)
 
 
 @dataclass(frozen=True)
@@ -94,7 +95,7 @@ class SlicingParams:
     """Stage 4: horizontal slices of reference and target after coarse."""
 
     quantiles: tuple[float, ...] = _f(tuple(round(0.05 * k, 2) for k in range(1, 20)), "",
-                                      "slice heights as quantiles of tree height (paper: quartiles 0.25 0.5 0.75)")
+                                      "slice heights as quantiles of tree height (paper: quartiles 0.25 0.5 0.75)", lo=0.0, hi=1.0)
     thickness_m: float = _f(0.1, "m", "slice thickness (paper: 10 cm)", lo=0.01, hi=2.0)
 
 
@@ -180,7 +181,7 @@ class EvaluationParams:
     layers: int = _f(3, "", "layers per branch (bottom, middle, top)", lo=1, hi=20)
     layer_thickness_m: float = _f(0.1, "m", "thickness of an evaluation layer", lo=0.01, hi=2.0)
     layer_spacing_m: float = _f(0.15, "m", "height between a branch's layers", lo=0.01, hi=5.0)
-    quantiles: tuple[float, ...] = _f((0.2, 0.35, 0.5, 0.65, 0.8), "", "heights (quantiles of tree height) where branches are searched")
+    quantiles: tuple[float, ...] = _f((0.2, 0.35, 0.5, 0.65, 0.8), "", "heights (quantiles of tree height) where branches are searched", lo=0.0, hi=1.0)
     margin_m: float = _f(0.03, "m", "a layer takes the points within the branch radius plus this of its axis", lo=0.001, hi=1.0)
     min_arc_deg: float = _f(60.0, "deg", "evaluation fits covering less arc are not used", lo=0.0, hi=360.0)
     max_rms_m: float = _f(0.01, "m", "evaluation fits with a larger RMS residual are not used", lo=0.0001, hi=1.0)
@@ -330,9 +331,7 @@ def _coerce(key: str, fld: dataclasses.Field, value: Any) -> Any:
                 out = f
             if out != out:  # NaN
                 raise ValueError(value)
-            lo, hi = meta.get("min"), meta.get("max")
-            if (lo is not None and out < lo) or (hi is not None and out > hi):
-                raise ConfigError(f"{key}: {out} is outside [{lo}, {hi}]")
+            _check_range(key, (out,), meta)
         elif hint is str:
             out = str(value)
         elif typing.get_origin(hint) is tuple:
@@ -348,6 +347,9 @@ def _coerce(key: str, fld: dataclasses.Field, value: Any) -> Any:
                 if len(seq) != len(elem):
                     raise ConfigError(f"{key}: needs {len(elem)} values, got {len(seq)}")
                 out = tuple(t(v) for t, v in zip(elem, seq))
+            if any(v != v for v in out):  # NaN
+                raise ValueError(value)
+            _check_range(key, out, meta)
         else:
             out = value
     except ConfigError:  # a ValueError too: keep its precise message (range, length)
@@ -358,6 +360,14 @@ def _coerce(key: str, fld: dataclasses.Field, value: Any) -> Any:
     if choices is not None and out not in choices:
         raise ConfigError(f"{key}: {out!r} is not one of {list(choices)}")
     return out
+
+
+def _check_range(key: str, values: tuple[Any, ...], meta: Any) -> None:
+    """Every number of a value (a scalar, or each element of a tuple) within the field's [min, max]."""
+    lo, hi = meta.get("min"), meta.get("max")
+    for v in values:
+        if (lo is not None and v < lo) or (hi is not None and v > hi):
+            raise ConfigError(f"{key}: {v} is outside [{lo}, {hi}]")
 
 
 def _owner_of(fld: dataclasses.Field) -> type:

@@ -289,7 +289,7 @@ class Controller:
             else:
                 truth = {k: v for k, v in pipe.truth.items() if k != name} if pipe.truth else None
                 pipe.set_scans([s for s in pipe.scans if s.name != name], truth)
-                message, error = f"Removed {name}; {len(pipe.scans)} scans remain.", False
+                message, error = f"Removed {name}; {len(pipe.scans)} scans remain: press Run to register them.", False
         for filename, data in req.uploads:
             try:
                 scan, notes = self._parse_upload(filename, data)

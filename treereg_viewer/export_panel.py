@@ -38,7 +38,9 @@ class ExportPanel:
         self.download_transforms.on_click(lambda e: self._download(e.client, only="transforms.json"))
         self.download_all.on_click(lambda e: self._download(e.client, only=None))
         with gui.add_folder("Parameters"):
-            self.preset = gui.add_dropdown("Preset", tuple(P.PRESETS), initial_value="robust",
+            # Started with `--preset paper` (or a config equal to a preset): show that preset.
+            current = next((n for n, pr in P.PRESETS.items() if pr == app.controller.params), "robust")
+            self.preset = gui.add_dropdown("Preset", tuple(P.PRESETS), initial_value=current,
                                            hint="robust: our defaults; paper: the paper's settings taken literally.")
             self.preset_md = gui.add_markdown(preset_note(self.preset.value))
             self.apply_preset = gui.add_button("Apply preset")
@@ -52,6 +54,8 @@ class ExportPanel:
             lambda e: app.send_file(e.client, "params.json", (json.dumps(P.to_dict(app.controller.params), indent=2) + "\n").encode())
         )
         self.load_params.on_upload(lambda _: self._load_params(self.load_params.value))
+        if current in ABOUT_SHORT and app.controller.params == P.PRESETS[current]:
+            app.controller.note(ABOUT_SHORT[current])  # e.g. why the paper preset may fail
 
     def _download(self, client: Any, only: str | None) -> None:
         snap = self.app.controller.snapshot

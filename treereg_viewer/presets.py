@@ -12,25 +12,37 @@ from treereg_core import params as P
 
 from .renderers.common import md_table
 
-#: One paragraph per preset. The paper preset's weaknesses are those seen on the bundled demo.
-ABOUT: dict[str, str] = {
-    "robust": (
-        "treereg's defaults: the ground is removed, azimuth is measured from the tree's direction (no wrap "
-        "at ±180°), ORB sees a grey distance ramp, 15 image pairs with up to 60 matches each, RANSAC (yaw and "
-        "translation, then a full refit) for the coarse transform, 19 slices, and a fine update that is "
-        "kept only when it improves the alignment."
-    ),
-    "paper": (
-        "The paper's settings taken literally (2.1-2.2, 4.1): ground kept, 3 image pairs with the 5 best "
-        "ORB matches each, checked by β, one SVD over all 15 or so tie points (6 DOF), slices at the "
-        "quartiles, one fine SVD without an acceptance test.\n\n"
+def _about_robust(p: P.Params) -> str:
+    return (
+        f"treereg's defaults: the ground is {'removed' if p.prepare.remove_ground else 'kept'}, azimuth is "
+        f"measured from the tree's direction (no wrap at ±180°), ORB sees "
+        f"{'a grey distance ramp around the occupied pixels' if p.matching.image_mode == 'ramp' else 'the binary image'}, "
+        f"{p.matching.n_pairs} image pairs with up to {p.matching.matches_per_pair} matches each, "
+        f"{p.coarse.estimator.upper()} ({p.coarse.dof} DOF{', then a full refit' if p.coarse.refit_6dof else ''}) "
+        f"for the coarse transform, {len(p.slicing.quantiles)} slices, and a fine update"
+        f"{' that is kept only when it improves the alignment' if p.fine.accept_test else ''}."
+    )
+
+
+def _about_paper(p: P.Params) -> str:
+    # The weaknesses are those seen on the bundled demo (a scan turned upside down, one rotated 146 deg).
+    return (
+        f"The paper's settings taken literally (2.1-2.2, 4.1): ground {'removed' if p.prepare.remove_ground else 'kept'}, "
+        f"{p.matching.n_pairs} image pairs with the {p.matching.matches_per_pair} best ORB matches each"
+        f"{', checked by β' if p.matching.beta_check else ''}, one {p.coarse.estimator.upper()} over all "
+        f"{p.matching.n_pairs * p.matching.matches_per_pair} or fewer tie points ({p.coarse.dof} DOF), "
+        f"{len(p.slicing.quantiles)} slices, {p.fine.max_iterations} fine iteration(s)"
+        f"{'' if p.fine.accept_test else ' without an acceptance test'}.\n\n"
         "**Why it often fails:** with so few tie points a few wrong matches, unavoidable on binary images "
         "(paper 4.1), pull the SVD far off; nothing rejects them, so a scan can come out rotated or even "
         "upside down, and the fine stage, which needs a close start, cannot repair it. Ground left in the "
         "scans also fills the projection images. The app marks such transforms with ⚠ (stages 3 and 7). "
         "To recover, set `coarse.estimator` to `ransac`, or apply the robust preset."
-    ),
-}
+    )
+
+
+#: One paragraph per preset, from the preset's own values.
+ABOUT = {"robust": _about_robust, "paper": _about_paper}
 
 
 #: One sentence for the message line when a preset is applied.
@@ -55,7 +67,7 @@ def differences(name: str, base: str = "robust") -> list[tuple[str, str, str]]:
 
 def preset_note(name: str) -> str:
     """Markdown: what the preset is and, for other than the default, what it changes."""
-    text = ABOUT.get(name, "")
+    text = ABOUT[name](P.PRESETS[name]) if name in ABOUT else ""
     diff = differences(name) if name != "robust" else []
     if diff:
         text += f"\n\nIt changes {len(diff)} parameters:\n\n" + md_table(("parameter", "robust", name), diff)

@@ -15,7 +15,6 @@ import viser
 
 from treereg_core.rigid import apply_transform
 
-from ..checks import coarse_warnings
 from ..controller import Snapshot
 from ..palette import KEPT, REJECTED, hex_color
 from ..view_panel import PanelContent
@@ -91,8 +90,5 @@ def render_coarse(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewSt
         handles.append(scene.add_point_cloud(f"{root}/inlier_ties", ref[inl], KEPT, point_size=0.05,
                                              point_shape="circle", precision="float32"))
         plots.append((residual_figure(c, inlier_threshold(c, snap.params.coarse)), 1.6))
-    warnings = coarse_warnings(snap)
-    if warnings:
-        text += "\n\n" + "\n\n".join(f"**⚠** {w}" for w in warnings)
     table = metrics_table({pair_label(snap, i): it.metrics for i, it in enumerate(out.items)})
     return handles, PanelContent(f"3 · Coarse: {pair_label(snap, t)}", text=text, plots=tuple(plots), table=table)

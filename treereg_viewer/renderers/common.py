@@ -72,7 +72,7 @@ def not_ready_text(snap: Snapshot, stage: str) -> str:
     for s, out in snap.outputs.items():
         if not out.ok:
             return f"**{s} failed:** {out.message}\n\nLater stages are stale until it succeeds."
-    return f"*{stage} has not run for the current parameters: press **Run**.*"
+    return f"*{stage} has not run for the current scans and parameters: press **Run**.*"
 
 
 def item_message(item: Any) -> str:

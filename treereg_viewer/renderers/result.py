@@ -14,7 +14,7 @@ import numpy as np
 import plotly.graph_objects as go
 import viser
 
-from ..checks import TRUTH_DISP_M, TRUTH_ROT_DEG, coarse_warnings, truth_rows, truth_warnings
+from ..checks import TRUTH_DISP_M, TRUTH_ROT_DEG, truth_rows, truth_warnings
 from ..controller import Snapshot
 from ..palette import scan_color
 from ..view_panel import PanelContent
@@ -108,7 +108,7 @@ def render_result(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewSt
              for pair, label, rot, disp, good in truth_rows(snap, names_only=True)])
     if notes:
         text += "\n\n" + "\n\n".join(notes)
-    text += "".join(f"\n\n**⚠** {w}" for w in truth_warnings(snap) + coarse_warnings(snap))
+    text += "".join(f"\n\n**⚠** {w}" for w in truth_warnings(snap))
     if not report.ok and report.message:
         text += f"\n\n**Evaluation:** {report.message}"
     plots = []

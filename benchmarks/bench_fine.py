@@ -38,7 +38,8 @@ from treereg_core.evaluation import evaluate_pair  # noqa: E402
 from treereg_core.fine import register_fine  # noqa: E402
 from treereg_core.ground import prepare_scan  # noqa: E402
 from treereg_core.icp import icp  # noqa: E402
-from treereg_core.params import PRESETS, Params, write_text_atomic  # noqa: E402
+from treereg_core.atomic import write_text_atomic  # noqa: E402
+from treereg_core.params import PRESETS, Params  # noqa: E402
 from treereg_core.rigid import apply_transform, make_transform, mean_displacement, rotation_error_deg, rotation_z  # noqa: E402
 from treereg_core.scan import Scan  # noqa: E402
 from treereg_core.simulate import CaseSpec, SimulatedCase, benchmark_cases, simulate_case  # noqa: E402

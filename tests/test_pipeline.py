@@ -52,3 +52,26 @@ def test_unchanged_params_change_nothing(case):
     assert pipe.set_params(Params()) == []
     assert pipe.status("matching") == "done"
     assert np.isfinite(pipe.output("matching").seconds)
+
+
+def test_one_failed_pair_does_not_stop_the_others(case):
+    """With three scans, a pair whose coarse stage fails is skipped by fine and evaluation; the other
+    pair is still registered, and no transform is claimed for the failed one."""
+    from dataclasses import replace
+
+    from treereg_core.pipeline import StageOutput
+
+    pipe = Pipeline(list(case.scans), Params(), case.truth())
+    assert pipe.run("coarse").ok
+    coarse = pipe.output("coarse")
+    failed = replace(coarse.items[1], ok=False, message="only 2 of 900 tie points agree")
+    pipe._out["coarse"] = StageOutput("coarse", False, "scan3.ply -> scan1.ply: only 2 of 900 tie points agree",
+                                      (coarse.items[0], failed), coarse.seconds)
+    out = pipe.run("evaluation")
+    assert out.stage == "evaluation"
+    fine = pipe.output("fine")
+    assert fine.items[0].ok and not fine.items[1].ok and "coarse stage failed" in fine.items[1].message
+    assert pipe.output("evaluation").items[0].ok and not pipe.output("evaluation").items[1].ok
+    T = pipe.transforms()
+    assert set(T) == {"scan1.ply", "scan2.ply"}
+    assert mean_displacement(T["scan2.ply"], case.T_ref_scan[1], case.scans[1].points) < 0.03

@@ -365,11 +365,22 @@ def test_paper_preset_runs_and_its_failure_is_explained(small_app, case):
     _idle(app)
     snap = ctl.snapshot
     assert snap.status("coarse") == "failed"
-    assert all(snap.status(s) == "stale" for s in STAGES[STAGES.index("coarse") + 1:])
     message = app.stages.message_md.content
     assert "scan3.ply" in message and "estimator = ransac" in message
     assert "✗ 3 Coarse" in app.stages.status_md.content
-    assert set(snap.transforms) == {case.scans[0].name}
+    assert "scan3.ply" not in snap.transforms  # no transform claimed for the failed pair
+    # scan 2's pair went on to the end; if the paper's settings put it far from the truth, the app
+    # names it (judged against the demo's truth), and only then.
+    truth = case.truth()
+    s2 = case.scans[1]
+    assert snap.status("evaluation") == "done" or snap.output("evaluation") is not None
+    far = (rotation_error_deg(snap.transforms[s2.name], truth[s2.name]) > 1.0
+           or mean_displacement(snap.transforms[s2.name], truth[s2.name], s2.points) > 0.05)
+    assert (f"{s2.name} → {case.scans[0].name}: the final transform is" in app.stages.message_md.content) == far
+    for k in range(8):  # every stage draws with one pair failed, no drawing error
+        app.select_stage(k)
+        _idle(app)
+        assert "Drawing failed" not in app.stages.message_md.content
 
 
 def test_a_final_transform_far_from_truth_is_flagged(env, case):

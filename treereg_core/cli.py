@@ -200,9 +200,11 @@ def _run_register(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     reg = register(scans, params, until=args.until, progress=bar)
     seconds = time.perf_counter() - t0
-    if not reg.ok:
+    missing = [s.name for s in scans[1:] if s.name not in reg.transforms]
+    if len(missing) == len(scans) - 1:
         print(f"treereg: registration failed: {reg.message}", file=sys.stderr)
         return 1
+    extra_missing = {"unregistered": missing} if missing else {}
     tf = TransformFile(
         reference=scans[0].name,
         transforms=reg.transforms,
@@ -213,6 +215,7 @@ def _run_register(args: argparse.Namespace) -> int:
             "angular_step_deg": {s.name: list(s.angular_step_deg) for s in scans},
             "sources": {s.name: str(Path(f).resolve()) for s, f in zip(scans, args.scans)},
             "metrics": reg.pipeline.pair_metrics(),
+            **extra_missing,
         },
     )
     out = Path(args.out)
@@ -228,6 +231,10 @@ def _run_register(args: argparse.Namespace) -> int:
             print(f"  {r['stage']:<10} {r['metric']:<40} {v:.4g} {r['unit']}" if isinstance(v, float)
                   else f"  {r['stage']:<10} {r['metric']:<40} {v} {r['unit']}")
     print(f"\nwrote {', '.join(str(w) for w in written)} in {seconds:.1f} s")
+    if missing:
+        # The other pairs are written; say plainly which scans have no transform and why.
+        print(f"treereg: not registered: {', '.join(missing)} ({reg.message})", file=sys.stderr)
+        return 1
     return 0
 
 

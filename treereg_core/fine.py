@@ -421,6 +421,11 @@ def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, params: Params,
                       ties_r, ties_t)
 
 
+def skipped_fine(T0: np.ndarray, message: str) -> FineResult:
+    """The FineResult of a pair the fine stage did not run on (e.g. its coarse stage failed)."""
+    return _failed(T0, message)
+
+
 def _failed(T0: np.ndarray, message: str) -> FineResult:
     e = np.empty((0, 3))
     return FineResult(False, message, (Metric("fine accepted", "", "no"),), T0, T0, False, 0, (), np.nan, np.nan,

@@ -109,9 +109,11 @@ class Pipeline:
 
     # ---- running -----------------------------------------------------------------------
     def run(self, until: str = STAGES[-1], progress: Progress | None = None) -> StageOutput | None:
-        """Run every stage up to `until` that has no cached output; stop at the first failure.
+        """Run every stage up to `until` that has no cached output.
 
-        Returns the output of the last stage run (or cached), which may be a failure.
+        A pair (or scan) that fails at one stage is skipped by the later stages, which go on with the
+        others; the run stops when a stage has no successful item left. Returns the output of the
+        last stage run (or cached), which may be a failure.
         """
         progress = progress or no_progress
         if len(self.scans) < 2:
@@ -133,7 +135,10 @@ class Pipeline:
                 out = StageOutput(stage, not bad, msg, tuple(items), time.perf_counter() - t0)
                 self._out[stage] = out
             last = out
-            if not out.ok:
+            # A scan that cannot be prepared or projected is an input to fix: stop. A pair that
+            # fails later is skipped by the later stages while the other pairs go on.
+            per_scan = stage in ("prepare", "projection")
+            if (per_scan and not out.ok) or not any(it.ok for it in out.items):
                 break
         progress(1.0, "done")
         return last
@@ -187,11 +192,15 @@ class Pipeline:
     def _run_fine(self, progress: Progress) -> list[Any]:
         from .fine import register_fine
 
+        from .fine import skipped_fine
+
         scans, coarse = self._prepared(), self._items("coarse")
         res = []
         for i in range(1, len(scans)):
             progress((i - 1) / (len(scans) - 1), scans[i].name)
-            res.append(register_fine(scans[0], scans[i], coarse[i - 1].T_ref_target, self.params))
+            c = coarse[i - 1]
+            res.append(register_fine(scans[0], scans[i], c.T_ref_target, self.params) if c.ok
+                       else skipped_fine(c.T_ref_target, "not run: the coarse stage failed for this pair"))
         return res
 
     def _run_evaluation(self, progress: Progress) -> list[Any]:
@@ -204,6 +213,10 @@ class Pipeline:
         for i in range(1, len(scans)):
             progress((i - 1) / (len(scans) - 1), scans[i].name)
             ref, tgt = scans[0], scans[i]
+            if not fine[i - 1].ok:
+                res.append(PairReport(tgt.name, None, None, ok=False,
+                                      message="not evaluated: the pair has no fine result"))
+                continue
             T_true = (self.truth or {}).get(tgt.name)
             ev_c = evaluate_pair(ref, tgt, coarse[i - 1].T_ref_target, p.evaluation, T_true)
             ev_f = evaluate_pair(ref, tgt, fine[i - 1].T_ref_tgt, p.evaluation, T_true)
@@ -216,16 +229,16 @@ class Pipeline:
 
     # ---- results -------------------------------------------------------------------------
     def transforms(self) -> dict[str, np.ndarray]:
-        """The best available T_ref_scan per scan name: fine if run, else coarse; reference = identity.
-
-        Scans with neither are left out.
+        """The best available T_ref_scan per scan name: fine if it succeeded for that pair, else
+        coarse; the reference maps to the identity. Scans with neither are left out.
         """
         out = {self.scans[0].name: np.eye(4)}
-        stage = "fine" if self.status("fine") == "done" else ("coarse" if self.status("coarse") == "done" else None)
-        if stage is None:
-            return out
-        for s, r in zip(self.scans[1:], self._items(stage)):
-            out[s.name] = r.T_ref_tgt if stage == "fine" else r.T_ref_target
+        fine, coarse = self._out.get("fine"), self._out.get("coarse")
+        for k, s in enumerate(self.scans[1:]):
+            if fine is not None and fine.items[k].ok:
+                out[s.name] = fine.items[k].T_ref_tgt
+            elif coarse is not None and coarse.items[k].ok:
+                out[s.name] = coarse.items[k].T_ref_target
         return out
 
     def pair_metrics(self) -> dict[str, list[dict[str, Any]]]:

@@ -95,6 +95,29 @@ def surface_fitness(ref: Surface, tgt: Surface, T: np.ndarray, gate_m: float, to
     return float(np.count_nonzero(np.abs(r) < tolerance_m) / max(len(tgt.points), 1))
 
 
+def surface_residual(ref: Surface, tgt: Surface, T: np.ndarray, cap_m: float) -> float:
+    """Alignment measure that ranks millimetres: the mean capped point-to-plane distance of the
+    target's surface points to the reference's surface under `T` (metres, lower is better).
+
+    A point pairs with its nearest reference point within `cap_m` whose scanner-facing normal
+    agrees; its cost is its point-to-plane distance, capped at `cap_m`, and an unpaired point costs
+    `cap_m`. Every point counts, so a pose cannot look better by pairing fewer points (as a mean
+    over the paired points would); points the two stations never both saw cost the same at every
+    nearby pose. With ten thousand points its mean resolves differences well below a millimetre.
+    """
+    idx, _, r = surface_pairs(ref, tgt, T, cap_m)
+    n = max(len(tgt.points), 1)
+    return float((np.minimum(np.abs(r), cap_m).sum() + cap_m * (n - len(idx))) / n)
+
+
+def symmetric_residual(ref: Surface, tgt: Surface, ref_sample: Surface, tgt_all: Surface, T: np.ndarray,
+                       cap_m: float) -> float:
+    """`surface_residual` both ways, averaged: the target's sample against the reference, and the
+    reference's sample against the whole target (mapped back by the inverse of `T`)."""
+    Ti = np.linalg.inv(T)
+    return 0.5 * (surface_residual(ref, tgt, T, cap_m) + surface_residual(tgt_all, ref_sample, Ti, cap_m))
+
+
 def refine_along(ref: Surface, tgt: Surface, T: np.ndarray, centre: np.ndarray, basis: np.ndarray,
                  gate_m: float, loss_scale_m: float, iterations: int) -> np.ndarray:
     """Point-to-plane refinement of `T` along the pose directions in `basis` only.

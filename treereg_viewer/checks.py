@@ -47,8 +47,8 @@ def truth_warnings(snap: Snapshot) -> list[str]:
 
 
 def stage_warnings(snap: Snapshot) -> dict[str, list[str]]:
-    """Warnings by pipeline stage ('coarse', 'evaluation'), only for stages that are done."""
+    """Warnings by pipeline stage ("evaluation"), for the pairs that have results."""
     found = {}
-    if snap.status("evaluation") == "done" and (w := truth_warnings(snap)):
+    if snap.output("evaluation") is not None and (w := truth_warnings(snap)):
         found["evaluation"] = w
     return found

@@ -349,8 +349,12 @@ class Controller:
             self._publish(message=f"{stage} failed: {type(e).__name__}: {e}", error=True)
             return
         seconds = time.perf_counter() - t0
-        if last is not None and not last.ok:
-            self._publish(message=f"{last.stage} failed: {last.message}", error=True)
+        # Report the first stage that failed (the cause); pairs that did not fail went on past it.
+        failed = next((s for s in todo if (o := pipe.output(s)) is not None and not o.ok), None)
+        if failed is not None:
+            went_on = last is not None and last.stage != failed and any(it.ok for it in last.items)
+            more = f" The other pairs went on to {last.stage}." if went_on else ""
+            self._publish(message=f"{failed} failed: {pipe.output(failed).message}.{more}", error=True)
         elif todo:
             self._publish(message=f"Ran {', '.join(todo)} in {seconds:.1f} s.")
         else:

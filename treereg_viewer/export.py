@@ -41,11 +41,15 @@ def transform_file(snap: Snapshot) -> tuple[TransformFile, str]:
     """The TransformFile of the snapshot's best transforms (fine if it ran, else coarse)."""
     if len(snap.scans) < 2:
         raise ExportError("Nothing to export: registration needs at least two scans.")
-    stage = "fine" if snap.status("fine") == "done" else "coarse" if snap.status("coarse") == "done" else None
-    if stage is None:
-        raise ExportError("Nothing to export yet: run the pipeline up to the coarse stage at least.")
+    stage = "fine" if snap.output("fine") is not None else "coarse" if snap.output("coarse") is not None else None
+    if stage is None or len(snap.transforms) < 2:
+        raise ExportError("Nothing to export yet: no scan has been registered (run the pipeline up to the "
+                          "coarse stage at least; a failed pair has no transform).")
     transforms = {name: np.asarray(T, dtype=np.float64) for name, T in snap.transforms.items()}
     extra = {"stage": stage, "metrics": {k: v for k, v in snap.pair_metrics.items()}}
+    missing = [s.name for s in snap.scans[1:] if s.name not in snap.transforms]
+    if missing:
+        extra["unregistered"] = missing
     tf = TransformFile(reference=snap.scans[0].name, transforms=transforms, params=P.to_dict(snap.params), extra=extra)
     return tf, stage
 

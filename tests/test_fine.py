@@ -15,6 +15,7 @@ from treereg_core.ground import prepare_scan
 from treereg_core.params import PRESETS, Params
 from treereg_core.rigid import apply_transform, make_transform, mean_displacement, rotation_error_deg, rotation_z
 from treereg_core.simulate import benchmark_cases
+from treereg_core.surface import surface_of, trimmed_residuals
 
 
 def _perturbed(T_true, points, rng):
@@ -68,6 +69,44 @@ def test_fine_keeps_the_truth_when_started_there(cases):
     scans, T_true = cases[2]
     res = register_fine(scans[0], scans[1], T_true[1], Params())
     assert mean_displacement(res.T_ref_tgt, T_true[1], scans[1].points) < 0.003
+
+
+def _nudged(T_true, points, mm, deg):
+    """The truth moved by `mm` millimetres sideways and turned `deg` about the target's centre."""
+    c = apply_transform(T_true, points).mean(axis=0)
+    R = rotation_z(deg)
+    return make_transform(R, c - R @ c + np.array([mm / 1000.0, 0.0, 0.0])) @ T_true
+
+
+def test_trimmed_residual_ranks_millimetres(cases):
+    # The selection of the final pose rests on this measure telling a pose 2 mm / 0.05 deg off
+    # from the truth, and 1 mm off from 3 mm off.
+    scans, T_true = cases[2]
+    fp = Params().fine
+    ref = surface_of(scans[0].points, fp.measure_voxel_m)
+    tgt = surface_of(scans[1].points, fp.measure_voxel_m, 20_000)
+    poses = [T_true[1], _nudged(T_true[1], scans[1].points, 2.0, 0.05),
+             _nudged(T_true[1], scans[1].points, 1.0, 0.0), _nudged(T_true[1], scans[1].points, 3.0, 0.0)]
+    r = trimmed_residuals(ref, tgt, poses, fp.measure_gate_m, fp.select_trim)
+    assert r[0] < r[1] and r[2] < r[3], r
+
+
+def test_final_pose_is_never_further_from_the_surfaces_than_the_start(cases):
+    # Started at the truth, the sections alone end a millimetre or two away (stems are not perfect
+    # cylinders, the arcs are partial). The pose returned is the candidate (start, sections,
+    # either polished by the surfaces) with the lowest trimmed surface residual: never above the
+    # start's, and when that is the start, it is returned unchanged with a message.
+    fp = Params().fine
+    for (scans, T_true), k in ((cases[0], 1), (cases[1], 2)):
+        res = register_fine(scans[0], scans[k], T_true[k], Params())
+        ref = surface_of(scans[0].points, fp.measure_voxel_m)
+        tgt = surface_of(scans[k].points, fp.measure_voxel_m, 20_000)
+        r_start, r_final = trimmed_residuals(ref, tgt, [T_true[k], res.T_ref_tgt], fp.measure_gate_m, fp.select_trim)
+        assert r_final <= r_start + 1e-6, (r_start, r_final)
+        assert mean_displacement(res.T_ref_tgt, T_true[k], scans[k].points) < 0.004
+        source = {m.description: m.value for m in res.metrics}["final pose from"]
+        if source == "coarse":
+            assert np.array_equal(res.T_ref_tgt, T_true[k]) and "kept the coarse transform" in res.message
 
 
 def test_fine_keeps_coarse_with_a_message_when_it_cannot_help(cases):

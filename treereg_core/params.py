@@ -161,6 +161,10 @@ class FineParams:
     measure_gate_m: float = _f(0.02, "m", "acceptance measure: a target point pairs with a reference point within this distance", lo=0.001, hi=1.0)
     measure_tolerance_m: float = _f(0.005, "m", "acceptance measure: a paired point lies on the surface when its point-to-plane distance is below this", lo=0.0001, hi=1.0)
     accept_margin: float = _f(0.01, "", "acceptance test: reject fine when the surface agreement falls by more than this (fraction of points)", lo=0.0, hi=1.0)
+    select: bool = _f(True, "", "joint: end at the pose with the lowest trimmed point-to-plane residual among coarse, the sections' result and that result polished by the surfaces in all six directions")
+    select_coarse_polish: bool = _f(True, "", "selection: also consider the coarse pose polished by the surfaces in all six directions (a safety net when the sections go astray)")
+    polish_tolerance_m: float = _f(1e-4, "m", "selection: a polish stops once a step moves the paired points less than this", lo=0.0, hi=0.01)
+    select_trim: float = _f(0.7, "", "selection: mean over this fraction of the closest surface pairs (of the fewest any candidate pose has)", lo=0.05, hi=1.0)
 
 
 @dataclass(frozen=True)

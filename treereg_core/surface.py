@@ -95,34 +95,34 @@ def surface_fitness(ref: Surface, tgt: Surface, T: np.ndarray, gate_m: float, to
     return float(np.count_nonzero(np.abs(r) < tolerance_m) / max(len(tgt.points), 1))
 
 
-def surface_residual(ref: Surface, tgt: Surface, T: np.ndarray, cap_m: float) -> float:
-    """Alignment measure that ranks millimetres: the mean capped point-to-plane distance of the
-    target's surface points to the reference's surface under `T` (metres, lower is better).
+def trimmed_residuals(ref: Surface, tgt: Surface, poses: list[np.ndarray], gate_m: float, trim: float,
+                      min_pair_ratio: float = 0.5) -> np.ndarray:
+    """Alignment measure that ranks millimetres, for comparing candidate poses (metres, lower is better).
 
-    A point pairs with its nearest reference point within `cap_m` whose scanner-facing normal
-    agrees; its cost is its point-to-plane distance, capped at `cap_m`, and an unpaired point costs
-    `cap_m`. Every point counts, so a pose cannot look better by pairing fewer points (as a mean
-    over the paired points would); points the two stations never both saw cost the same at every
-    nearby pose. With ten thousand points its mean resolves differences well below a millimetre.
+    For each pose: the target's surface points paired with the reference's (within `gate_m`,
+    scanner-facing normals agreeing), their absolute point-to-plane distances sorted, and the mean
+    of the K smallest, K being `trim` times the fewest pairs any pose has. A fixed K keeps the
+    poses comparable (a mean over each pose's own pairs favours a pose that pairs fewer points);
+    trimming drops points the other station saw differently (edges, leaves). A pose with fewer
+    than `min_pair_ratio` times the most pairs is far off and gets infinity (it would otherwise
+    shrink K to a handful of lucky pairs). With thousands of pairs the mean resolves differences
+    well below a millimetre.
     """
-    idx, _, r = surface_pairs(ref, tgt, T, cap_m)
-    n = max(len(tgt.points), 1)
-    return float((np.minimum(np.abs(r), cap_m).sum() + cap_m * (n - len(idx))) / n)
-
-
-def symmetric_residual(ref: Surface, tgt: Surface, ref_sample: Surface, tgt_all: Surface, T: np.ndarray,
-                       cap_m: float) -> float:
-    """`surface_residual` both ways, averaged: the target's sample against the reference, and the
-    reference's sample against the whole target (mapped back by the inverse of `T`)."""
-    Ti = np.linalg.inv(T)
-    return 0.5 * (surface_residual(ref, tgt, T, cap_m) + surface_residual(tgt_all, ref_sample, Ti, cap_m))
+    res = [np.sort(np.abs(surface_pairs(ref, tgt, T, gate_m)[2])) for T in poses]
+    n = np.array([len(r) for r in res])
+    valid = n >= min_pair_ratio * n.max()
+    k = int(trim * n[valid].min())
+    if k < 10:
+        return np.full(len(poses), np.inf)
+    return np.array([r[:k].mean() if v else np.inf for r, v in zip(res, valid)])
 
 
 def refine_along(ref: Surface, tgt: Surface, T: np.ndarray, centre: np.ndarray, basis: np.ndarray,
-                 gate_m: float, loss_scale_m: float, iterations: int) -> np.ndarray:
+                 gate_m: float, loss_scale_m: float, iterations: int, tol_m: float = 1e-5) -> np.ndarray:
     """Point-to-plane refinement of `T` along the pose directions in `basis` only.
 
     Returns the coefficients y of the refinement: it is `pose_update(basis @ y, centre) @ T`.
+    Stops early once a step moves the paired points by less than `tol_m` on average.
 
     The sections fix the other directions to millimetres. Point-to-plane alignment of the whole
     target against the reference's surface (twigs, leaves, ground: all that the sections ignore)
@@ -147,7 +147,7 @@ def refine_along(ref: Surface, tgt: Surface, T: np.ndarray, centre: np.ndarray, 
         except np.linalg.LinAlgError:
             break
         y_total = y_total + y
-        if mean_move(pose_update(B @ y, centre), q) < 1e-5:
+        if mean_move(pose_update(B @ y, centre), q) < tol_m:
             break
     return y_total
 

@@ -19,7 +19,6 @@ run (= 1.0); the baseline's seconds are printed with the summary.
 
 from __future__ import annotations
 
-import argparse
 import sys
 import time
 from dataclasses import dataclass
@@ -29,15 +28,15 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from common import Report, parser, real_tree_cases  # noqa: E402
+
 from treereg_core.coarse import estimate_coarse, match_sequences, register_coarse  # noqa: E402
 from treereg_core.ground import prepare_scan  # noqa: E402
-from treereg_core.atomic import write_text_atomic  # noqa: E402
 from treereg_core.params import PRESETS  # noqa: E402
 from treereg_core.rigid import mean_displacement, rotation_error_deg  # noqa: E402
 from treereg_core.sequences import build_sequence  # noqa: E402
-from treereg_core.simulate import CaseSpec, SimulatedCase, benchmark_cases, simulate_case  # noqa: E402
+from treereg_core.simulate import CaseSpec, SimulatedCase, benchmark_cases  # noqa: E402
 
-REAL_TREES = Path(__file__).resolve().parents[2] / "shared" / "data" / "real_trees"
 PRESET_NAMES = ("robust", "paper")
 MAX_ROT_DEG = 5.0
 MAX_DISP_M = 0.35
@@ -226,23 +225,12 @@ def timing(seed: int, target_points: int = 300_000, repeats: int = 3) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--n", type=int, default=24, help="simulated cases (default 24)")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--small", action="store_true", help="the small CI cases instead")
-    ap.add_argument("--real-seeds", type=int, default=3, help="station sets per real tree (0 = skip)")
-    ap.add_argument("--real-step", type=float, default=0.05, help="angular step for real-tree stations, deg")
-    ap.add_argument("--no-timing", action="store_true")
+    ap = parser(__doc__, real_seeds=3)
     ap.add_argument("--ablation", action="store_true",
                     help="also run the robust default with one setting changed at a time")
-    ap.add_argument("--out", type=Path, help="also write the report to this file")
     a = ap.parse_args(argv)
-
-    out: list[str] = []
-
-    def say(text: str = "") -> None:
-        print(text, flush=True)
-        out.append(text)
+    report = Report()
+    say = report.say
 
     rows: list[Row] = []
     cases: list[tuple[str, SimulatedCase]] = []
@@ -271,11 +259,8 @@ def main(argv: list[str] | None = None) -> int:
 
     if a.real_seeds > 0:
         real: list[Row] = []
-        for path in sorted(REAL_TREES.glob("*.xyz")):
-            for s in range(a.real_seeds):
-                case = simulate_case(seed=s, from_points=str(path),
-                                     angular_step_deg=(a.real_step, a.real_step))
-                real += run_case(f"{path.stem} s{s}", "real tree", case)
+        for label, case in real_tree_cases(a.real_seeds, a.real_step):
+            real += run_case(label, "real tree", case)
         say()
         say(f"## Stations simulated from real trees (step {a.real_step} deg, {a.real_seeds} station sets each)")
         say()
@@ -290,8 +275,7 @@ def main(argv: list[str] | None = None) -> int:
         say("## Timing: coarse registration of 3 scans x ~300k points (robust default)")
         say()
         say(timing(a.seed))
-    if a.out:
-        write_text_atomic(a.out, "\n".join(out) + "\n")
+    report.save(a.out)
     return 0
 
 

@@ -22,29 +22,28 @@ printed with the summary.
 
 from __future__ import annotations
 
-import argparse
 import sys
 import time
 import tracemalloc
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from common import Report, parser, real_tree_cases  # noqa: E402
+
 from treereg_core.coarse import register_coarse  # noqa: E402
 from treereg_core.evaluation import evaluate_pair  # noqa: E402
 from treereg_core.fine import register_fine  # noqa: E402
 from treereg_core.ground import prepare_scan  # noqa: E402
 from treereg_core.icp import icp  # noqa: E402
-from treereg_core.atomic import write_text_atomic  # noqa: E402
 from treereg_core.params import PRESETS, Params  # noqa: E402
 from treereg_core.rigid import apply_transform, make_transform, mean_displacement, rotation_error_deg, rotation_z  # noqa: E402
 from treereg_core.scan import Scan  # noqa: E402
-from treereg_core.simulate import CaseSpec, SimulatedCase, benchmark_cases, simulate_case  # noqa: E402
+from treereg_core.simulate import CaseSpec, SimulatedCase, benchmark_cases  # noqa: E402
 
-REAL_TREES = Path(__file__).resolve().parents[2] / "shared" / "data" / "real_trees"
 MAX_ROT_DEG = 0.5
 MAX_DISP_M = 0.03
 METHODS = ("coarse", "fine", "fine (paper)", "ICP")
@@ -309,22 +308,12 @@ def timing(seed: int, target_points: int = 300_000) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--n", type=int, default=24, help="simulated cases (default 24)")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--small", action="store_true", help="the small CI cases instead")
-    ap.add_argument("--real-seeds", type=int, default=2, help="station sets per real tree (0 = skip)")
-    ap.add_argument("--real-step", type=float, default=0.05, help="angular step for real-tree stations, deg")
+    ap = parser(__doc__, real_seeds=2)
     ap.add_argument("--no-table2", action="store_true")
-    ap.add_argument("--no-timing", action="store_true")
     ap.add_argument("--ablation", action="store_true", help="robust fine with one setting changed at a time")
-    ap.add_argument("--out", type=Path, help="also write the report to this file")
     a = ap.parse_args(argv)
-    out: list[str] = []
-
-    def say(text: str = "") -> None:
-        print(text, flush=True)
-        out.append(text)
+    report = Report()
+    say = report.say
 
     if not a.no_table2:
         trees = [("A", CaseSpec(seed=a.seed * 1000 + 901, height_m=12.0, orders=3, angular_step_deg=(0.04, 0.04))),
@@ -394,13 +383,10 @@ def main(argv: list[str] | None = None) -> int:
 
     if a.real_seeds > 0:
         real: list[PairRow] = []
-        for path in sorted(REAL_TREES.glob("*.xyz")):
-            for s in range(a.real_seeds):
-                case = simulate_case(seed=s, from_points=str(path), angular_step_deg=(a.real_step, a.real_step))
-                for k in range(1, len(case.scans)):
-                    errs, _ = run_pair(case, k, None, METHODS[1:])
-                    real.append(PairRow(f"{path.stem} s{s}", "real tree", case.scans[k].n_points, f"{k + 1}->1", errs))
-            print(f"  real tree {path.stem} done", file=sys.stderr, flush=True)
+        for label, case in real_tree_cases(a.real_seeds, a.real_step):
+            for k in range(1, len(case.scans)):
+                errs, _ = run_pair(case, k, None, METHODS[1:])
+                real.append(PairRow(label, "real tree", case.scans[k].n_points, f"{k + 1}->1", errs))
         say()
         say(f"## Stations simulated from real trees (step {a.real_step} deg, {a.real_seeds} station sets each)")
         say()
@@ -415,8 +401,7 @@ def main(argv: list[str] | None = None) -> int:
         say("## Timing: 3 scans x ~300k points (robust default)")
         say()
         say(timing(a.seed))
-    if a.out:
-        write_text_atomic(a.out, "\n".join(out) + "\n")
+    report.save(a.out)
     return 0
 
 

@@ -1,7 +1,6 @@
 """Arc separation by angular connectivity (paper 2.2.2) on scans ray-cast from vertical stems."""
 
 import numpy as np
-import pytest
 
 from treereg_core.arcs import separate_arcs
 from treereg_core.params import ArcParams

@@ -13,7 +13,7 @@ import gzip
 import io as _io
 import warnings
 from pathlib import Path
-from typing import Callable, TextIO
+from typing import TextIO
 
 import numpy as np
 

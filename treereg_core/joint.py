@@ -165,7 +165,6 @@ def adjust_joint(points: np.ndarray, section: np.ndarray, moving: np.ndarray, c0
     JointFit
         `U` maps the moving points (as given) to their adjusted position.
     """
-    K = len(c0)
     starts = np.flatnonzero(np.r_[True, section[1:] != section[:-1]])
     centre = points.mean(axis=0)
     lever = float(np.sqrt(np.mean(np.sum((points - centre) ** 2, axis=1))))

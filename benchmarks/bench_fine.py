@@ -40,9 +40,9 @@ from treereg_core.fine import register_fine  # noqa: E402
 from treereg_core.ground import prepare_scan  # noqa: E402
 from treereg_core.icp import icp  # noqa: E402
 from treereg_core.params import PRESETS, Params  # noqa: E402
-from treereg_core.rigid import apply_transform, make_transform, mean_displacement, rotation_error_deg, rotation_z  # noqa: E402
+from treereg_core.rigid import mean_displacement, rotation_error_deg  # noqa: E402
 from treereg_core.scan import Scan  # noqa: E402
-from treereg_core.simulate import CaseSpec, SimulatedCase, benchmark_cases  # noqa: E402
+from treereg_core.simulate import CaseSpec, SimulatedCase, benchmark_cases, coarse_like_error  # noqa: E402
 
 MAX_ROT_DEG = 0.5
 MAX_DISP_M = 0.03
@@ -87,19 +87,6 @@ def features_of(spec: CaseSpec) -> str:
 def prepared(scans: tuple[Scan, ...], params: Params) -> list[Scan]:
     """The scans as the pipeline hands them to fine registration."""
     return [prepare_scan(s, params.prepare).scan for s in scans]
-
-
-def perturbed(T_true: np.ndarray, points: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """The truth moved by a coarse-like error (2-8 cm, 0.3-1 deg yaw, up to 0.2 deg tilt)."""
-    d = rng.normal(size=3)
-    t = d / np.linalg.norm(d) * rng.uniform(0.02, 0.08)
-    axis = np.r_[rng.normal(size=2), 0.0]
-    axis /= np.linalg.norm(axis)
-    a = np.radians(rng.uniform(0.0, 0.2))
-    K = np.array([[0, 0, axis[1]], [0, 0, -axis[0]], [-axis[1], axis[0], 0]])
-    R = rotation_z(rng.uniform(0.3, 1.0) * rng.choice([-1, 1])) @ (np.eye(3) + np.sin(a) * K + (1 - np.cos(a)) * K @ K)
-    c = apply_transform(T_true, points).mean(axis=0)
-    return make_transform(R, c - R @ c + t) @ T_true
 
 
 def run_pair(case: SimulatedCase, k: int, start: np.ndarray | None, methods: tuple[str, ...],
@@ -346,7 +333,7 @@ def main(argv: list[str] | None = None) -> int:
                 ev = evaluate_pair(prep[0], prep[k], Ts[m], p.evaluation, case.T_ref_scan[k])
                 d[m] = ev.mean_distance_m if ev.ok else float("nan")
             metric_rows.append((name, d))
-            start = perturbed(case.T_ref_scan[k], case.scans[k].points, rng)
+            start = coarse_like_error(case.T_ref_scan[k], case.scans[k].points, rng)
             starts.append((case, k, start))
             errs_t, _ = run_pair(case, k, start, ("fine", "ICP"))
             truth_rows.append(PairRow(name, features_of(spec), pts, f"{k + 1}->1", errs_t))

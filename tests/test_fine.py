@@ -14,21 +14,8 @@ from treereg_core.fine import register_fine
 from treereg_core.ground import prepare_scan
 from treereg_core.params import PRESETS, Params
 from treereg_core.rigid import apply_transform, make_transform, mean_displacement, rotation_error_deg, rotation_z
-from treereg_core.simulate import benchmark_cases
+from treereg_core.simulate import benchmark_cases, coarse_like_error
 from treereg_core.surface import surface_of, trimmed_residuals
-
-
-def _perturbed(T_true, points, rng):
-    """The truth moved by a coarse-like error about the target's centre (reference frame)."""
-    d = rng.normal(size=3)
-    t = d / np.linalg.norm(d) * rng.uniform(0.02, 0.08)
-    axis = np.r_[rng.normal(size=2), 0.0]
-    axis /= np.linalg.norm(axis)
-    tilt = np.radians(rng.uniform(0.0, 0.2))
-    K = np.array([[0, 0, axis[1]], [0, 0, -axis[0]], [-axis[1], axis[0], 0]])
-    R = rotation_z(rng.uniform(0.3, 1.0) * rng.choice([-1, 1])) @ (np.eye(3) + np.sin(tilt) * K + (1 - np.cos(tilt)) * K @ K)
-    c = apply_transform(T_true, points).mean(axis=0)
-    return make_transform(R, c - R @ c + t) @ T_true
 
 
 def _errors(T, T_true, pts):
@@ -53,7 +40,7 @@ def test_fine_from_perturbed_truth_ends_close_and_never_worse(cases):
     finals = []
     for scans, T_true in cases:
         for k in (1, 2):
-            start = _perturbed(T_true[k], scans[k].points, rng)
+            start = coarse_like_error(T_true[k], scans[k].points, rng)
             res = register_fine(scans[0], scans[k], start, Params())
             assert res.ok
             rot0, disp0 = _errors(start, T_true[k], scans[k].points)
@@ -137,7 +124,7 @@ def test_acceptance_test_rejects_an_update_that_makes_things_worse(cases):
 def test_fine_result_holds_what_the_app_draws(cases):
     scans, T_true = cases[1]
     rng = np.random.default_rng(7)
-    res = register_fine(scans[0], scans[1], _perturbed(T_true[1], scans[1].points, rng), Params())
+    res = register_fine(scans[0], scans[1], coarse_like_error(T_true[1], scans[1].points, rng), Params())
     sl = res.slices
     assert sl is not None and sl.n_slices == len(Params().slicing.quantiles)
     assert len(res.ref_arcs) == len(res.tgt_arcs) == sl.n_slices
@@ -154,7 +141,7 @@ def test_fine_result_holds_what_the_app_draws(cases):
 def test_paper_preset_runs_the_literal_tie_point_method(cases):
     scans, T_true = cases[2]
     rng = np.random.default_rng(3)
-    start = _perturbed(T_true[1], scans[1].points, rng)
+    start = coarse_like_error(T_true[1], scans[1].points, rng)
     res = register_fine(scans[0], scans[1], start, PRESETS["paper"])
     assert res.ok and res.iterations <= 1
     assert res.slices is not None and res.slices.n_slices == 3
@@ -165,7 +152,7 @@ def test_paper_preset_runs_the_literal_tie_point_method(cases):
 def test_surfaces_take_over_when_there_are_too_few_sections(cases):
     scans, T_true = cases[1]
     rng = np.random.default_rng(11)
-    start = _perturbed(T_true[2], scans[2].points, rng)
+    start = coarse_like_error(T_true[2], scans[2].points, rng)
     p = Params()
     res = register_fine(scans[0], scans[2], start, replace(p, fine=replace(p.fine, min_pairs=1000)))
     assert res.accepted and "aligned by the surfaces" in res.message

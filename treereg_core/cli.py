@@ -351,9 +351,10 @@ def _scan_path(name: str, tf, args: argparse.Namespace):
 
 def _run_evaluate(args: argparse.Namespace) -> int:
     from . import params as P
-    from .evaluation import evaluate_pair
+    from .evaluation import evaluate_pair, find_branches
     from .ground import prepare_scan
     from .io import read_scan
+    from .rigid import invert
     from .transform_io import read_transforms
 
     tf = read_transforms(args.transforms)
@@ -372,6 +373,7 @@ def _run_evaluate(args: argparse.Namespace) -> int:
         return prepare_scan(scan, params.prepare).scan
 
     ref = load(names[0])
+    branches = find_branches(ref, params.evaluation)
     header = "| pair | branches | layer pairs | d (m), eq. 8 |"
     rule = "|---|---|---|---|"
     if truth is not None:
@@ -385,8 +387,8 @@ def _run_evaluate(args: argparse.Namespace) -> int:
         T_true = None
         if truth is not None:
             # Truth files map onto their own reference; express the truth relative to ours.
-            T_true = np.linalg.inv(truth.matrix(names[0])) @ truth.matrix(name)
-        ev = evaluate_pair(ref, tgt, tf.matrix(name), params.evaluation, T_true)
+            T_true = invert(truth.matrix(names[0])) @ truth.matrix(name)
+        ev = evaluate_pair(ref, tgt, tf.matrix(name), params.evaluation, T_true, branches)
         d = f"{ev.mean_distance_m:.4f}" if ev.ok else f"n/a ({ev.message})"
         row = f"| {name} -> {names[0]} | {len(ev.branches)} | {ev.n_pairs} | {d} |"
         if truth is not None:

@@ -163,7 +163,8 @@ def find_branches(ref: Scan, p: EvaluationParams) -> list[CylinderFit]:
 
 
 def evaluate_pair(ref: Scan, tgt: Scan, T_ref_tgt: np.ndarray, p: EvaluationParams,
-                  T_true: np.ndarray | None = None) -> EvaluationResult:
+                  T_true: np.ndarray | None = None,
+                  branches: list[CylinderFit] | None = None) -> EvaluationResult:
     """The paper's branch-centre error of `T_ref_tgt`, and errors against `T_true` when given.
 
     Parameters
@@ -176,6 +177,9 @@ def evaluate_pair(ref: Scan, tgt: Scan, T_ref_tgt: np.ndarray, p: EvaluationPara
         Layers per branch, layer thickness and spacing, search heights, fit thresholds.
     T_true
         The true transform, if known.
+    branches
+        `find_branches(ref, p)`, when the caller evaluates several transforms against the same
+        reference (they depend on the reference alone); found here when None.
 
     Returns
     -------
@@ -187,7 +191,7 @@ def evaluate_pair(ref: Scan, tgt: Scan, T_ref_tgt: np.ndarray, p: EvaluationPara
     if T_true is not None:
         rot = rotation_error_deg(T, T_true)
         disp = mean_displacement(T, T_true, tgt.points)
-    branches = find_branches(ref, p)
+    branches = find_branches(ref, p) if branches is None else branches
     tgt_sel = apply_transform(T_sel, tgt.points)
     z_ref, z_tgt = ref.points[:, 2], tgt_sel[:, 2]
     o_ref, o_tgt = np.argsort(z_ref, kind="stable"), np.argsort(z_tgt, kind="stable")

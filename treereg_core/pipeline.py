@@ -204,11 +204,12 @@ class Pipeline:
         return res
 
     def _run_evaluation(self, progress: Progress) -> list[Any]:
-        from .evaluation import evaluate_pair
+        from .evaluation import evaluate_pair, find_branches
         from .icp import icp
 
         scans, coarse, fine = self._prepared(), self._items("coarse"), self._items("fine")
         p = self.params
+        branches = find_branches(scans[0], p.evaluation)  # the reference's: shared by every evaluation
         res = []
         for i in range(1, len(scans)):
             progress((i - 1) / (len(scans) - 1), scans[i].name)
@@ -218,12 +219,12 @@ class Pipeline:
                                       message="not evaluated: the pair has no fine result"))
                 continue
             T_true = (self.truth or {}).get(tgt.name)
-            ev_c = evaluate_pair(ref, tgt, coarse[i - 1].T_ref_target, p.evaluation, T_true)
-            ev_f = evaluate_pair(ref, tgt, fine[i - 1].T_ref_tgt, p.evaluation, T_true)
+            ev_c = evaluate_pair(ref, tgt, coarse[i - 1].T_ref_target, p.evaluation, T_true, branches)
+            ev_f = evaluate_pair(ref, tgt, fine[i - 1].T_ref_tgt, p.evaluation, T_true, branches)
             ic = ev_i = None
             if p.evaluation.run_icp:
                 ic = icp(ref.points, tgt.points, coarse[i - 1].T_ref_target, p.icp)
-                ev_i = evaluate_pair(ref, tgt, ic.T, p.evaluation, T_true)
+                ev_i = evaluate_pair(ref, tgt, ic.T, p.evaluation, T_true, branches)
             res.append(PairReport(tgt.name, ev_c, ev_f, ic, ev_i, metrics=_report_metrics(ev_c, ev_f, ev_i)))
         return res
 

@@ -501,3 +501,21 @@ def benchmark_cases(n: int = 24, seed: int = 0, small: bool = False) -> list[Cas
             lean_deg=round(float(rng.uniform(0, 6)), 2) if k % 3 == 1 else 0.0,
         ))
     return specs
+
+
+def coarse_like_error(T_true: np.ndarray, points: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """`T_true` moved by an error like a coarse registration leaves: 2-8 cm, 0.3-1 deg of yaw and up
+    to 0.2 deg of tilt, about the centre of `points` (the scan's points, mapped by `T_true`).
+
+    Fine-stage tests and benchmarks start from it, so they do not depend on the coarse stage.
+    """
+    from scipy.spatial.transform import Rotation
+
+    d = rng.normal(size=3)
+    t = d / np.linalg.norm(d) * rng.uniform(0.02, 0.08)
+    axis = np.r_[rng.normal(size=2), 0.0]
+    axis /= np.linalg.norm(axis)
+    tilt = Rotation.from_rotvec(np.radians(rng.uniform(0.0, 0.2)) * axis).as_matrix()
+    R = rotation_z(rng.uniform(0.3, 1.0) * rng.choice([-1, 1])) @ tilt
+    c = apply_transform(T_true, points).mean(axis=0)
+    return make_transform(R, c - R @ c + t) @ T_true

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
-from .atomic import write_text_atomic
+from .io.atomic import write_text_atomic
 from .errors import ConfigError
 
 
@@ -31,7 +31,7 @@ def _f(default: Any, unit: str, doc: str, choices: tuple[Any, ...] | None = None
 
 @dataclass(frozen=True)
 class PrepareParams:
-    """Stage 0: per-scan preparation before anything is matched."""
+    """per-scan preparation before anything is matched."""
 
     angular_step_deg: tuple[float, float] | None = _f(
         None, "deg", "instrument angular steps (horizontal phi, vertical varphi); None = estimate from the data")
@@ -45,7 +45,7 @@ class PrepareParams:
 
 @dataclass(frozen=True)
 class ProjectionParams:
-    """Stage 1: spherical projection images (paper eq. 2-3) and rotation sequences (2.1.2)."""
+    """spherical projection images (paper eq. 2-3) and rotation sequences (2.1.2)."""
 
     pixel_factor: int = _f(2, "steps", "a pixel covers k*phi x k*varphi (paper: k = 2)", lo=1, hi=10)
     border_px: tuple[int, int] = _f((10, 10), "px", "image borders r1, r2 (paper eq. 2)")
@@ -58,7 +58,7 @@ class ProjectionParams:
 
 @dataclass(frozen=True)
 class MatchingParams:
-    """Stage 2: similar image pairs, ORB features and tie points."""
+    """similar image pairs, ORB features and tie points."""
 
     similarity: str = _f("chamfer", "", "how two projection images are compared",
                          choices=("iou", "chamfer", "ncc"))
@@ -77,7 +77,7 @@ class MatchingParams:
 
 @dataclass(frozen=True)
 class CoarseParams:
-    """Stage 3: the coarse rigid transform from tie points."""
+    """the coarse rigid transform from tie points."""
 
     estimator: str = _f("ransac", "", "plain SVD over all tie points (paper) or RANSAC", choices=("svd", "ransac"))
     dof: int = _f(4, "", "4 = yaw + 3-D translation (levelled scanners), 6 = full rigid", choices=(4, 6))
@@ -92,7 +92,7 @@ class CoarseParams:
 
 @dataclass(frozen=True)
 class SlicingParams:
-    """Stage 4: horizontal slices of reference and target after coarse."""
+    """horizontal slices of reference and target after coarse."""
 
     quantiles: tuple[float, ...] = _f(tuple(round(0.05 * k, 2) for k in range(1, 20)), "",
                                       "slice heights as quantiles of tree height (paper: quartiles 0.25 0.5 0.75)", lo=0.0, hi=1.0)
@@ -101,7 +101,7 @@ class SlicingParams:
 
 @dataclass(frozen=True)
 class ArcParams:
-    """Stage 5: arcs by angular connectivity in each scan's own (alpha, beta)."""
+    """arcs by angular connectivity in each scan's own (alpha, beta)."""
 
     connectivity: float = _f(3.0, "steps", "neighbours when d_alpha <= c*phi and d_beta <= c*varphi (paper: 3)", lo=1.0, hi=20.0)
     min_points: int = _f(15, "points", "smallest arc kept", lo=3, hi=100000)
@@ -110,7 +110,7 @@ class ArcParams:
 
 @dataclass(frozen=True)
 class FitParams:
-    """Stage 6: circle (Taubin) and cylinder fits, correspondence and the fine transform."""
+    """circle (Taubin) and cylinder fits, correspondence and the fine transform."""
 
     min_arc_deg: float = _f(45.0, "deg", "smallest arc (angle covered about the centre) trusted for a fit", lo=0.0, hi=360.0)
     max_rms_m: float = _f(0.02, "m", "fits with a larger RMS residual are implausible", lo=0.0001, hi=1.0)
@@ -125,7 +125,7 @@ class FitParams:
 
 @dataclass(frozen=True)
 class FineParams:
-    """Stage 7: the fine transform from corresponding sections, iterated, checked against the surfaces."""
+    """Fine pose: iterate slices -> arcs -> fits -> update until the update is below the tolerance."""
 
     method: str = _f("joint", "", "tie points of separately fitted sections (paper) or one cylinder per section pair fitted to both scans with the pose",
                      choices=("ties", "joint"))
@@ -134,37 +134,51 @@ class FineParams:
     min_pairs: int = _f(3, "pairs", "fewest corresponding sections to estimate an update", lo=1, hi=1000)
     gate_factor: float | None = _f(4.0, "", "after the first iteration, pairs farther apart than this times the median distance are dropped (None = off)", lo=1.0, hi=100.0)
     min_gate_m: float = _f(0.02, "m", "the adaptive gate is never tighter than this", lo=0.001, hi=5.0)
-    # -- ties (the paper's estimator)
     estimator: str = _f("ransac", "", "ties: plain SVD (paper) or RANSAC over the tie points", choices=("svd", "ransac"))
     inlier_m: float = _f(0.05, "m", "ties: RANSAC inlier distance", lo=0.001, hi=1.0)
-    # -- joint adjustment
-    loss_scale_m: float = _f(0.005, "m", "joint: residual scale of the robust loss (about the range noise)", lo=0.0001, hi=0.5)
-    refine_loss: str = _f("cauchy", "", "joint: loss after the first iteration (soft-L1 always first; Cauchy ignores wrong pairs near the solution)",
+
+
+@dataclass(frozen=True)
+class JointParams:
+    """Fine pose, method joint: one cylinder per section pair fitted to both scans with the pose."""
+
+    loss_scale_m: float = _f(0.005, "m", "residual scale of the robust loss (about the range noise)", lo=0.0001, hi=0.5)
+    refine_loss: str = _f("cauchy", "", "loss after the first iteration (soft-L1 always first; Cauchy ignores wrong pairs near the solution)",
                           choices=("soft_l1", "cauchy"))
-    influence_factor: float | None = _f(2.0, "", "joint: drop the pair the pose hinges on when its influence exceeds this times the next largest (None = off)", lo=1.0, hi=1000.0)
-    influence_min_m: float = _f(0.003, "m", "joint: influences below this are never a reason to drop a pair", lo=0.0, hi=1.0)
-    max_section_points: int = _f(150, "points", "joint: points per section and scan used in the adjustment", lo=10, hi=100000)
-    max_solver_iterations: int = _f(30, "", "joint: Gauss-Newton iterations per adjustment", lo=1, hi=1000)
-    prior_m: float = _f(0.05, "m", "joint: prior std of the translation away from coarse (holds directions the sections hardly constrain)", lo=0.001, hi=100.0)
-    prior_deg: float = _f(2.0, "deg", "joint: prior std of the rotation away from coarse", lo=0.001, hi=180.0)
-    max_direction_sigma_m: float | None = _f(0.02, "m", "joint: pose directions the sections determine worse than this (noise std) are not updated by them (None = update all)", lo=1e-6, hi=10.0)
-    # -- surfaces (oriented-normal point-to-plane against the reference)
-    surface_refine: bool = _f(True, "", "joint: pose directions the sections fix only weakly are taken from the surfaces")
-    surface_sigma_m: float = _f(0.003, "m", "surfaces: directions the sections determine worse than this (noise std) are weak", lo=1e-6, hi=10.0)
-    surface_polish: bool = _f(False, "", "surfaces: finish with all six pose directions from the surfaces (not only the weak ones)")
-    surface_fallback: bool = _f(True, "", "surfaces: with too few corresponding sections, align the surfaces instead (kept only if they then agree better)")
-    surface_gate_m: float = _f(0.015, "m", "surfaces: final pairing distance (a wide gate pairs points past the edge of the other scan's view)", lo=0.001, hi=1.0)
-    surface_iterations: int = _f(20, "", "surfaces: iterations at the final gate", lo=1, hi=1000)
-    # -- acceptance test
-    accept_test: bool = _f(True, "", "keep the fine update unless the independent alignment measure clearly worsens")
-    measure_voxel_m: float = _f(0.01, "m", "surfaces and acceptance measure: voxel size of both scans' surfaces", lo=0.0, hi=0.5)
-    measure_gate_m: float = _f(0.02, "m", "acceptance measure: a target point pairs with a reference point within this distance", lo=0.001, hi=1.0)
-    measure_tolerance_m: float = _f(0.005, "m", "acceptance measure: a paired point lies on the surface when its point-to-plane distance is below this", lo=0.0001, hi=1.0)
-    accept_margin: float = _f(0.01, "", "acceptance test: reject fine when the surface agreement falls by more than this (fraction of points)", lo=0.0, hi=1.0)
+    influence_factor: float | None = _f(2.0, "", "drop the pair the pose hinges on when its influence exceeds this times the next largest (None = off)", lo=1.0, hi=1000.0)
+    influence_min_m: float = _f(0.003, "m", "influences below this are never a reason to drop a pair", lo=0.0, hi=1.0)
+    max_section_points: int = _f(150, "points", "points per section and scan used in the adjustment", lo=10, hi=100000)
+    max_solver_iterations: int = _f(30, "", "Gauss-Newton iterations per adjustment", lo=1, hi=1000)
+    prior_m: float = _f(0.05, "m", "prior std of the translation away from coarse (holds directions the sections hardly constrain)", lo=0.001, hi=100.0)
+    prior_deg: float = _f(2.0, "deg", "prior std of the rotation away from coarse", lo=0.001, hi=180.0)
+    max_direction_sigma_m: float | None = _f(0.02, "m", "pose directions the sections determine worse than this (noise std) are not updated by them (None = update all)", lo=1e-6, hi=10.0)
+
+
+@dataclass(frozen=True)
+class SurfaceParams:
+    """Fine pose: oriented-normal point-to-plane terms of the target's surface against the reference's."""
+
+    refine: bool = _f(True, "", "pose directions the sections fix only weakly are taken from the surfaces")
+    sigma_m: float = _f(0.003, "m", "directions the sections determine worse than this (noise std) are weak", lo=1e-6, hi=10.0)
+    polish: bool = _f(False, "", "finish with all six pose directions from the surfaces (not only the weak ones)")
+    fallback: bool = _f(True, "", "with too few corresponding sections, align the surfaces instead (kept only if they then agree better)")
+    gate_m: float = _f(0.015, "m", "final pairing distance (a wide gate pairs points past the edge of the other scan's view)", lo=0.001, hi=1.0)
+    iterations: int = _f(20, "", "iterations at the final gate", lo=1, hi=1000)
+    voxel_m: float = _f(0.01, "m", "voxel size of both scans' surfaces (also for the acceptance measure)", lo=0.0, hi=0.5)
+
+
+@dataclass(frozen=True)
+class AcceptanceParams:
+    """Fine pose: which candidate pose ends the stage, and whether it is kept at all."""
+
     select: bool = _f(True, "", "joint: end at the pose with the lowest trimmed point-to-plane residual among coarse, the sections' result and that result polished by the surfaces in all six directions")
-    select_coarse_polish: bool = _f(True, "", "selection: also consider the coarse pose polished by the surfaces in all six directions (a safety net when the sections go astray)")
-    polish_tolerance_m: float = _f(1e-4, "m", "selection: a polish stops once a step moves the paired points less than this", lo=0.0, hi=0.01)
-    select_trim: float = _f(0.7, "", "selection: mean over this fraction of the closest surface pairs (of the fewest any candidate pose has)", lo=0.05, hi=1.0)
+    select_coarse_polish: bool = _f(True, "", "also consider the coarse pose polished by the surfaces in all six directions (a safety net when the sections go astray)")
+    polish_tolerance_m: float = _f(1e-4, "m", "a polish stops once a step moves the paired points less than this", lo=0.0, hi=0.01)
+    select_trim: float = _f(0.7, "", "residual: mean over this fraction of the closest surface pairs (of the fewest any candidate pose has)", lo=0.05, hi=1.0)
+    test: bool = _f(True, "", "keep the fine update unless the independent alignment measure clearly worsens")
+    gate_m: float = _f(0.02, "m", "measure: a target point pairs with a reference point within this distance", lo=0.001, hi=1.0)
+    tolerance_m: float = _f(0.005, "m", "measure: a paired point lies on the surface when its point-to-plane distance is below this", lo=0.0001, hi=1.0)
+    margin: float = _f(0.01, "", "reject fine when the surface agreement falls by more than this (fraction of points)", lo=0.0, hi=1.0)
 
 
 @dataclass(frozen=True)
@@ -176,11 +190,12 @@ class IcpParams:
     trim: float = _f(0.5, "", "fraction of closest correspondences kept each iteration", lo=0.1, hi=1.0)
     max_distance_m: float = _f(0.5, "m", "correspondences farther than this are ignored", lo=0.001, hi=10.0)
     voxel_m: float = _f(0.02, "m", "voxel size for subsampling before ICP", lo=0.0, hi=1.0)
+    enabled: bool = _f(True, "", "run the ICP baseline from the coarse result (the evaluation compares it with fine)")
 
 
 @dataclass(frozen=True)
 class EvaluationParams:
-    """The paper's evaluation model (3.3, eq. 8) and the ICP baseline switch."""
+    """The paper's evaluation model (3.3, eq. 8)."""
 
     layers: int = _f(3, "", "layers per branch (bottom, middle, top)", lo=1, hi=20)
     layer_thickness_m: float = _f(0.1, "m", "thickness of an evaluation layer", lo=0.01, hi=2.0)
@@ -192,7 +207,6 @@ class EvaluationParams:
     max_radius_m: float = _f(1.0, "m", "evaluation fits with a larger radius are not used", lo=0.01, hi=10.0)
     max_branches: int = _f(30, "", "most branches evaluated (spread over the heights)", lo=1, hi=1000)
     gate_m: float = _f(1.0, "m", "a target layer whose centre is farther than this from the branch is not used", lo=0.01, hi=10.0)
-    run_icp: bool = _f(True, "", "also run the ICP baseline from the coarse result")
 
 
 @dataclass(frozen=True)
@@ -207,6 +221,9 @@ class Params:
     arcs: ArcParams = field(default_factory=ArcParams)
     fitting: FitParams = field(default_factory=FitParams)
     fine: FineParams = field(default_factory=FineParams)
+    joint: JointParams = field(default_factory=JointParams)
+    surface: SurfaceParams = field(default_factory=SurfaceParams)
+    acceptance: AcceptanceParams = field(default_factory=AcceptanceParams)
     icp: IcpParams = field(default_factory=IcpParams)
     evaluation: EvaluationParams = field(default_factory=EvaluationParams)
 
@@ -218,8 +235,28 @@ class Params:
             raise ConfigError(f"{section}.{name}: no such parameter")
         return replace(self, **{section: replace(sec, **{name: _coerce(f"{section}.{name}", fld, value)})})
 
+    def pick(self, *sections: str) -> dict[str, Any]:
+        """The named sections as keyword arguments of a stage function: `fn(..., **params.pick("fine", "joint"))`."""
+        return {s: getattr(self, s) for s in sections}
+
 
 SECTIONS: tuple[str, ...] = tuple(f.name for f in fields(Params))
+
+#: Parameters that moved to another section or name: config files written before still load.
+MOVED: dict[tuple[str, str], tuple[str, str]] = {
+    **{("fine", k): ("joint", k) for k in (
+        "loss_scale_m", "refine_loss", "influence_factor", "influence_min_m", "max_section_points",
+        "max_solver_iterations", "prior_m", "prior_deg", "max_direction_sigma_m")},
+    ("fine", "surface_refine"): ("surface", "refine"), ("fine", "surface_sigma_m"): ("surface", "sigma_m"),
+    ("fine", "surface_polish"): ("surface", "polish"), ("fine", "surface_fallback"): ("surface", "fallback"),
+    ("fine", "surface_gate_m"): ("surface", "gate_m"), ("fine", "surface_iterations"): ("surface", "iterations"),
+    ("fine", "measure_voxel_m"): ("surface", "voxel_m"),
+    ("fine", "select"): ("acceptance", "select"), ("fine", "select_coarse_polish"): ("acceptance", "select_coarse_polish"),
+    ("fine", "polish_tolerance_m"): ("acceptance", "polish_tolerance_m"), ("fine", "select_trim"): ("acceptance", "select_trim"),
+    ("fine", "accept_test"): ("acceptance", "test"), ("fine", "measure_gate_m"): ("acceptance", "gate_m"),
+    ("fine", "measure_tolerance_m"): ("acceptance", "tolerance_m"), ("fine", "accept_margin"): ("acceptance", "margin"),
+    ("evaluation", "run_icp"): ("icp", "enabled"),
+}
 
 
 def _paper() -> Params:
@@ -235,7 +272,8 @@ def _paper() -> Params:
         arcs=replace(p.arcs, connectivity=3.0, max_range_jump_m=None),
         fitting=replace(p.fitting, max_radius_ratio=None, refine_cylinders=True, circle_lowest=True,
                         taper_check=True, taper_tolerance=0.0, min_arc_deg=0.0, max_rms_m=1.0),
-        fine=replace(p.fine, method="ties", estimator="svd", max_iterations=1, accept_test=False, gate_factor=None),
+        fine=replace(p.fine, method="ties", estimator="svd", max_iterations=1, gate_factor=None),
+        acceptance=replace(p.acceptance, test=False),
         icp=replace(p.icp, method="point_to_point"),
     )
 
@@ -277,8 +315,9 @@ def from_dict(data: dict[str, Any], base: Params | None = None, source: str = "p
         if not isinstance(values, dict):
             raise ConfigError(f"{source}: section {s!r} must be an object")
         for k, v in values.items():
+            sec, name = MOVED.get((s, k), (s, k))
             try:
-                p = p.with_value(s, k, v)
+                p = p.with_value(sec, name, v)
             except ConfigError as e:
                 raise ConfigError(f"{source}: {e}") from None
     return p

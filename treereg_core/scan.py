@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .angular_step import estimate_angular_step
+from .prepare.angular_step import estimate_angular_step
 from .errors import ScanError
 
 #: Fewer points than this cannot be registered meaningfully (and cannot estimate a grid).

@@ -25,7 +25,6 @@ import viser
 
 from treereg_core.errors import ConfigError
 from treereg_core.params import Params
-from treereg_core.pipeline import STAGES
 
 from . import camera
 from .controller import Controller, Snapshot
@@ -33,7 +32,7 @@ from .drawer import Drawer
 from .export_panel import ExportPanel
 from .scan_panel import ScanPanel
 from .stage_panel import StagePanel
-from .stages import APP_STAGES
+from .stages import STAGE_NAMES, registered
 from .view_panel import ViewPanel
 from .view_state import ViewState
 
@@ -94,7 +93,7 @@ class TreeregApp:
         self._on_snapshot(controller.snapshot)
         self._place_camera(controller.snapshot)
         if autorun and len(controller.snapshot.scans) >= 2:
-            controller.request_run(STAGES[-1])
+            controller.request_run(STAGE_NAMES[-1])
 
     # ---- view state ------------------------------------------------------------------------------
     @property
@@ -107,24 +106,23 @@ class TreeregApp:
             self._view = replace(self._view, **changes)
         self.drawer.request()
 
-    def select_stage(self, index: int) -> None:
-        index = int(np.clip(index, 0, len(APP_STAGES) - 1))
+    def select_stage(self, name: str) -> None:
         before = self.view.stage
-        self.set_view(stage=index)
-        if (before < 3) != (index < 3):
+        self.set_view(stage=name)
+        if registered(before) != registered(name):
             # Between the scattered scans (own frames) and the registered tree the content moves:
             # follow it. Within a group the camera stays where the user put it.
             self.frame_view()
-        self.stages.show_stage(index)
+        self.stages.show_stage(name)
         snap = self.controller.snapshot
-        self.stages.show_snapshot(snap, index)
-        stage = APP_STAGES[index]
-        if self.stages.auto_run.value and snap.status(stage.pipeline_stage) == "stale" and len(snap.scans) >= 2 \
-                and not any(snap.status(s) == "failed" for s in STAGES[: STAGES.index(stage.pipeline_stage)]):
-            self.controller.request_run(stage.pipeline_stage)
+        self.stages.show_snapshot(snap, name)
+        if self.stages.auto_run.value and snap.status(name) == "stale" and len(snap.scans) >= 2 \
+                and not any(snap.status(s) == "failed" for s in STAGE_NAMES[: STAGE_NAMES.index(name)]):
+            self.controller.request_run(name)
 
     def step_stage(self, delta: int) -> None:
-        self.select_stage(self.view.stage + delta)
+        i = int(np.clip(STAGE_NAMES.index(self.view.stage) + delta, 0, len(STAGE_NAMES) - 1))
+        self.select_stage(STAGE_NAMES[i])
 
     def select_target(self, label: str) -> None:
         snap = self.controller.snapshot
@@ -148,10 +146,10 @@ class TreeregApp:
         later ones, which depend on it).
         """
         snap = self.controller.snapshot
-        stage = APP_STAGES[self.view.stage].pipeline_stage
-        later = STAGES[STAGES.index(stage):]
+        stage = self.view.stage
+        later = STAGE_NAMES[STAGE_NAMES.index(stage):]
         anything_stale = any(snap.status(s) != "done" for s in later) or self.controller.params != snap.params
-        self.controller.request_run(STAGES[-1], rerun_from=None if anything_stale else stage)
+        self.controller.request_run(STAGE_NAMES[-1], rerun_from=None if anything_stale else stage)
 
     def on_param_change(self, section: str, name: str, value: Any) -> str | None:
         try:
@@ -192,8 +190,8 @@ class TreeregApp:
         self.stages.show_progress(fraction, text)
 
     def _place_camera(self, snap: Snapshot) -> None:
-        """The camera a new browser tab starts with (and "Reset View" returns to): stage 0's view."""
-        pose = camera.frame(snap, 0)
+        """The camera a new browser tab starts with (and "Reset View" returns to): the Scans stage's view."""
+        pose = camera.frame(snap, STAGE_NAMES[0])
         if pose is None:
             return
         self.server.initial_camera.position = pose.position

@@ -1,8 +1,8 @@
 """Where the camera should stand to show a stage: a view choice, not registration geometry.
 
-Before registration (stages 0-2) every scan stands in its own scanner frame, so the trees are
-scattered around the common origin and the view frames them all; from stage 3 on every scan is
-drawn over the reference tree, and the view frames that tree without its ground. The camera looks
+Before registration (Scans, Projection, Matching) every scan stands in its own scanner frame, so
+the trees are scattered around the common origin and the view frames them all; from Coarse on
+every scan is drawn over the reference tree, and the view frames that tree without its ground. The camera looks
 from behind the reference scanner towards its tree, slightly from above, far enough that the
 whole extent fits the vertical field of view and the narrower horizontal one between the panels.
 """
@@ -15,6 +15,7 @@ import numpy as np
 
 from .controller import Snapshot
 from .renderers.common import display_subset
+from .stages import registered
 
 #: viser's vertical field of view (75 deg) and the scene's width/height between the two docked
 #: panels at a common 1700 x 1000 window: the horizontal half-angle is the tighter one.
@@ -32,16 +33,16 @@ class CameraPose:
     look_at: tuple[float, float, float]
 
 
-def _points_to_frame(snap: Snapshot, stage: int) -> list[np.ndarray]:
+def _points_to_frame(snap: Snapshot, stage: str) -> list[np.ndarray]:
     prep = snap.output("prepare")
-    if stage >= 3:
+    if registered(stage):
         if prep is not None and prep.items and getattr(prep.items[0], "scan", None) is not None:
             return [prep.items[0].scan.points]
         return [snap.scans[0].points]
     return [s.points for s in snap.scans]
 
 
-def frame(snap: Snapshot, stage: int) -> CameraPose | None:
+def frame(snap: Snapshot, stage: str) -> CameraPose | None:
     """A camera pose showing what stage `stage` draws (None when there are no scans)."""
     if not snap.scans:
         return None

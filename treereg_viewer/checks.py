@@ -29,8 +29,10 @@ def truth_rows(snap: Snapshot, names_only: bool = False) -> list[tuple[str, str,
         return []
     rows = []
     for k, rep in enumerate(out.items):
-        for label, ev in (("coarse", rep.coarse), ("fine", rep.fine), ("ICP", getattr(rep, "icp_eval", None))):
-            if ev is None or ev.rotation_error_deg is None or ev.mean_displacement_m is None:
+        if not rep.ok:  # skipped: no transform to judge
+            continue
+        for label, ev in rep.by_method().items():
+            if ev.rotation_error_deg is None or ev.mean_displacement_m is None:
                 continue
             rot, disp = float(ev.rotation_error_deg), float(ev.mean_displacement_m)
             who = snap.scans[k + 1].name if names_only else _pair(snap, k)

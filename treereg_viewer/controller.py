@@ -21,9 +21,12 @@ from typing import Any, Callable, Mapping, Sequence
 import numpy as np
 
 from treereg_core.errors import ConfigError, ScanError
+from treereg_core.io.scans import read_scan
 from treereg_core.params import Params
-from treereg_core.pipeline import STAGES, Pipeline, StageOutput
+from treereg_core.pipeline import Pipeline
 from treereg_core.scan import Scan
+from treereg_core.stage import StageOutput
+from treereg_core.stages import STAGE_NAMES as STAGES
 
 log = logging.getLogger(__name__)
 
@@ -44,6 +47,7 @@ class Snapshot:
     message: str = ""
     error: bool = False
     crashed: Mapping[str, str] = field(default_factory=dict)  # stage -> error, when it raised
+    runs: Mapping[str, int] = field(default_factory=dict)  # stage -> how often it has run (what a change cost)
 
     def status(self, stage: str) -> str:
         """'done', 'failed', 'running' or 'stale' for a pipeline stage."""
@@ -93,8 +97,6 @@ def parse_scan_upload(filename: str, data: bytes) -> tuple[Scan, list[str]]:
     Returns the scan and what the reader repaired (its warnings, e.g. rows with NaN dropped). Errors
     and notes name the uploaded file, never the temporary path the user has not seen.
     """
-    from treereg_core.io import read_scan
-
     name = Path(filename).name or "upload"
     if not data:
         raise ScanError(name, "the file is empty")
@@ -377,6 +379,7 @@ class Controller:
             message=message,
             error=error,
             crashed=dict(self._crashed),
+            runs=dict(pipe.runs),
         )
 
     def _publish(self, busy: bool = False, running: str | None = None, message: str = "", error: bool = False) -> None:

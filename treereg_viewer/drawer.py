@@ -15,28 +15,36 @@ from typing import Any, Callable
 
 import viser
 
+from treereg_core.stage import Skipped
+from treereg_core.stages import stage as core_stage
+
 from .controller import Snapshot
-from .renderers import coarse, fine, matching, projection, result
-from .renderers.scans import apply_poses, context_only, draw_scan_layer, render_scans_stage, scan_poses, scans_shown
-from .stages import APP_STAGES
+from .renderers import RENDERERS, Renderer
+from .renderers.common import item_message, not_ready_text, render_metrics, target_index, title
+from .renderers.scans import apply_poses, context_only, draw_scan_layer, scan_poses, scans_shown
+from .stages import STAGE_NAMES
 from .view_panel import PanelContent, ViewPanel
 from .view_state import ViewState
 
 log = logging.getLogger(__name__)
 
-Renderer = Callable[[viser.SceneApi, str, Snapshot, ViewState], "tuple[list[Any], PanelContent]"]
+#: Stages without a renderer of their own show their metrics.
+_GENERIC = Renderer(render_metrics, ("target",))
 
-#: One renderer per app stage, and the view fields its drawing depends on.
-RENDERERS: dict[int, tuple[Renderer, tuple[str, ...]]] = {
-    0: (render_scans_stage, ()),
-    1: (projection.render_projection, ("projection_step", "projection_3d", "point_size", "max_points")),
-    2: (matching.render_matching, ("target", "match_pair")),
-    3: (coarse.render_coarse, ("target",)),
-    4: (fine.render_slices, ("target", "point_size")),
-    5: (fine.render_arcs, ("target", "point_size")),
-    6: (fine.render_fits, ("target",)),
-    7: (result.render_result, ("target", "show_icp")),
-}
+
+def render_stage(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> tuple[list[Any], PanelContent]:
+    """The current stage's drawing; what every renderer would otherwise begin with is done here:
+    nothing to show yet (the panel says why), or the chosen pair skipped (its message)."""
+    name = view.stage
+    r = RENDERERS.get(name, _GENERIC)
+    out = snap.output(name)
+    if r.needs_output and (out is None or not out.items):
+        return [], PanelContent(title(name), text=not_ready_text(snap, name))
+    if out is not None and core_stage(name).per == "pair":
+        t = target_index(snap, name, view)
+        if isinstance(out.items[t], Skipped):
+            return [], PanelContent(title(name, snap, t), text=item_message(out.items[t]))
+    return r.draw(scene, root, snap, view)
 
 
 class Drawer:
@@ -65,7 +73,7 @@ class Drawer:
         self.draws = 0  # number of completed redraws (tests wait on it)
         self.last_seconds = 0.0
         scene = server.scene
-        self._groups = {s.index: scene.add_frame(f"/stage{s.index}", show_axes=False, visible=False) for s in APP_STAGES}
+        self._groups = {name: scene.add_frame(f"/{name}", show_axes=False, visible=False) for name in STAGE_NAMES}
         self._thread = threading.Thread(target=self._loop, name="treereg-drawer", daemon=True)
         self._thread.start()
 
@@ -121,7 +129,7 @@ class Drawer:
         with self.server.atomic():
             # The scan layer: points change only with the scans, preparation and display options.
             prep = snap.output("prepare")
-            key = (tuple(id(s) for s in snap.scans), id(prep), view.stage == 0, context_only(view), view.point_size,
+            key = (tuple(id(s) for s in snap.scans), id(prep), view.stage == "prepare", context_only(view), view.point_size,
                    view.max_points, view.show_stations)
             if self._keys.get("scans") != key:
                 self._replace("scans", [])
@@ -136,22 +144,22 @@ class Drawer:
                 if h is not None:
                     h.visible = s.name not in view.hidden_scans and scans_shown(view)
             # The current stage's layer; the others are hidden (the scans stay).
-            stage = APP_STAGES[view.stage]
-            fn, fields = RENDERERS[stage.index]
-            out = snap.output(stage.pipeline_stage)
-            key = (id(out), id(prep), snap.running == stage.pipeline_stage, len(snap.scans),
+            name = view.stage
+            fields = RENDERERS.get(name, _GENERIC).view_fields
+            # Drawn anew when its output or an earlier one (its inputs, the poses it draws at) changed,
+            # or a view choice it uses.
+            upto = STAGE_NAMES[: STAGE_NAMES.index(name) + 1]
+            key = (tuple(id(snap.outputs.get(n)) for n in upto), snap.running == name, len(snap.scans),
                    tuple(getattr(view, f) for f in fields))
-            name = f"stage{stage.index}"
-            if self._keys.get(name) != key or self._keys.get("panel") != stage.index:
-                root = f"/stage{stage.index}"
+            if self._keys.get(name) != key or self._keys.get("panel") != name:
                 self._replace(name, [])
-                handles, content = fn(scene, root, snap, view)
+                handles, content = render_stage(scene, f"/{name}", snap, view)
                 self._handles[name] = handles
                 self._keys[name] = key
                 self.panel.show(content)
-                self._keys["panel"] = stage.index
+                self._keys["panel"] = name
             for k, g in self._groups.items():
-                g.visible = k == stage.index
+                g.visible = k == name
 
     def _replace(self, layer: str, handles: list[Any]) -> None:
         # Remove the old nodes first: a new node may reuse an old name.

@@ -1,8 +1,8 @@
 """Exports of the latest result: the same files `treereg register` writes, plus the merged cloud.
 
 `export_bundle(snapshot)` makes every file in memory (for browser downloads); `write_bundle` puts
-them in a folder (`treereg view --out DIR`). The file contents come from treereg_core.transform_io
-and treereg_core.io, so the app and the command line export identical files.
+them in a folder (`treereg view --out DIR`). The file contents come from treereg_core.io (the
+same builder of transforms.json as `treereg register`), so the app and the command line export identical files.
 """
 
 from __future__ import annotations
@@ -17,9 +17,10 @@ from pathlib import Path
 import numpy as np
 
 from treereg_core import params as P
-from treereg_core.io import write_scan
-from treereg_core.rigid import apply_transform
-from treereg_core.transform_io import TransformFile, write_exports
+from treereg_core.geometry.rigid import apply_transform
+from treereg_core.io.atomic import write_bytes_atomic
+from treereg_core.io.scans import write_scan
+from treereg_core.io.transforms import TransformFile, registration_file, write_exports
 
 from .controller import Snapshot
 
@@ -46,11 +47,9 @@ def transform_file(snap: Snapshot) -> tuple[TransformFile, str]:
         raise ExportError("Nothing to export yet: no scan has been registered (run the pipeline up to the "
                           "coarse stage at least; a failed pair has no transform).")
     transforms = {name: np.asarray(T, dtype=np.float64) for name, T in snap.transforms.items()}
-    extra = {"stage": stage, "metrics": {k: v for k, v in snap.pair_metrics.items()}}
-    missing = [s.name for s in snap.scans[1:] if s.name not in snap.transforms]
-    if missing:
-        extra["unregistered"] = missing
-    tf = TransformFile(reference=snap.scans[0].name, transforms=transforms, params=P.to_dict(snap.params), extra=extra)
+    sources = {s.name: str(s.source.resolve()) for s in snap.scans if s.source is not None and s.source.is_absolute()}
+    tf = registration_file(snap.scans, transforms, snap.params, stage=stage, metrics=dict(snap.pair_metrics),
+                           sources=sources or None)
     return tf, stage
 
 
@@ -79,16 +78,7 @@ def export_bundle(snap: Snapshot, cloud_format: str = "ply") -> ExportBundle:
 
 def write_bundle(bundle: ExportBundle, out_dir: Path) -> list[Path]:
     """Write every file of `bundle` into `out_dir` (atomically each)."""
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    written = []
-    for name, data in bundle.files.items():
-        path = out_dir / name
-        tmp = path.with_name(f".{name}.tmp")
-        tmp.write_bytes(data)
-        tmp.replace(path)
-        written.append(path)
-    return written
+    return [write_bytes_atomic(Path(out_dir) / name, data) for name, data in bundle.files.items()]
 
 
 def zip_bundle(bundle: ExportBundle) -> bytes:

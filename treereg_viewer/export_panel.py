@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import viser
 
@@ -12,17 +12,15 @@ from treereg_core import params as P
 from treereg_core.errors import ConfigError, ScanError
 
 from . import export
+from .actions import AppActions
 from .checks import stage_warnings
 from .presets import ABOUT_SHORT, preset_note
-
-if TYPE_CHECKING:
-    from .app import TreeregApp
 
 log = logging.getLogger(__name__)
 
 
 class ExportPanel:
-    def __init__(self, gui: viser.GuiApi, app: "TreeregApp") -> None:
+    def __init__(self, gui: viser.GuiApi, app: AppActions) -> None:
         self.app = app
         with gui.add_folder("Export"):
             where = f" They are also written to `{app.out_dir}`." if app.out_dir else ""

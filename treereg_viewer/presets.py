@@ -20,7 +20,7 @@ def _about_robust(p: P.Params) -> str:
         f"{p.matching.n_pairs} image pairs with up to {p.matching.matches_per_pair} matches each, "
         f"{p.coarse.estimator.upper()} ({p.coarse.dof} DOF{', then a full refit' if p.coarse.refit_6dof else ''}) "
         f"for the coarse transform, {len(p.slicing.quantiles)} slices, and a fine update"
-        f"{' that is kept only when it improves the alignment' if p.fine.accept_test else ''}."
+        f"{' that is kept only when it improves the alignment' if p.acceptance.test else ''}."
     )
 
 
@@ -32,7 +32,7 @@ def _about_paper(p: P.Params) -> str:
         f"{', checked by β' if p.matching.beta_check else ''}, one {p.coarse.estimator.upper()} over all "
         f"{p.matching.n_pairs * p.matching.matches_per_pair} or fewer tie points ({p.coarse.dof} DOF), "
         f"{len(p.slicing.quantiles)} slices, {p.fine.max_iterations} fine iteration(s)"
-        f"{'' if p.fine.accept_test else ' without an acceptance test'}.\n\n"
+        f"{'' if p.acceptance.test else ' without an acceptance test'}.\n\n"
         "**Why it often fails:** with so few tie points a few wrong matches, unavoidable on binary images "
         "(paper 4.1), pull the SVD far off; nothing rejects them, so a scan can come out rotated or even "
         "upside down, and the fine stage, which needs a close start, cannot repair it. Ground left in the "

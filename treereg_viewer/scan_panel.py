@@ -2,22 +2,20 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import viser
 
+from .actions import AppActions
 from .controller import Snapshot
 from .palette import scan_color
-
-if TYPE_CHECKING:
-    from .app import TreeregApp
 
 #: File types treereg_core.io reads (the upload dialog's filter is only a hint: anything may come).
 SCAN_SUFFIXES = ".ply,.las,.laz,.xyz,.txt,.csv,.npy,.npz"
 
 
 class ScanPanel:
-    def __init__(self, gui: viser.GuiApi, app: "TreeregApp") -> None:
+    def __init__(self, gui: viser.GuiApi, app: AppActions) -> None:
         self.app = app
         self.gui = gui
         v = app.view

@@ -6,19 +6,17 @@ Only the current stage's folder is visible, so the panel reads like a page of a 
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import viser
 
-from treereg_core.pipeline import STAGES
+from treereg_core.stages import stage as core_stage
 
+from .actions import AppActions
+from .checks import stage_warnings
 from .controller import Snapshot
 from .param_widgets import SectionWidgets
-from .checks import stage_warnings
-from .stages import APP_STAGES, FIRST_APP_STAGE, AppStage, stage_by_label
-
-if TYPE_CHECKING:
-    from .app import TreeregApp
+from .stages import STAGE_NAMES, by_label, label, view_of
 
 _STATUS_ICON = {"done": "✓", "failed": "✗", "stale": "○", "running": "…"}
 
@@ -26,11 +24,11 @@ _STATUS_ICON = {"done": "✓", "failed": "✗", "stale": "○", "running": "…"
 class StagePanel:
     """Navigation, run controls and the per-stage folders."""
 
-    def __init__(self, gui: viser.GuiApi, app: "TreeregApp") -> None:
+    def __init__(self, gui: viser.GuiApi, app: AppActions) -> None:
         self.app = app
         self.gui = gui
         self.status_md = gui.add_markdown("")
-        self.selector = gui.add_dropdown("Stage", [s.label for s in APP_STAGES], initial_value=APP_STAGES[0].label,
+        self.selector = gui.add_dropdown("Stage", [label(n) for n in STAGE_NAMES], initial_value=label(STAGE_NAMES[0]),
                                          hint="Pick a stage; its layers are shown, the others hidden (scans stay).")
         self.step = gui.add_button_group("Step", ("Previous", "Next"))
         self.run_button = gui.add_button("Run", icon=viser.Icon.PLAYER_PLAY, color="green",
@@ -43,12 +41,12 @@ class StagePanel:
         self.progress = gui.add_progress_bar(0.0, animated=False)
         self.progress_text = gui.add_markdown("")
         self.message_md = gui.add_markdown("")
-        self.selector.on_update(lambda _: app.select_stage(stage_by_label(self.selector.value).index))
+        self.selector.on_update(lambda _: app.select_stage(by_label(self.selector.value)))
         self.step.on_click(lambda e: app.step_stage(-1 if e.target.value == "Previous" else 1))
         self.run_button.on_click(lambda _: app.run_current())
 
         # Folders, filled by `build_folders` inside the "Stage" tab.
-        self.folders: dict[int, Any] = {}
+        self.folders: dict[str, Any] = {}
         self.sections: dict[str, SectionWidgets] = {}
         self.view_controls: dict[str, Any] = {}
 
@@ -56,68 +54,70 @@ class StagePanel:
         """One folder per stage: explanation, view controls, then its parameter sections."""
         app = self.app
         params = app.controller.params
-        for stage in APP_STAGES:
-            folder = gui.add_folder(stage.label, visible=stage.index == 0)
-            self.folders[stage.index] = folder
+        for name in STAGE_NAMES:
+            folder = gui.add_folder(label(name), visible=name == STAGE_NAMES[0])
+            self.folders[name] = folder
             with folder:
-                gui.add_markdown(stage.explanation)
-                self._view_controls(gui, stage)
-                for section in stage.sections:
+                gui.add_markdown(view_of(name).explanation or core_stage(name).summary)
+                self._view_controls(gui, name)
+                for section in core_stage(name).sections:
+                    if section in self.sections:  # a section read by several stages is edited where it belongs
+                        continue
                     with gui.add_folder(f"Parameters: {section}", expand_by_default=True):
                         self.sections[section] = SectionWidgets(gui, section, params, app.on_param_change)
 
-    def _view_controls(self, gui: viser.GuiApi, stage: AppStage) -> None:
+    def _view_controls(self, gui: viser.GuiApi, name: str) -> None:
         app, c = self.app, self.view_controls
-        if stage.index == 1:
+        wanted = view_of(name).controls
+        if "projection_step" in wanted:
             c["projection_step"] = gui.add_slider("Rotation step", 0, 1, 1, 0,
                                                   hint="Walk the rotation sequence (index; the angle is shown in the panel).")
             c["projection_step"].on_update(lambda _: app.set_view(projection_step=int(c["projection_step"].value)))
             c["projection_3d"] = gui.add_checkbox("Show rotated clouds in 3-D", False)
             c["projection_3d"].on_update(lambda _: app.set_view(projection_3d=bool(c["projection_3d"].value)))
-        if stage.index in (2, 3, 4, 5, 6, 7):
-            key = f"target{stage.index}"
+        if "target" in wanted:
+            key = f"target_{name}"
             c[key] = gui.add_dropdown("Pair", ["scan2 → scan1"], hint="Which target scan the panel details.")
             c[key].on_update(lambda _, key=key: app.select_target(c[key].value))
-        if stage.index == 2:
+        if "match_pair" in wanted:
             c["match_pair"] = gui.add_slider("Image pair", 0, 1, 1, 0, hint="Which chosen image pair's ORB matches to show.")
             c["match_pair"].on_update(lambda _: app.set_view(match_pair=int(c["match_pair"].value)))
-        if stage.index == 7:
+        if "show_icp" in wanted:
             c["show_icp"] = gui.add_checkbox("Show ICP pose instead of fine", False)
             c["show_icp"].on_update(lambda _: app.set_view(show_icp=bool(c["show_icp"].value)))
 
     # ---- updates from the app ------------------------------------------------------------------
-    def show_stage(self, index: int) -> None:
-        label = APP_STAGES[index].label
-        if self.selector.value != label:
-            self.selector.value = label
+    def show_stage(self, name: str) -> None:
+        text = label(name)
+        if self.selector.value != text:
+            self.selector.value = text
         for k, f in self.folders.items():
-            f.visible = k == index
+            f.visible = k == name
 
-    def show_snapshot(self, snap: Snapshot, stage_index: int) -> None:
+    def show_snapshot(self, snap: Snapshot, current: str) -> None:
         """Status line per stage, message, Run button state, view-control ranges."""
         warned = stage_warnings(snap) if not snap.busy else {}
         parts = []
-        for s in APP_STAGES:
-            st = snap.status(s.pipeline_stage)
+        for name in STAGE_NAMES:
             # Done but implausible (e.g. an SVD transform that turns a scan upside down): not a ✓.
-            mark = "⚠" if s.pipeline_stage in warned and FIRST_APP_STAGE[s.pipeline_stage] is s else _STATUS_ICON[st]
-            name = f"**{s.index} {s.title}**" if s.index == stage_index else f"{s.index} {s.title}"
-            parts.append(f"{mark} {name}")
+            mark = "⚠" if name in warned else _STATUS_ICON[snap.status(name)]
+            text = f"**{label(name)}**" if name == current else label(name)
+            parts.append(f"{mark} {text}")
         self.status_md.content = " · ".join(parts)
         self.run_button.disabled = snap.busy
         lines = []
         if snap.message:
             lines.append(f"**⚠ {snap.message}**" if snap.error else snap.message)
         elif not snap.busy:
-            failed = [s for s in STAGES if snap.status(s) == "failed"]
+            failed = [s for s in STAGE_NAMES if snap.status(s) == "failed"]
             if failed:
                 why = snap.crashed.get(failed[0]) or snap.outputs[failed[0]].message
-                lines.append(f"**⚠ {failed[0]} failed:** {why}")
+                lines.append(f"**⚠ {label(failed[0])} failed:** {why}")
         lines += [f"**⚠** {w}" for ws in warned.values() for w in ws]
         self.message_md.content = "\n\n".join(lines)
         if not snap.busy:
             # At rest the bar shows how much of the pipeline is up to date (a failure stops it there).
-            self.progress.value = 100.0 * sum(snap.status(s) == "done" for s in STAGES) / len(STAGES)
+            self.progress.value = 100.0 * sum(snap.status(s) == "done" for s in STAGE_NAMES) / len(STAGE_NAMES)
             self.progress.animated = False
         else:
             self.progress.animated = True

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 class ViewState:
     """Display choices shared by every browser tab."""
 
-    stage: int = 0
+    stage: str = "prepare"  # a pipeline stage name
     point_size: float = 0.04
     max_points: int = 40_000  # per scan, for display only
     hidden_scans: frozenset[str] = field(default_factory=frozenset)

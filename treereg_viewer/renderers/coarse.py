@@ -1,4 +1,4 @@
-"""Stage 3: coarse.CoarseResult — the target moved by its coarse transform, tie residuals.
+"""The Coarse stage: CoarseResult — the target moved by its coarse transform, tie residuals.
 
 The scan layer already shows every target at its coarse pose on this stage. Here: the chosen
 target's tie pairs after the transform, inliers green and outliers grey, and a histogram of the
@@ -13,13 +13,13 @@ import numpy as np
 import plotly.graph_objects as go
 import viser
 
-from treereg_core.rigid import apply_transform
+from treereg_core.geometry.rigid import apply_transform
 
 from ..controller import Snapshot
 from ..palette import KEPT, REJECTED, hex_color
 from ..view_panel import PanelContent
 from ..view_state import ViewState
-from .common import item_message, metrics_table, not_ready_text, pair_label
+from .common import item_message, metrics_table, pair_label, target_index, title
 
 
 def inlier_threshold(c: Any, p: Any) -> float:
@@ -66,13 +66,11 @@ def residual_figure(c: Any, threshold_m: float) -> go.Figure:
     return fig
 
 
-def render_coarse(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> tuple[list[Any], PanelContent]:
+def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> tuple[list[Any], PanelContent]:
     out = snap.output("coarse")
-    if out is None or not out.items:
-        return [], PanelContent("3 · Coarse", text=not_ready_text(snap, "coarse"))
-    t = min(view.target, len(out.items) - 1)
+    t = target_index(snap, "coarse", view)
     c = out.items[t]
-    match = c.match if c.match is not None else (snap.output("matching").items[t] if snap.output("matching") else None)
+    match = c.match
     handles: list[Any] = []
     plots = []
     text = item_message(c) or (
@@ -91,4 +89,7 @@ def render_coarse(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewSt
                                              point_shape="circle", precision="float32"))
         plots.append((residual_figure(c, inlier_threshold(c, snap.params.coarse)), 1.6))
     table = metrics_table({pair_label(snap, i): it.metrics for i, it in enumerate(out.items)})
-    return handles, PanelContent(f"3 · Coarse: {pair_label(snap, t)}", text=text, plots=tuple(plots), table=table)
+    return handles, PanelContent(title("coarse", snap, t), text=text, plots=tuple(plots), table=table)
+
+
+VIEW_FIELDS = ("target",)

@@ -8,8 +8,11 @@ import numpy as np
 import viser.transforms as vtf
 
 from treereg_core.results import Metric
+from treereg_core.stages import stage
 
 from ..controller import Snapshot
+from ..stages import label
+from ..view_state import ViewState
 
 
 def display_subset(n: int, max_points: int, seed: int = 0) -> np.ndarray:
@@ -55,24 +58,37 @@ def metrics_table(columns: dict[str, Iterable[Metric]]) -> str:
     return md_table(("metric", *cols.keys()), rows)
 
 
+def target_index(snap: Snapshot, name: str, view: ViewState) -> int:
+    """The view's target pair, clamped to the items stage `name` has."""
+    out = snap.output(name)
+    n = len(out.items) if out is not None else 0
+    return int(min(max(view.target, 0), max(n - 1, 0)))
+
+
+def title(name: str, snap: Snapshot | None = None, t: int | None = None) -> str:
+    """A panel heading: '4 Coarse', or '4 Coarse: scan2 → scan1' for a target pair."""
+    head = label(name)
+    return head if snap is None or t is None else f"{head}: {pair_label(snap, t)}"
+
+
 def pair_label(snap: Snapshot, target_index: int) -> str:
     """'scan2 → scan1' for target number `target_index` (0 = second scan)."""
     return f"{snap.scans[target_index + 1].name} → {snap.scans[0].name}"
 
 
-def not_ready_text(snap: Snapshot, stage: str) -> str:
+def not_ready_text(snap: Snapshot, name: str) -> str:
     """What the panel says when a stage has nothing to show."""
-    status = snap.status(stage)
+    status = snap.status(name)
     if status == "running":
-        return f"*{stage} is running…*"
+        return f"*{label(name)} is running…*"
     if len(snap.scans) < 2:
         return "*Registration needs at least two scans: upload another scan (Scans tab).*"
     for s, why in snap.crashed.items():
-        return f"**{s} failed:** {why}\n\nLater stages are stale until it succeeds."
+        return f"**{label(s)} failed:** {why}\n\nLater stages are stale until it succeeds."
     for s, out in snap.outputs.items():
         if not out.ok:
-            return f"**{s} failed:** {out.message}\n\nLater stages are stale until it succeeds."
-    return f"*{stage} has not run for the current scans and parameters: press **Run**.*"
+            return f"**{label(s)} failed:** {out.message}\n\nLater stages are stale until it succeeds."
+    return f"*{label(name)} has not run for the current scans and parameters: press **Run**.*"
 
 
 def item_message(item: Any) -> str:
@@ -80,3 +96,13 @@ def item_message(item: Any) -> str:
     if getattr(item, "ok", True):
         return ""
     return f"**Failed:** {getattr(item, 'message', '')}"
+
+
+def render_metrics(scene: Any, root: str, snap: Snapshot, view: ViewState) -> tuple[list[Any], Any]:
+    """The drawing of a stage the app has no renderer for: its items' metrics side by side."""
+    from ..view_panel import PanelContent
+
+    out = snap.output(view.stage)
+    st = stage(view.stage)
+    names = [s.name for s in snap.scans] if st.per == "scan" else [pair_label(snap, k) for k in range(len(out.items))]
+    return [], PanelContent(title(view.stage), text=st.summary, table=metrics_table(dict(zip(names, (it.metrics for it in out.items)))))

@@ -1,4 +1,4 @@
-"""Stage 2: coarse.MatchResult — similarity matrix, ORB matches of a chosen image pair, tie points.
+"""The Matching stage: MatchResult — similarity matrix, ORB matches of a chosen image pair, tie points.
 
 The panel shows the similarity matrix of the reference's and the target's image sequences as a
 heatmap with the chosen pairs marked (the current one highlighted), and the current pair's two
@@ -20,7 +20,7 @@ from ..drawing import binary_to_rgb, display_xy, draw_lines, draw_markers, fit_f
 from ..palette import HIGHLIGHT, KEPT, REJECTED, scan_color
 from ..view_panel import PanelContent
 from ..view_state import ViewState
-from .common import item_message, metrics_table, not_ready_text, pair_label
+from .common import item_message, metrics_table, pair_label, target_index, title
 
 
 def similarity_figure(match: Any, angles_ref: tuple[float, ...], angles_tgt: tuple[float, ...], current: int,
@@ -70,15 +70,13 @@ def matches_image(pair: Any, img_ref: np.ndarray, img_tgt: np.ndarray, color_ref
     return fit_width(canvas)
 
 
-def render_matching(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> tuple[list[Any], PanelContent]:
+def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> tuple[list[Any], PanelContent]:
     out, seqs = snap.output("matching"), snap.output("projection")
-    if out is None or seqs is None or not out.items:
-        return [], PanelContent("2 · Matching", text=not_ready_text(snap, "matching"))
-    t = min(view.target, len(out.items) - 1)
+    t = target_index(snap, "matching", view)
     m = out.items[t]
     ref_name, tgt_name = snap.scans[0].name, snap.scans[t + 1].name
     seq_ref, seq_tgt = seqs.items[0], seqs.items[t + 1]
-    title = f"2 · Matching: {pair_label(snap, t)}"
+    heading = title("matching", snap, t)
     texts = [item_message(m)] if not m.ok else []
     images, plots = [], []
     if getattr(m, "similarity", None) is not None and np.size(m.similarity):
@@ -109,5 +107,8 @@ def render_matching(scene: viser.SceneApi, root: str, snap: Snapshot, view: View
             handles.append(scene.add_point_cloud(f"{root}/ties_tgt", tgt_xyz, scan_color(t + 1), point_size=0.06,
                                                  point_shape="circle", precision="float32"))
     table = metrics_table({pair_label(snap, i): it.metrics for i, it in enumerate(out.items)})
-    return handles, PanelContent(title, text="\n\n".join(x for x in texts if x), images=tuple(images),
+    return handles, PanelContent(heading, text="\n\n".join(x for x in texts if x), images=tuple(images),
                                  plots=tuple(plots), table=table)
+
+
+VIEW_FIELDS = ("target", "match_pair")

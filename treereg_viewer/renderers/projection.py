@@ -1,4 +1,4 @@
-"""Stage 1: sequences.ImageSequence — every scan's binary image at one step of its rotation.
+"""The Projection stage: ImageSequence — every scan's binary image at one step of its rotation.
 
 The panel shows all scans' images at the chosen step, one under the other in the scans' colours.
 In 3-D, optionally, each prepared cloud rotated as it was for that image (a pose on its node: the
@@ -12,14 +12,14 @@ from typing import Any
 import numpy as np
 import viser
 
-from treereg_core.rigid import make_transform, rotation_z
+from treereg_core.geometry.rigid import make_transform, rotation_z
 
 from ..controller import Snapshot
 from ..drawing import binary_to_rgb, fit_factor, fit_width, hstack, upscale, vstack
 from ..palette import scan_color
 from ..view_panel import PanelContent
 from ..view_state import ViewState
-from .common import display_subset, metrics_table, not_ready_text, pose_kwargs
+from .common import display_subset, metrics_table, pose_kwargs, title
 
 
 def sequence_pose(seq: Any, k: int) -> np.ndarray:
@@ -34,11 +34,8 @@ def step_index(seq: Any, step: int) -> int:
     return int(np.clip(step, 0, len(seq.angles_deg) - 1))
 
 
-def render_projection(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> tuple[list[Any], PanelContent]:
-    out = snap.output("projection")
-    if out is None or not out.items:
-        return [], PanelContent("1 · Projection", text=not_ready_text(snap, "projection"))
-    seqs = out.items
+def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> tuple[list[Any], PanelContent]:
+    seqs = snap.output("projection").items
     tiles, names = [], []
     handles: list[Any] = []
     prepared = snap.output("prepare")
@@ -80,4 +77,8 @@ def render_projection(scene: viser.SceneApi, root: str, snap: Snapshot, view: Vi
     if bad:
         text += "\n\n" + "\n\n".join(bad)
     table = metrics_table({s.scan_name: s.metrics for s in seqs})
-    return handles, PanelContent("1 · Projection", text=text, images=tuple(images), table=table)
+    return handles, PanelContent(title("projection"), text=text, images=tuple(images), table=table)
+
+
+#: The view choices this drawing depends on (it is redrawn when one of them changes).
+VIEW_FIELDS = ("projection_step", "projection_3d", "point_size", "max_points")

@@ -1,4 +1,4 @@
-"""Stage 7: pipeline.PairReport (evaluation.EvaluationResult for coarse, fine and ICP, icp.IcpResult).
+"""The Result stage: PairReport (an EvaluationResult each for coarse, fine and ICP)
 
 The scan layer shows the final overlay (fine, or ICP when chosen). The panel: per target, the
 paper's evaluation (mean branch-centre distance d̄, eq. 8) for coarse, fine and ICP side by side,
@@ -19,18 +19,10 @@ from ..controller import Snapshot
 from ..palette import scan_color
 from ..view_panel import PanelContent
 from ..view_state import ViewState
-from .common import md_table, metrics_table, not_ready_text, pair_label
+from .common import md_table, metrics_table, pair_label, target_index, title
 
 #: Colours of the three registrations in plots (coarse, fine, ICP).
 METHOD_COLORS = {"coarse": "#9e9e9e", "fine": "#1e8c3c", "ICP": "#3050c8"}
-
-
-def _evaluations(report: Any) -> dict[str, Any]:
-    """{'coarse': ev, 'fine': ev, 'ICP': ev} for what the report holds."""
-    out = {"coarse": report.coarse, "fine": report.fine}
-    if getattr(report, "icp_eval", None) is not None:
-        out["ICP"] = report.icp_eval
-    return {k: v for k, v in out.items() if v is not None}
 
 
 def branch_rows(ev: Any) -> list[Any]:
@@ -79,20 +71,18 @@ def _branch_lines(scene: viser.SceneApi, root: str, ev: Any, color: tuple[int, i
     ]
 
 
-def render_result(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> tuple[list[Any], PanelContent]:
+def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> tuple[list[Any], PanelContent]:
     out = snap.output("evaluation")
-    if out is None or not out.items:
-        return [], PanelContent("7 · Result", text=not_ready_text(snap, "evaluation"))
-    t = min(view.target, len(out.items) - 1)
+    t = target_index(snap, "evaluation", view)
     report = out.items[t]
-    evs = _evaluations(report)
-    pose = "ICP" if view.show_icp and getattr(report, "icp", None) is not None else "fine"
+    evs = report.by_method()
+    pose = "ICP" if view.show_icp and report.icp is not None else "fine"
     text = f"Targets shown at their **{pose}** pose. "
     fine = snap.output("fine")
     notes = []
     if fine is not None:
         for k, f in enumerate(fine.items):
-            if not f.accepted and f.message:
+            if f.ok and not f.accepted and f.message:
                 notes.append(f"{pair_label(snap, k)}: {f.message}.")
     if snap.truth:
         text += "Errors against truth come from the case's `truth.json`."
@@ -118,7 +108,9 @@ def render_result(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewSt
     # One column per registration of each target: the paper's Table 2 layout.
     columns = {}
     for k, rep in enumerate(out.items):
-        for label, ev in _evaluations(rep).items():
+        if not rep.ok:
+            continue
+        for label, ev in rep.by_method().items():
             columns[f"{rep.target} {label}"] = ev.metrics
     table = metrics_table(columns)
     rows = []
@@ -128,6 +120,9 @@ def render_result(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewSt
             rows.append((label, b.index + 1, f"{b.height_m:.2f}", f"{b.radius_m * 100:.1f}", d, f"{b.mean_m * 100:.2f}"))
     if rows:
         table += "\n\n" + md_table(("registration", "branch", "height (m)", "radius (cm)", "d₁…dₙ (cm)", "d̄ (cm)"), rows)
-    shown = report.icp_eval if pose == "ICP" else report.fine
+    shown = report.icp if pose == "ICP" else report.fine
     handles = _branch_lines(scene, root, shown, scan_color(t + 1)) if shown is not None else []
-    return handles, PanelContent(f"7 · Result: {pair_label(snap, t)}", text=text, plots=tuple(plots), table=table)
+    return handles, PanelContent(title("evaluation", snap, t), text=text, plots=tuple(plots), table=table)
+
+
+VIEW_FIELDS = ("target", "show_icp")

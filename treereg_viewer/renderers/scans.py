@@ -1,4 +1,4 @@
-"""The scan layer (always shown) and stage 0's panel: scans.Scan and ground.PreparedScan.
+"""The scan layer (always shown) and the Scans stage's panel: Scan and PreparedScan.
 
 Each scan hangs under its own frame node `/scans/s<i>` whose pose is the scan's transform for the
 current stage (identity before coarse, then the coarse, fine or ICP `T_ref_scan`): moving a scan is
@@ -14,9 +14,10 @@ import viser
 
 from ..controller import Snapshot
 from ..palette import GREY, scan_color
+from ..stages import view_of
 from ..view_panel import PanelContent
 from ..view_state import ViewState
-from .common import display_subset, md_table, not_ready_text, pose_kwargs
+from .common import display_subset, md_table, not_ready_text, pose_kwargs, title
 
 #: Points a stage removed (ground, crop) are drawn lighter than kept points.
 CROPPED = (205, 205, 205)
@@ -31,40 +32,40 @@ def station_label_height(i: int) -> float:
     return 1.3 + 0.5 * i
 
 
-def scan_poses(snap: Snapshot, view: ViewState) -> list[np.ndarray]:
-    """The pose of every scan for the current stage: its `T_ref_scan`, or identity.
+def target_pose(snap: Snapshot, pose: str | None, k: int) -> np.ndarray | None:
+    """Pair `k`'s transform for a view's `pose` ("coarse", "fine", "icp"), falling back to the
+    best earlier one that succeeded; None before registration or when none did."""
+    order = {"coarse": ("coarse",), "fine": ("fine", "coarse"), "icp": ("icp", "fine", "coarse")}.get(pose or "", ())
+    for name in order:
+        out = snap.output(name)
+        item = out.items[k] if out is not None and k < len(out.items) else None
+        if item is not None and item.ok and getattr(item, "ran", True):
+            return np.asarray(item.T_ref_target, dtype=np.float64)
+    return None
 
-    Stages 0-2 show each scan in its own scanner frame (before registration); 3 the coarse result;
-    4-6 the pose the fine stage drew its slices, arcs and fits at (its final transform); 7 the
-    final transform (or ICP's, when chosen).
-    """
-    n = len(snap.scans)
-    poses = [np.eye(4) for _ in range(n)]
-    if view.stage < 3:
-        return poses
-    coarse, fine, ev = snap.output("coarse"), snap.output("fine"), snap.output("evaluation")
-    for k in range(1, n):
-        T = None
-        if coarse is not None and k - 1 < len(coarse.items) and coarse.items[k - 1].ok:
-            T = coarse.items[k - 1].T_ref_target
-        if view.stage >= 4:
-            if view.stage == 7 and view.show_icp and ev is not None and k - 1 < len(ev.items) and getattr(ev.items[k - 1], "icp", None):
-                T = ev.items[k - 1].icp.T
-            elif fine is not None and k - 1 < len(fine.items):
-                T = fine.items[k - 1].T_ref_tgt
+
+def scan_poses(snap: Snapshot, view: ViewState) -> list[np.ndarray]:
+    """The pose of every scan on the current stage: its `T_ref_scan` for the stage's pose (see
+    `stages.StageView.pose`), or the identity (each scan in its own scanner frame)."""
+    pose = view_of(view.stage).pose
+    if view.stage == "evaluation" and view.show_icp:
+        pose = "icp"
+    poses = [np.eye(4) for _ in snap.scans]
+    for k in range(1, len(snap.scans)):
+        T = target_pose(snap, pose, k - 1)
         if T is not None:
-            poses[k] = np.asarray(T, dtype=np.float64)
+            poses[k] = T
     return poses
 
 
 def context_only(view: ViewState) -> bool:
     """Stages whose own drawings (slices, arcs) matter more than the scans: scans fade to a tint."""
-    return view.stage in (4, 5)
+    return view_of(view.stage).scans == "faded"
 
 
 def scans_shown(view: ViewState) -> bool:
-    """The Fits stage hides the scans: points on a fitted surface would hide the surface."""
-    return view.stage != 6
+    """Stages that draw fitted surfaces hide the scans: points on a surface would hide it."""
+    return view_of(view.stage).scans != "hidden"
 
 
 def draw_scan_layer(scene: viser.SceneApi, snap: Snapshot, view: ViewState) -> list[Any]:
@@ -76,8 +77,8 @@ def draw_scan_layer(scene: viser.SceneApi, snap: Snapshot, view: ViewState) -> l
         color = np.array(scan_color(i), dtype=np.uint8)
         if context_only(view):  # slices, arcs and fits are the subject: the scans fade to a tint
             color = (0.3 * color + 0.7 * 255).astype(np.uint8)
-        if view.stage == 0 or prep is None or not getattr(prep, "ok", False):
-            # Stage 0 shows what was measured, with what preparation removes in grey.
+        if view.stage == "prepare" or prep is None or not getattr(prep, "ok", False):
+            # The Scans stage shows what was measured, with what preparation removes in grey.
             pts = scan.points
             idx = display_subset(len(pts), view.max_points, seed=i)
             colors = np.broadcast_to(color, (len(idx), 3)).copy()
@@ -115,8 +116,8 @@ def apply_poses(handles: dict[int, Any], poses: list[np.ndarray]) -> None:
             h.wxyz, h.position = kw["wxyz"], kw["position"]
 
 
-def render_scans_stage(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> tuple[list[Any], PanelContent]:
-    """Stage 0's panel: a table of the scans and what preparation kept."""
+def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> tuple[list[Any], PanelContent]:
+    """The Scans stage's panel: a table of the scans and what preparation kept."""
     prepared = snap.output("prepare")
     rows = []
     for i, scan in enumerate(snap.scans):
@@ -132,14 +133,15 @@ def render_scans_stage(scene: viser.SceneApi, root: str, snap: Snapshot, view: V
             f"{phi:.3g} / {vphi:.3g}{' (est.)' if scan.step_estimated else ''}", kept, ground,
         ))
     table = md_table(("#", "scan", "points", "φ / ϕ (deg)", "kept", "ground"), rows)
-    text = ""
-    if prepared is None:
-        text = not_ready_text(snap, "prepare") if len(snap.scans) >= 2 else (
-            "*Registration needs at least two scans: upload another scan (Scans tab).*")
-    else:
+    text = not_ready_text(snap, "prepare")
+    if prepared is not None:
         bad = [f"**{snap.scans[i].name}:** {it.message}" for i, it in enumerate(prepared.items) if not it.ok]
         notes = [f"{snap.scans[i].name}: {it.message}" for i, it in enumerate(prepared.items) if it.ok and it.message]
         text = "\n\n".join(bad + notes) or "Grey points were removed as ground; light grey were cropped."
     if snap.truth:
         text += "\n\nTruth is known for this case (`truth.json`): the Result stage reports errors against it."
-    return [], PanelContent("0 · Scans", text=text, table=table)
+    return [], PanelContent(title("prepare"), text=text, table=table)
+
+
+#: Drawn even before the stage has run: the table of scans is the first thing a user needs.
+NEEDS_OUTPUT = False

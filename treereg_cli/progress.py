@@ -1,0 +1,31 @@
+"""A one-line text progress bar on stderr (a `Progress` callback for long commands)."""
+
+from __future__ import annotations
+
+import sys
+import time
+
+
+class ProgressBar:
+    """A one-line text progress bar on stderr; usable as a `Progress` callback."""
+
+    def __init__(self, label: str, stream=None, width: int = 30) -> None:
+        self.label = label
+        self.stream = stream if stream is not None else sys.stderr
+        self.width = width
+        self.t0 = time.perf_counter()
+        self._last = -1.0
+
+    def __call__(self, fraction: float, text: str = "") -> None:
+        fraction = min(max(float(fraction), 0.0), 1.0)
+        now = time.perf_counter()
+        if fraction < 1.0 and now - self._last < 0.1:
+            return
+        self._last = now
+        n = int(round(fraction * self.width))
+        bar = "#" * n + "-" * (self.width - n)
+        line = f"\r{self.label} [{bar}] {fraction * 100:5.1f}% {now - self.t0:6.1f}s {text[:40]:<40}"
+        self.stream.write(line)
+        if fraction >= 1.0:
+            self.stream.write("\n")
+        self.stream.flush()

@@ -1,0 +1,214 @@
+"""Matching a target's image sequence against the reference's (paper 2.1.3-2.1.4 and 4.1).
+
+The similarity matrix of the two sequences, the most similar image pairs, ORB matches on each, the
+beta check (4.1), and 3-D tie points (the centroid of each matched pixel's points, 2.1.4).
+
+ORB runs once per image, not once per pair: keypoints of a sequence's images are cached with the
+sequence (weakly, they go when the sequence goes), so a reference matched against several targets
+is described once.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+import weakref
+from dataclasses import dataclass, fields
+
+import numpy as np
+
+from ..params import MatchingParams
+from ..results import Metric, Progress, no_progress
+from ..scan import Scan
+from . import features, similarity
+from .features import ImageFeatures
+from .sequences import ImageSequence
+from .tiepoints import pixel_centroids
+
+#: Fewest tie points for which a transform is attempted at all.
+MIN_TIES_ANY = 3
+
+_FEATURE_FIELDS = ("image_mode", "ramp_px", "orb_nfeatures", "orb_edge_threshold", "orb_patch_size",
+                   "orb_fast_threshold", "snap_px")
+_feature_cache: "weakref.WeakKeyDictionary[ImageSequence, dict]" = weakref.WeakKeyDictionary()
+_feature_lock = threading.Lock()
+
+
+def sequence_features(seq: ImageSequence, index: int, p: MatchingParams) -> ImageFeatures:
+    """ORB features of image `index` of `seq`, computed once per (sequence, image, feature parameters)."""
+    key = (index,) + tuple(getattr(p, f) for f in _FEATURE_FIELDS)
+    with _feature_lock:
+        found = _feature_cache.get(seq, {}).get(key)
+    if found is None:
+        # Detect outside the lock (it is the slow part); two threads may both compute it: harmless.
+        found = features.detect(seq.images[index], p)
+        with _feature_lock:
+            _feature_cache.setdefault(seq, {})[key] = found
+    return found
+
+
+@dataclass(frozen=True, eq=False)
+class PairMatches:
+    """ORB matches of one image pair (image i of the reference sequence, image j of the target's).
+
+    Attributes
+    ----------
+    i, j : image indices; angle_ref_deg, angle_tgt_deg their rotations.
+    similarity : the pair's entry of the similarity matrix.
+    xy_ref, xy_tgt : (K, 2) matched keypoint positions (x = column, y = row) as ORB found them.
+    rc_ref, rc_tgt : (K, 2) occupied pixel (row, col) each keypoint was snapped to.
+    hamming : (K,) descriptor distances, smallest first.
+    kept : (K,) False where the beta check (4.1) rejected the match.
+    n_keypoints_ref, n_keypoints_tgt : usable keypoints of each image.
+    """
+
+    i: int
+    j: int
+    angle_ref_deg: float
+    angle_tgt_deg: float
+    similarity: float
+    xy_ref: np.ndarray
+    xy_tgt: np.ndarray
+    rc_ref: np.ndarray
+    rc_tgt: np.ndarray
+    hamming: np.ndarray
+    kept: np.ndarray
+    n_keypoints_ref: int
+    n_keypoints_tgt: int
+
+
+@dataclass(frozen=True, eq=False)
+class MatchResult:
+    """Tie points of a target scan against the reference, with everything the app draws.
+
+    Attributes
+    ----------
+    ok, message, metrics : as every stage result.
+    similarity : (n_ref, n_tgt) similarity of every image pair (larger = more similar).
+    measure : the similarity measure used.
+    pairs : the chosen image pairs, most similar first, with their matches.
+    ref_xyz, tgt_xyz : (N, 3) tie points, each in its own scan's frame.
+    tie_pair : (N,) index into `pairs` of the pair each tie came from.
+    tie_match : (N,) index of the tie's match within its pair.
+    seconds : wall time of the stage.
+    """
+
+    ok: bool
+    message: str
+    metrics: tuple[Metric, ...]
+    similarity: np.ndarray
+    measure: str
+    pairs: tuple[PairMatches, ...]
+    ref_xyz: np.ndarray
+    tgt_xyz: np.ndarray
+    tie_pair: np.ndarray
+    tie_match: np.ndarray
+    seconds: float
+
+    @property
+    def n_ties(self) -> int:
+        return int(len(self.ref_xyz))
+
+
+def _fail_match(message: str, sim: np.ndarray, measure: str, pairs: tuple[PairMatches, ...],
+                metrics: tuple[Metric, ...], t0: float) -> MatchResult:
+    z3 = np.zeros((0, 3))
+    zi = np.zeros(0, dtype=np.int64)
+    return MatchResult(False, message, metrics, sim, measure, pairs, z3, z3, zi, zi, time.perf_counter() - t0)
+
+
+def match_sequences(
+    seq_ref: ImageSequence, seq_tgt: ImageSequence, ref: Scan, tgt: Scan, *, matching: MatchingParams,
+    progress: Progress | None = None,
+) -> MatchResult:
+    """Similar image pairs, ORB matches, beta check and tie points of a target against the reference.
+
+    Parameters
+    ----------
+    seq_ref, seq_tgt : image sequences built from `ref` and `tgt` (the same prepared scans).
+    ref, tgt : the prepared scans whose points the sequences' labels index.
+    matching : matching parameters.
+    progress : optional callback.
+
+    Returns
+    -------
+    MatchResult (ok False, with a message, when fewer than 3 tie points come out).
+    """
+    p = matching
+    progress = progress or no_progress
+    t0 = time.perf_counter()
+    sim = similarity.similarity_matrix(seq_ref, seq_tgt, p.similarity)
+    chosen = similarity.most_similar_pairs(sim, p.n_pairs)
+    pairs: list[PairMatches] = []
+    for n, (i, j) in enumerate(chosen):
+        progress(n / max(len(chosen), 1), f"ORB on image pair {n + 1} of {len(chosen)}")
+        fa = sequence_features(seq_ref, i, p)
+        fb = sequence_features(seq_tgt, j, p)
+        ia, ib, ham = features.match(fa, fb, p.matches_per_pair)
+        pairs.append(PairMatches(
+            i=i, j=j, angle_ref_deg=seq_ref.angles_deg[i], angle_tgt_deg=seq_tgt.angles_deg[j],
+            similarity=float(sim[i, j]), xy_ref=fa.xy[ia], xy_tgt=fb.xy[ib], rc_ref=fa.pixel_rc[ia],
+            rc_tgt=fb.pixel_rc[ib], hamming=ham, kept=np.ones(len(ia), dtype=bool),
+            n_keypoints_ref=len(fa), n_keypoints_tgt=len(fb),
+        ))
+    n_matches = sum(len(pm.hamming) for pm in pairs)
+    if p.beta_check and n_matches:
+        # 4.1: |beta1 - beta2| over all matches of all pairs, kept within mean +- sd.
+        b_ref = np.concatenate([seq_ref.projections[pm.i].geometry.beta_interval_deg(pm.rc_ref[:, 0])[0]
+                                for pm in pairs])
+        b_tgt = np.concatenate([seq_tgt.projections[pm.j].geometry.beta_interval_deg(pm.rc_tgt[:, 0])[0]
+                                for pm in pairs])
+        keep = features.beta_check(b_ref, b_tgt)
+        splits = np.cumsum([len(pm.hamming) for pm in pairs])[:-1]
+        pairs = [_with_kept(pm, k) for pm, k in zip(pairs, np.split(keep, splits))]
+    refs, tgts, tie_pair, tie_match = [], [], [], []
+    for n, pm in enumerate(pairs):
+        k = np.flatnonzero(pm.kept)
+        if k.size == 0:
+            continue
+        a, ca = pixel_centroids(seq_ref.projections[pm.i], ref.points, pm.rc_ref[k])
+        b, cb = pixel_centroids(seq_tgt.projections[pm.j], tgt.points, pm.rc_tgt[k])
+        good = (ca > 0) & (cb > 0)
+        refs.append(a[good])
+        tgts.append(b[good])
+        tie_pair.append(np.full(int(good.sum()), n))
+        tie_match.append(k[good])
+    n_kept = sum(int(pm.kept.sum()) for pm in pairs)
+    ref_xyz = np.concatenate(refs) if refs else np.zeros((0, 3))
+    tgt_xyz = np.concatenate(tgts) if tgts else np.zeros((0, 3))
+    metrics = (
+        Metric("similarity measure", "", p.similarity),
+        Metric("image pairs matched", "", len(pairs)),
+        Metric("matches", "", n_matches),
+        Metric("matches after beta check", "", n_kept),
+        Metric("tie points", "", len(ref_xyz)),
+        Metric("best image similarity", "", float(sim.max()) if sim.size else float("nan")),
+    )
+    progress(1.0, "tie points ready")
+    if len(ref_xyz) < MIN_TIES_ANY:
+        what = f"{n_matches} ORB matches" + (f", {n_kept} after the beta check" if p.beta_check else "")
+        return _fail_match(f"only {len(ref_xyz)} tie points ({what}); try {match_hints(p)}", sim,
+                           p.similarity, tuple(pairs), metrics, t0)
+    return MatchResult(True, "", metrics, sim, p.similarity, tuple(pairs), ref_xyz, tgt_xyz,
+                       np.concatenate(tie_pair), np.concatenate(tie_match), time.perf_counter() - t0)
+
+
+def match_hints(p: MatchingParams) -> str:
+    """What a user can change when there are too few tie points, given the current settings."""
+    hints = []
+    if p.n_pairs < 15:
+        hints.append(f"more image pairs (n_pairs {p.n_pairs} -> 15)")
+    if p.matches_per_pair < 60:
+        hints.append(f"more matches per pair ({p.matches_per_pair} -> 60)")
+    if p.image_mode == "binary":
+        hints.append("image_mode = ramp")
+    if p.beta_check:
+        hints.append("beta_check off")
+    hints.append("a smaller theta (e.g. 5 deg)")
+    return ", ".join(hints)
+
+
+def _with_kept(pm: PairMatches, kept: np.ndarray) -> PairMatches:
+    values = {f.name: getattr(pm, f.name) for f in fields(pm)}
+    values["kept"] = kept
+    return PairMatches(**values)

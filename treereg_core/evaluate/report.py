@@ -1,0 +1,54 @@
+"""The evaluation stage's result: the paper's model for coarse, fine and ICP of one pair side by side."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..fine.fitting import CylinderFit
+from ..params import EvaluationParams
+from ..results import Metric
+from ..scan import Scan
+from .branches import EvaluationResult, evaluate_pair
+from .icp import IcpResult
+
+
+@dataclass(frozen=True)
+class PairReport:
+    """Evaluation of one target: its coarse, fine and (when it ran) ICP transforms.
+
+    Each is an `EvaluationResult`: the paper's branch-centre error (eq. 8) and, when the truth is
+    known, the rotation error and the mean displacement of the target's points.
+    """
+
+    ok: bool
+    message: str
+    metrics: tuple[Metric, ...]
+    target: str
+    coarse: EvaluationResult
+    fine: EvaluationResult
+    icp: EvaluationResult | None
+
+    def by_method(self) -> dict[str, EvaluationResult]:
+        """{'coarse': ..., 'fine': ..., 'ICP': ...} for what was evaluated."""
+        out = {"coarse": self.coarse, "fine": self.fine}
+        if self.icp is not None:
+            out["ICP"] = self.icp
+        return out
+
+
+def evaluate_registration(ref: Scan, tgt: Scan, T_coarse: np.ndarray, T_fine: np.ndarray, icp: IcpResult | None, *,
+                          evaluation: EvaluationParams, T_true: np.ndarray | None = None,
+                          branches: list[CylinderFit] | None = None) -> PairReport:
+    """The paper's evaluation of the coarse, fine and ICP transforms of `tgt` onto `ref`."""
+    ev_c = evaluate_pair(ref, tgt, T_coarse, evaluation=evaluation, T_true=T_true, branches=branches)
+    ev_f = evaluate_pair(ref, tgt, T_fine, evaluation=evaluation, T_true=T_true, branches=branches)
+    ev_i = None
+    if icp is not None and icp.ran:
+        ev_i = evaluate_pair(ref, tgt, icp.T_ref_target, evaluation=evaluation, T_true=T_true, branches=branches)
+    rows: list[Metric] = []
+    for label, ev in (("coarse", ev_c), ("fine", ev_f), ("ICP", ev_i)):
+        if ev is not None:
+            rows += [Metric(f"{label}: {m.description}", m.unit, m.value) for m in ev.metrics]
+    return PairReport(True, "", tuple(rows), tgt.name, ev_c, ev_f, ev_i)

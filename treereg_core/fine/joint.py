@@ -1,0 +1,257 @@
+"""Joint adjustment of a rigid update and one cylinder per section pair (the fine stage's core).
+
+For every pair of corresponding sections, one cylinder is fitted to the points of *both* scans at
+once, while the target's points move with an unknown rigid update. Two stations see different
+sides of a stem: together they cover far more arc than either alone, and the shared radius removes
+the ambiguity of a partial-arc fit (whose centre slides along the viewing direction as the radius
+changes). A cylinder only constrains motion across its axis, so oblique branches fix z and
+sections at several heights fix the tilts.
+
+Gauss-Newton with IRLS weights (soft-L1 or Cauchy), analytic Jacobian; the five unknowns of each
+section are eliminated per section (Schur complement), leaving a 6 x 6 system for the update.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from ..geometry.losses import robust_cost, robust_weight
+from ..geometry.rigid import make_transform, rotation_from_vector, rotation_vector
+
+
+def _basis_rows(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per row of unit vectors `a` (K x 3), two unit vectors completing it to an orthonormal frame."""
+    helper = np.where(np.abs(a[:, :1]) < 0.9, np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 1.0, 0.0]]))
+    e1 = np.cross(a, helper)
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    return e1, np.cross(a, e1)
+
+
+def solve_well_determined(S_data: np.ndarray, S_prior: np.ndarray, b: np.ndarray, lever_m: float,
+                           sigma_m: float, max_sigma_m: float | None) -> tuple[np.ndarray, int]:
+    """Gauss-Newton step of the 6 pose unknowns, restricted to the directions the data determine.
+
+    Rotations are scaled by the lever arm `lever_m` so all six directions are in metres. A direction
+    whose noise-propagated standard deviation sigma / sqrt(eigenvalue) exceeds `max_sigma_m` (a
+    stem of vertical cylinders says nothing about z, or about a turn about itself) gets no update:
+    it stays where coarse put it instead of wandering with noise and model error.
+    Returns (step, held directions as a 6 x h basis of the unscaled pose parameters).
+    """
+    D = np.r_[[lever_m] * 3, [1.0] * 3]
+    Sy = S_data / np.outer(D, D)
+    lam, V = np.linalg.eigh((Sy + Sy.T) / 2.0)
+    if max_sigma_m is None:
+        good = np.ones(6, dtype=bool)
+    else:
+        good = sigma_m / np.sqrt(np.maximum(lam, 1e-300)) <= max_sigma_m
+    held = V[:, ~good] / D[:, None]
+    if not good.any():
+        return np.zeros(6), held
+    Vg = V[:, good]
+    A = Vg.T @ ((Sy + S_prior / np.outer(D, D)) @ Vg)
+    dy = -Vg @ np.linalg.solve(A, Vg.T @ (b / D))
+    return dy / D, held
+
+
+@dataclass(frozen=True)
+class JointFit:
+    """Outcome of the joint adjustment.
+
+    Attributes
+    ----------
+    U
+        4x4 update that maps the moving (target) points, as given, to their adjusted place.
+    points_m, axes, radii_m
+        One cylinder per section (reference frame): a point on its axis, unit axis, radius.
+    rms_m
+        RMS residual of each section's points (both scans) to its cylinder.
+    iterations
+        Gauss-Newton iterations run.
+    held_basis
+        6 x h basis of the pose directions held at the prior (see `solve_well_determined`).
+    centre_m, lever_m
+        The rotation centre of the update (centroid of the points) and the RMS distance of the
+        points from it (rotations times the lever arm are metres).
+    information
+        6 x 6 information matrix of the update from the sections alone (their own unknowns eliminated).
+    influence_m
+        Per section, how far the update would move without it (see `_influence`).
+    """
+
+    U: np.ndarray
+    points_m: np.ndarray
+    axes: np.ndarray
+    radii_m: np.ndarray
+    rms_m: np.ndarray
+    iterations: int
+    held_basis: np.ndarray
+    centre_m: np.ndarray
+    information: np.ndarray
+    lever_m: float
+    influence_m: np.ndarray
+
+    def weak_basis(self, sigma_m: float, max_sigma_m: float) -> tuple[np.ndarray, np.ndarray]:
+        """The pose directions the sections determine worse than `max_sigma_m` (noise std at the
+        lever arm, for a residual scale `sigma_m`): a 6 x h basis of the pose parameters, whose
+        unit coefficient moves the data by one metre at the lever arm, and each direction's std."""
+        D = np.r_[[self.lever_m] * 3, [1.0] * 3]
+        lam, V = np.linalg.eigh(self.information / np.outer(D, D))
+        std = sigma_m / np.sqrt(np.maximum(lam, 1e-300))
+        weak = std > max_sigma_m
+        return V[:, weak] / D[:, None], std[weak]
+
+    @property
+    def held_directions(self) -> int:
+        """Pose directions the sections did not determine (kept at the prior)."""
+        return int(self.held_basis.shape[1])
+
+
+def adjust_joint(points: np.ndarray, section: np.ndarray, moving: np.ndarray, c0: np.ndarray, a0: np.ndarray,
+                 r0: np.ndarray, loss_scale_m: float, prior_m: float, prior_deg: float,
+                 loss: str = "soft_l1", max_sigma_m: float | None = None, prior_offset: np.ndarray | None = None,
+                 max_iterations: int = 30) -> JointFit:
+    """Fit one cylinder per section to all its points while the `moving` points follow a rigid update.
+
+    A Gauss-Newton (IRLS, soft-L1 or Cauchy loss) bundle adjustment with an analytic Jacobian. The section
+    unknowns (axis point across the axis: 2, axis tilt: 2, radius: 1) are eliminated per section
+    (Schur complement of their 5 x 5 blocks), leaving a 6 x 6 system for the update (rotation
+    vector about the data centroid, translation); a prior centred on the coarse pose keeps
+    directions that the sections hardly constrain near it.
+
+    Parameters
+    ----------
+    points
+        N x 3 points in the reference frame, grouped by section (`section` non-decreasing).
+    section
+        Section number 0..K-1 of each point; every section must have points.
+    moving
+        N bools: True for target points (they move with the update).
+    c0, a0, r0
+        K x 3 axis points, K x 3 unit axes, K radii to start from.
+    loss_scale_m, prior_m, prior_deg
+        Loss scale; prior standard deviations of the translation and rotation away from the prior pose.
+    loss
+        "soft_l1" (convex beyond the scale: safe far from the solution) or "cauchy" (redescending:
+        a wrong pair's points lose their pull once the right pose is near).
+    max_sigma_m
+        Pose directions determined worse than this are held (see `solve_well_determined`).
+    prior_offset
+        4x4 taking the prior pose of the moving points to the pose they are given in (the fine
+        updates so far); None = they are given at the prior pose.
+
+    Returns
+    -------
+    JointFit
+        `U` maps the moving points (as given) to their adjusted position.
+    """
+    starts = np.flatnonzero(np.r_[True, section[1:] != section[:-1]])
+    centre = points.mean(axis=0)
+    lever = float(np.sqrt(np.mean(np.sum((points - centre) ** 2, axis=1))))
+    held = np.zeros((6, 0))
+    mv = np.flatnonzero(moving)
+    base = points[mv] - centre
+    c, a, r = c0.astype(float).copy(), a0.astype(float).copy(), r0.astype(float).copy()
+    R, tau = np.eye(3), np.zeros(3)
+    # The pose relative to the prior (coarse) one, in the same parametrisation: rotation about `centre`.
+    Rp = np.eye(3) if prior_offset is None else prior_offset[:3, :3]
+    tp = np.zeros(3) if prior_offset is None else Rp @ centre + prior_offset[:3, 3] - centre
+    prior = (loss_scale_m ** 2) * np.r_[[1 / np.radians(prior_deg) ** 2] * 3, [1 / prior_m ** 2] * 3]
+    eye5 = np.eye(5)
+
+    def residuals(R_: np.ndarray, tau_: np.ndarray, c_: np.ndarray, a_: np.ndarray, r_: np.ndarray):
+        cur = points.copy()
+        cur[mv] = base @ R_.T + centre + tau_
+        d = cur - c_[section]
+        along = np.einsum("ij,ij->i", d, a_[section])
+        perp = d - along[:, None] * a_[section]
+        nrm = np.sqrt(np.einsum("ij,ij->i", perp, perp))
+        return cur, d, along, perp, nrm, nrm - r_[section]
+
+    def cost(res: np.ndarray, Rt: np.ndarray, t: np.ndarray) -> float:
+        return robust_cost(res, loss_scale_m, loss) + float(prior @ np.r_[rotation_vector(Rt), t] ** 2)
+
+    def linearise(cur, along, perp, nrm, res, a):
+        """Normal-equation blocks: per section (5 x 5, 5 x 6, 5) and per section's pose part."""
+        w = robust_weight(res, loss_scale_m, loss)
+        n = perp / np.maximum(nrm, 1e-12)[:, None]
+        e1, e2 = _basis_rows(a)
+        ne1 = np.einsum("ij,ij->i", n, e1[section])
+        ne2 = np.einsum("ij,ij->i", n, e2[section])
+        Js = np.c_[-ne1, -ne2, -along * ne1, -along * ne2, -np.ones(len(res))]
+        Jp = np.zeros((len(res), 6))
+        Jp[mv, :3] = np.cross(cur[mv] - centre, n[mv])
+        Jp[mv, 3:] = n[mv]
+        wJs, wJp = Js * w[:, None], Jp * w[:, None]
+        Hss = np.add.reduceat(np.einsum("ni,nj->nij", wJs, Js), starts, axis=0)
+        Hsp = np.add.reduceat(np.einsum("ni,nj->nij", wJs, Jp), starts, axis=0)
+        gs = np.add.reduceat(wJs * res[:, None], starts, axis=0)
+        Hpp_k = np.add.reduceat(np.einsum("ni,nj->nij", wJp, Jp), starts, axis=0)
+        gp_k = np.add.reduceat(wJp * res[:, None], starts, axis=0)
+        # Levenberg damping on the section blocks keeps near-degenerate sections (tiny arcs) finite.
+        Hss = Hss + 1e-9 * eye5 + 1e-6 * np.einsum("kii->ki", Hss)[:, :, None] * eye5
+        Hinv = np.linalg.inv(Hss)
+        HinvHsp = Hinv @ Hsp
+        # Each section's contribution to the reduced (pose-only) system, its own unknowns eliminated.
+        S_k = Hpp_k - np.einsum("kji,kjl->kil", Hsp, HinvHsp)
+        b_k = gp_k - np.einsum("kji,kj->ki", Hsp, np.einsum("kij,kj->ki", Hinv, gs))
+        return e1, e2, Hinv, HinvHsp, gs, S_k, b_k
+
+    cur, d, along, perp, nrm, res = residuals(R, tau, c, a, r)
+    f = cost(res, Rp, tp)
+    it = 0
+    for it in range(1, max_iterations + 1):
+        e1, e2, Hinv, HinvHsp, gs, S_k, b_k = linearise(cur, along, perp, nrm, res, a)
+        S = S_k.sum(axis=0) + np.diag(prior)
+        b = b_k.sum(axis=0) + prior * np.r_[rotation_vector(Rp), tp]
+        dp, held = solve_well_determined(S - np.diag(prior), np.diag(prior), b, lever, loss_scale_m, max_sigma_m)
+        ds = -(np.einsum("kij,kj->ki", Hinv, gs) + HinvHsp @ dp)
+        step = 1.0
+        for _ in range(8):  # backtracking: IRLS steps on a robust cost can overshoot
+            Rd = rotation_from_vector(step * dp[:3])
+            R_n, tau_n = Rd @ R, Rd @ tau + step * dp[3:]
+            Rp_n, tp_n = Rd @ Rp, Rd @ tp + step * dp[3:]
+            c_n = c + step * (ds[:, :1] * e1 + ds[:, 1:2] * e2)
+            a_n = a + step * (ds[:, 2:3] * e1 + ds[:, 3:4] * e2)
+            a_n /= np.linalg.norm(a_n, axis=1, keepdims=True)
+            r_n = r + step * ds[:, 4]
+            out = residuals(R_n, tau_n, c_n, a_n, r_n)
+            f_n = cost(out[-1], Rp_n, tp_n)
+            if f_n <= f:
+                break
+            step /= 2.0
+        else:
+            break
+        R, tau, Rp, tp, c, a, r = R_n, tau_n, Rp_n, tp_n, c_n, a_n, r_n
+        cur, d, along, perp, nrm, res = out
+        # Converged when the cost stalls or the pose moves by less than about 10 micrometres.
+        converged = f - f_n <= 1e-7 * max(f, 1e-12) or (
+            np.linalg.norm(step * dp[:3]) * lever < 1e-5 and np.linalg.norm(step * dp[3:]) < 1e-5)
+        f = f_n
+        if converged:
+            break
+    counts = np.diff(np.r_[starts, len(res)])
+    rms = np.sqrt(np.add.reduceat(res ** 2, starts) / counts)
+    _, _, _, _, _, S_k, b_k = linearise(cur, along, perp, nrm, res, a)
+    U = make_transform(R, centre - R @ centre + tau)
+    return JointFit(U, c, a, np.abs(r), rms, it, held, centre, S_k.sum(axis=0), lever,
+                    _influence(S_k, b_k, np.diag(prior), lever, loss_scale_m, max_sigma_m))
+
+
+def _influence(S_k: np.ndarray, b_k: np.ndarray, S_prior: np.ndarray, lever_m: float, sigma_m: float,
+               max_sigma_m: float | None) -> np.ndarray:
+    """How far the pose would move without each section (metres at the lever arm).
+
+    Linearised at the solution, where the summed gradient vanishes: the shift is (S - S_k)^-1 b_k.
+    It measures conflict, not information: a section that alone fixes a direction, and that the
+    others do not contradict, has a near-zero gradient there. Only directions the sections
+    determine count; in the others the prior alone holds the pose and any gradient would look huge.
+    """
+    S = S_k.sum(axis=0)
+    D = np.r_[[lever_m] * 3, [1.0] * 3]
+    lam, V = np.linalg.eigh(S / np.outer(D, D))
+    good = np.ones(6, dtype=bool) if max_sigma_m is None else sigma_m / np.sqrt(np.maximum(lam, 1e-300)) <= max_sigma_m
+    Vg = V[:, good] / D[:, None]
+    A = np.einsum("ia,kij,jb->kab", Vg, S[None] + S_prior - S_k, Vg)
+    y = np.linalg.solve(A + 1e-12 * np.eye(A.shape[1]), (b_k @ Vg)[:, :, None])[:, :, 0]
+    return np.linalg.norm((y @ Vg.T) * D, axis=1)

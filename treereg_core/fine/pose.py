@@ -1,0 +1,481 @@
+"""The fine pose (paper 2.2), made to only ever improve a pair.
+
+The slices, arcs and sections stages give the first iteration, at the coarse pose. Each iteration
+estimates an update of the transform from the corresponding sections; the next one re-slices
+both scans at the new pose (`slicing`), separates the arcs (`arcs`), fits them (`sections`) and
+pairs them again. Two estimators (`FineParams.method`):
+
+* ``"ties"`` — the paper: circle centres, and for cylinders the axis point at the slice height
+  plus the point one unit along the axis towards +z, as tie points; SVD (or RANSAC) over them.
+  Its weaknesses, measured in our feasibility trial: a fit to one scan's partial arc has a centre
+  error of several cm, and tie points at equal slice heights never constrain z.
+* ``"joint"`` (default, `joint.py`, parameters `JointParams`) — a model-to-point adjustment: for every pair of corresponding
+  sections one cylinder is fitted to the points of *both* scans at once, while the target's
+  points move with the unknown rigid update. Both scans see different sides of a stem, so
+  together they cover far more arc than either alone; a shared radius removes the partial-arc
+  ambiguity. Oblique branches fix z, sections at several heights fix the tilts. Bad pairs are
+  dropped by their residual and by their influence (the one pair the pose hinges on); a prior
+  centred on the coarse pose holds what no section constrains.
+
+Pose directions the sections fix only weakly (z along a bare stem; a turn about the stem, which
+only a few branches see) are taken from the surfaces (`surface.py`, `SurfaceParams`): a point-to-plane refinement
+of the whole target against the reference along those directions only, the pairing gate
+narrowing from 10 cm to 1.5 cm, pairing only points whose scanner-facing normals agree (the two
+sides of a thin branch never pair). With too few sections (a leaf-on crown, a stem thinner than
+the point spacing) all six directions come from the surfaces, kept only if they agree better.
+
+Iterate (`max_iterations`, `tolerance_m`): re-slice with the new pose until the update moves the
+target by less than the tolerance.
+
+Selection (`AcceptanceParams.select`): the sections model stems as circles and cylinders; a real stem is not round,
+which biases their pose by a few hundredths of a degree, and a few wrong sections can lead them
+astray. So the final pose is chosen among the coarse pose, the sections' result, and each of these
+two polished by the surfaces in all six directions: the one with the lowest trimmed point-to-plane
+residual of the target's surface against the reference's (`surface.trimmed_residuals`, which
+resolves fractions of a millimetre). If that is the coarse pose, the coarse transform stands and the
+message says why. On our simulated scans the surfaces' optimum itself lies 1-3 mm (on a bent tree
+1 cm) from the truth, against tenths of a millimetre on stations from real trees: there the
+surfaces win, on the simulated scans mostly the sections; the residual cannot protect against
+every hundredth of a degree.
+
+Acceptance test (`AcceptanceParams.test`): the pose is also rejected when a second measure — the fraction of
+the target's points lying on the reference's surface (`surface_fitness`) — is clearly lower than at
+the coarse pose; it cannot rank millimetres but drops clearly when a pose is off by a centimetre.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..geometry import robust
+from ..geometry.rigid import apply_transform, invert, kabsch
+from ..params import AcceptanceParams, ArcParams, FineParams, FitParams, JointParams, SlicingParams, SurfaceParams
+from ..results import Metric, Progress, no_progress
+from ..scan import Scan
+from .arcs import SliceArcs, separate_scan_slices, separate_slices
+from .correspondence import Correspondences
+from .joint import JointFit, adjust_joint
+from .sections import ScanSections, SectionsResult, fit_sections, match_scan_sections, sections_at, tie_points
+from .slicing import SliceResult, slice_scans
+from .surface import Surface, mean_move, pose_update, refine_along, surface_fitness, surface_of, trimmed_residuals
+
+#: The parameter sections `register_fine` reads (the pipeline passes exactly these).
+FINE_SECTIONS: tuple[str, ...] = ("fine", "joint", "surface", "acceptance", "slicing", "arcs", "fitting")
+#: Points of the target used to measure how far an update moves it (and for the acceptance measure).
+_SAMPLE = 20_000
+#: Joint adjustment: a section pair whose RMS exceeds this multiple of the median RMS is dropped.
+_TRIM_FACTOR = 2.5
+#: The drawn slices and fits are redone at the final pose only if it moved more than this (the app
+#: cannot show less, and a pass of slicing and fitting costs a third of the stage).
+_REDRAW_M = 0.005
+#: Joint adjustment: rounds of dropping bad pairs and adjusting again.
+_TRIM_ROUNDS = 6
+#: Surface refinement: pairing gates (m), widest first, each run for `_GATE_ITERATIONS`, then the
+#: final narrow gate (`SurfaceParams.gate_m`) for `SurfaceParams.iterations`. Directions the
+#: sections leave weak still carry the coarse error, centimetres: a narrow gate alone would never see it.
+_GATES_M = (0.1, 0.05, 0.03)
+_GATE_ITERATIONS = 10
+
+
+@dataclass(frozen=True)
+class FineStart:
+    """The first iteration, as the slices, arcs and sections stages made it at the coarse pose.
+
+    `arcs` and `sections` are None when the stage before them failed (then `slices.message` says why).
+    """
+
+    slices: SliceResult
+    arcs: SliceArcs | None
+    sections: SectionsResult | None
+
+
+@dataclass(frozen=True)
+class FineResult:
+    """The fine stage's result for one pair.
+
+    Attributes
+    ----------
+    ok, message, metrics
+        `ok` is True whenever a usable transform is returned (the coarse one when the fine update
+        is rejected); `message` says why the fine update was not kept, if it was not.
+    T_ref_target
+        The final 4x4 transform: the fine update composed with coarse, or the coarse one if rejected.
+    T_coarse
+        The transform the stage started from.
+    accepted
+        Whether the fine update was kept.
+    iterations
+        Iterations that produced an update (slice, separate, fit, match, estimate).
+    updates_m
+        Mean displacement of the target's points by each update.
+    chosen
+        Which candidate pose ended the stage ("coarse", "sections", "surfaces", or one of them
+        "polished by the surfaces").
+    residuals_m
+        Trimmed point-to-plane residuals of the candidates: coarse, sections, sections polished,
+        coarse polished (NaN where not computed, inf where a pose is far off).
+    from_surface
+        Pose directions taken from the surfaces (0-6).
+    measure_coarse, measure_fine
+        The acceptance measure (`surface_fitness`: fraction of the target's points on the
+        reference's surface) at the coarse and at the final pose.
+    slices, arcs, sections
+        The slices, arcs and sections at the final pose (what the app draws for the fine stage).
+    """
+
+    ok: bool
+    message: str
+    metrics: tuple[Metric, ...]
+    T_ref_target: np.ndarray
+    T_coarse: np.ndarray
+    accepted: bool
+    iterations: int
+    updates_m: tuple[float, ...]
+    chosen: str
+    residuals_m: tuple[float, float, float, float]
+    from_surface: int
+    measure_coarse: float
+    measure_fine: float
+    slices: SliceResult | None
+    arcs: SliceArcs | None
+    sections: SectionsResult | None
+
+
+@dataclass(frozen=True)
+class _Fitted:
+    """Slices, arcs and sections of one iteration, at the pose `sections.T_ref_target`."""
+
+    slices: SliceResult
+    arcs: SliceArcs
+    sections: SectionsResult
+
+
+@dataclass(frozen=True)
+class _Iterations:
+    """What iterating the sections gave: the pose, each update's size, the last adjustment."""
+
+    T: np.ndarray
+    updates_m: tuple[float, ...]
+    joint: JointFit | None
+    note: str
+    last: _Fitted | None
+
+
+def first_iteration(ref: Scan, tgt: Scan, T_coarse: np.ndarray, *, slicing: SlicingParams, arcs: ArcParams,
+                    fitting: FitParams) -> FineStart:
+    """The slices, arcs and sections stages in one call (for a caller without the pipeline)."""
+    sl = slice_scans(ref, tgt, T_coarse, slicing=slicing)
+    if not sl.ok:
+        return FineStart(sl, None, None)
+    ar = separate_slices(ref, tgt, sl.ref_indices, sl.tgt_indices, arcs=arcs)
+    return FineStart(sl, ar, fit_sections(ref, tgt, ar.ref, ar.tgt, sl.heights_m, T_coarse, fitting=fitting))
+
+
+def _refit(ref: Scan, tgt: Scan, T: np.ndarray, ref_fitted: _Fitted, slicing: SlicingParams, arcs: ArcParams,
+           fitting: FitParams) -> _Fitted:
+    """Slices, target arcs and target sections again at the pose `T` (the reference's never move)."""
+    sl = slice_scans(ref, tgt, T, slicing=slicing)
+    ar = SliceArcs(True, "", (), ref_fitted.arcs.ref, separate_scan_slices(tgt, sl.tgt_indices, arcs))
+    return _Fitted(sl, ar, sections_at(ref, tgt, ref_fitted.sections.ref, ar.tgt, sl.heights_m, T, fitting))
+
+
+def _estimate_ties(ref: ScanSections, tgt: ScanSections, corr: Correspondences, fp: FineParams) -> tuple[np.ndarray | None, str]:
+    """Update mapping the target's tie points (reference frame) onto the reference's: SVD or RANSAC."""
+    a, b = tie_points(ref, tgt, corr)
+    if len(a) < 3 or robust.is_degenerate(b, 6):
+        return None, f"only {len(a)} tie points, or all on one line; at least 3 spread points are needed"
+    if fp.estimator == "svd":
+        return kabsch(b, a), ""
+    fit = robust.ransac(b, a, dof=6, inlier_m=fp.inlier_m, iterations=500, seed=0)
+    if fit is None or fit.n_inliers < 3:
+        return None, f"RANSAC found fewer than 3 tie points agreeing within {fp.inlier_m} m"
+    return fit.T, ""
+
+
+def _subsample(idx: np.ndarray, n: int) -> np.ndarray:
+    return idx if len(idx) <= n else idx[np.linspace(0, len(idx) - 1, n).astype(np.int64)]
+
+
+def _estimate_joint(ref_scan: Scan, tgt_scan: Scan, T: np.ndarray, ref: ScanSections, tgt: ScanSections,
+                    corr: Correspondences, jp: JointParams, min_pairs: int, loss: str,
+                    T_prior: np.ndarray) -> tuple[JointFit | None, str]:
+    """Rigid update from one cylinder per section pair fitted to both scans' points at once.
+
+    Pairs whose cylinder fits badly (RMS above `_TRIM_FACTOR` times the median and above the loss
+    scale: a wrong pairing or a mis-separated arc) are dropped and the adjustment is repeated.
+    """
+    K = len(corr.pairs)
+    pts, sec, mov = [], [], []
+    c0 = np.empty((K, 3))
+    a0 = np.empty((K, 3))
+    r0 = np.empty(K)
+    for k, (i, j) in enumerate(corr.pairs):
+        si, sj = ref.sections[i], tgt.sections[j]
+        p = ref_scan.points[_subsample(ref.members[i], jp.max_section_points)]
+        q = apply_transform(T, tgt_scan.points[_subsample(tgt.members[j], jp.max_section_points)])
+        pts += [p, q]
+        sec.append(np.full(len(p) + len(q), k))
+        mov += [np.zeros(len(p), dtype=bool), np.ones(len(q), dtype=bool)]
+        a0[k] = si.axis / np.linalg.norm(si.axis)
+        c0[k] = (si.centre_m + sj.centre_m) / 2.0
+        r0[k] = (si.radius_m + sj.radius_m) / 2.0
+    P, S, M = np.vstack(pts), np.concatenate(sec), np.concatenate(mov)
+    keep = np.ones(K, dtype=bool)
+    for _ in range(_TRIM_ROUNDS):
+        idx = np.flatnonzero(keep[S])
+        remap = np.cumsum(keep) - 1
+        fit = adjust_joint(P[idx], remap[S[idx]], M[idx], c0[keep], a0[keep], r0[keep], jp.loss_scale_m,
+                           jp.prior_m, jp.prior_deg, loss, jp.max_direction_sigma_m, T @ invert(T_prior),
+                           jp.max_solver_iterations)
+        bad = fit.rms_m > max(_TRIM_FACTOR * float(np.median(fit.rms_m)), jp.loss_scale_m)
+        if jp.influence_factor is not None and len(fit.influence_m) > 2:
+            # One wrong pair can bend a direction only a few branches fix while fitting well
+            # itself; it then stands out as the pair the solution hinges on.
+            order = np.argsort(fit.influence_m)
+            worst, second = fit.influence_m[order[-1]], fit.influence_m[order[-2]]
+            if worst > max(jp.influence_min_m, jp.influence_factor * second):
+                bad[order[-1]] = True
+        if not bad.any() or keep.sum() - bad.sum() < min_pairs:
+            break
+        keep[np.flatnonzero(keep)[bad]] = False
+    if not np.isfinite(fit.U).all():
+        return None, "the joint section adjustment diverged"
+    return fit, ""
+
+
+def _iterate(ref: Scan, tgt: Scan, T0: np.ndarray, start: FineStart, sample: np.ndarray, fine: FineParams,
+             joint: JointParams, slicing: SlicingParams, arcs: ArcParams, fitting: FitParams,
+             progress: Progress) -> _Iterations:
+    """Estimate an update from the corresponding sections, re-slice at the new pose, repeat.
+
+    Stops after `fine.max_iterations`, once an update moves the target by less than
+    `fine.tolerance_m`, or when an iteration cannot estimate one (too few sections: `note` says why).
+    """
+    fp = fine
+    if start.arcs is None or start.sections is None:
+        return _Iterations(T0.copy(), (), None, start.slices.message or "the sections could not be fitted", None)
+    cur = _Fitted(start.slices, start.arcs, start.sections)
+    T = T0.copy()
+    updates: list[float] = []
+    fit: JointFit | None = None
+    last: _Fitted | None = None
+    note = ""
+    for it in range(1, fp.max_iterations + 1):
+        progress((it - 1) / (fp.max_iterations + 1), f"iteration {it}: slicing and fitting")
+        if it > 1:
+            cur = _refit(ref, tgt, T, cur, slicing, arcs, fitting)
+        last = cur
+        ref_s, tgt_s, corr = cur.sections.ref, cur.sections.tgt, cur.sections.correspondences
+        if it > 1 and corr.ok and fp.gate_factor is not None:
+            # Once the pose is close, right pairs sit far closer than the coarse gate: a pair much
+            # farther apart than the median (a fork mistaken for a stem) is dropped.
+            corr = match_scan_sections(ref_s, tgt_s, fitting,
+                                       max(fp.min_gate_m, fp.gate_factor * float(np.median(corr.distances_m))))
+        if not cur.slices.ok or not corr.ok or len(corr.pairs) < fp.min_pairs:
+            note = (cur.slices.message if not cur.slices.ok else
+                    f"only {len(corr.pairs)} corresponding sections (fine.min_pairs = {fp.min_pairs})")
+            break
+        if fp.method == "ties":
+            U, note = _estimate_ties(ref_s, tgt_s, corr, fp)
+        else:
+            fit, note = _estimate_joint(ref, tgt, T, ref_s, tgt_s, corr, joint, fp.min_pairs,
+                                        "soft_l1" if it == 1 else joint.refine_loss, T0)
+            U = None if fit is None else fit.U
+        if U is None:
+            break
+        move = mean_move(U, apply_transform(T, sample))
+        updates.append(move)
+        T = U @ T
+        if move < fp.tolerance_m:
+            break
+    return _Iterations(T, tuple(updates), fit, note, last)
+
+
+def _from_surfaces(ref_surf: Surface, tgt_surf: Surface, T: np.ndarray, centre: np.ndarray, B: np.ndarray,
+                   sp: SurfaceParams, loss_scale_m: float) -> np.ndarray:
+    """`T` refined point-to-plane along the pose directions `B` only, the pairing gate narrowing."""
+    for gate in _GATES_M + (sp.gate_m,):
+        final = gate == sp.gate_m
+        y = refine_along(ref_surf, tgt_surf, T, centre, B, max(gate, sp.gate_m),
+                         max(loss_scale_m, gate / 4), sp.iterations if final else _GATE_ITERATIONS)
+        T = pose_update(B @ y, centre) @ T
+    return T
+
+
+def _weak_from_surfaces(ref_surf: Surface, tgt_surf: Surface, T: np.ndarray, joint: JointFit,
+                        sp: SurfaceParams, loss_scale_m: float) -> tuple[np.ndarray, int]:
+    """The pose directions the sections fix only weakly, taken from the surfaces instead.
+
+    Weak: a noise std above `sp.sigma_m` (z along a bare stem; a turn about the stem that only a
+    few branches see). With `sp.polish`, all six directions come from the surfaces, started where
+    the sections put the target. Returns the transform and how many directions came from the surfaces.
+    """
+    B = np.eye(6) if sp.polish else joint.weak_basis(loss_scale_m, sp.sigma_m)[0]
+    if not B.shape[1]:
+        return T, 0
+    if sp.polish:
+        T = pose_update(B @ refine_along(ref_surf, tgt_surf, T, joint.centre_m, B, sp.gate_m,
+                                         loss_scale_m, sp.iterations), joint.centre_m) @ T
+        return T, 6
+    return _from_surfaces(ref_surf, tgt_surf, T, joint.centre_m, B, sp, loss_scale_m), int(B.shape[1])
+
+
+def _polish(ref_surf: Surface, tgt_surf: Surface, T: np.ndarray, sp: SurfaceParams, ap: AcceptanceParams,
+            loss_scale_m: float) -> np.ndarray:
+    """`T` refined point-to-plane in all six directions at the final (narrow) gate."""
+    c = apply_transform(T, tgt_surf.points).mean(axis=0)
+    y = refine_along(ref_surf, tgt_surf, T, c, np.eye(6), sp.gate_m, loss_scale_m, sp.iterations, ap.polish_tolerance_m)
+    return pose_update(y, c) @ T
+
+
+def _select(ref_surf: Surface, tgt_surf: Surface, T0: np.ndarray, T: np.ndarray, label: str, sp: SurfaceParams,
+            ap: AcceptanceParams, loss_scale_m: float) -> tuple[np.ndarray, str, np.ndarray]:
+    """The final pose: of the coarse one, `T` and (for a sections' result) `T` polished by the
+    surfaces in all six directions, the one with the lowest trimmed point-to-plane residual.
+
+    The sections model stems as cylinders; a real stem is not round, which biases them by a few
+    hundredths of a degree, while the surfaces carry no model. Either can be the better one; the
+    residual (`trimmed_residuals`) tells them apart, and refuses an update that does not lower it.
+    When too few surface pairs exist to measure, `T` stands; a candidate with far fewer surface
+    pairs than the others (far off) is never chosen. Returns (pose, its label, the residuals of
+    coarse, `T`, `T` polished and coarse polished: NaN where not computed, inf where far off).
+    """
+    poses, labels = [T0, T], ["coarse", label]
+    if label == "sections":
+        poses.append(_polish(ref_surf, tgt_surf, T, sp, ap, loss_scale_m))
+        labels.append("sections, polished by the surfaces")
+        if ap.select_coarse_polish:
+            # Sections that went astray (too few, a fork taken for a stem) leave the coarse pose
+            # as the only good start.
+            poses.append(_polish(ref_surf, tgt_surf, T0, sp, ap, loss_scale_m))
+            labels.append("coarse, polished by the surfaces")
+    r = trimmed_residuals(ref_surf, tgt_surf, poses, ap.gate_m, ap.select_trim)
+    r4 = np.r_[r, np.full(4 - len(r), np.nan)]
+    if not np.isfinite(r).any():
+        return T, label, r4
+    k = int(np.argmin(r))
+    return poses[k], labels[k], r4
+
+
+def _verdict(n_updates: int, chosen: str, fallback: bool, note: str, residuals: np.ndarray, m0: float, m1: float,
+             ap: AcceptanceParams) -> tuple[bool, str]:
+    """Whether the fine pose is kept, and the sentence that says why not (or what happened)."""
+    if not n_updates:
+        return False, f"fine registration found nothing to improve ({note}); kept the coarse transform"
+    if chosen == "coarse":
+        return False, (f"fine registration did not improve the alignment ({note + '; ' if fallback else ''}trimmed "
+                       f"point-to-plane residual {1000 * residuals[0]:.2f} mm at coarse, "
+                       f"{1000 * np.nanmin(residuals[1:]):.2f} mm after fine); kept the coarse transform")
+    if fallback and not m1 > m0:
+        # Surfaces alone must show a gain: they have no sections to vouch for them.
+        return False, (f"fine registration found nothing to improve ({note}; aligning the surfaces did not raise "
+                       f"their agreement, {m0:.1%} -> {m1:.1%}); kept the coarse transform")
+    message = f"{note}; aligned by the surfaces instead of sections" if fallback else ""
+    if ap.test and m1 < m0 - ap.margin:
+        return False, (f"{message + '; ' if message else ''}the fine update made the alignment worse (surface "
+                       f"agreement {m0:.1%} of the target's points at coarse, {m1:.1%} after fine); kept the coarse transform")
+    return True, message
+
+
+def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, *, fine: FineParams, joint: JointParams,
+                  surface: SurfaceParams, acceptance: AcceptanceParams, slicing: SlicingParams, arcs: ArcParams,
+                  fitting: FitParams, start: FineStart | None = None, progress: Progress | None = None) -> FineResult:
+    """Refine the coarse transform of `tgt` onto `ref` from stem and branch sections.
+
+    Parameters
+    ----------
+    ref, tgt
+        Reference and target scans (each in its scanner frame).
+    T_coarse
+        The coarse 4x4 T_ref_target.
+    fine, joint, surface, acceptance
+        The fine pose's own parameters.
+    slicing, arcs, fitting
+        How later iterations slice, separate and fit at the new pose.
+    start
+        The first iteration as the slices, arcs and sections stages made it; computed when None.
+    progress
+        Optional progress callback.
+
+    Returns
+    -------
+    FineResult
+    """
+    progress = progress or no_progress
+    T0 = np.asarray(T_coarse, dtype=float)
+    if T0.shape != (4, 4) or not np.isfinite(T0).all():
+        return failed_fine(T0, "the coarse transform is missing or not finite; run coarse registration first")
+    if start is None:
+        start = first_iteration(ref, tgt, T0, slicing=slicing, arcs=arcs, fitting=fitting)
+    rng = np.random.default_rng(0)
+    sample = tgt.points if tgt.n_points <= _SAMPLE else tgt.points[rng.choice(tgt.n_points, _SAMPLE, replace=False)]
+    its = _iterate(ref, tgt, T0, start, sample, fine, joint, slicing, arcs, fitting, progress)
+    T, updates = its.T, list(its.updates_m)
+    progress(fine.max_iterations / (fine.max_iterations + 1), "acceptance test")
+    ref_surf = surface_of(ref.points, surface.voxel_m)
+    tgt_surf = surface_of(tgt.points, surface.voxel_m, _SAMPLE)
+    from_surface = 0
+    if its.joint is not None and updates and surface.refine:
+        T, from_surface = _weak_from_surfaces(ref_surf, tgt_surf, T, its.joint, surface, joint.loss_scale_m)
+    fallback = not updates and fine.method == "joint" and surface.fallback
+    if fallback:
+        # Too few sections (a leaf-on crown, a stem too thin for the point spacing): align the
+        # surfaces instead, gate narrowing from the coarse error down; the acceptance test guards it.
+        T = _from_surfaces(ref_surf, tgt_surf, T0, apply_transform(T0, tgt_surf.points).mean(axis=0), np.eye(6),
+                           surface, joint.loss_scale_m)
+        updates.append(mean_move(T @ invert(T0), apply_transform(T0, sample)))
+        from_surface = 6
+    chosen, residuals = ("surfaces" if fallback else "sections"), np.full(4, np.nan)
+    if updates and fine.method == "joint" and acceptance.select:
+        T, chosen, residuals = _select(ref_surf, tgt_surf, T0, T, chosen, surface, acceptance, joint.loss_scale_m)
+        from_surface = 6 if chosen.endswith("by the surfaces") else from_surface
+    m0 = surface_fitness(ref_surf, tgt_surf, T0, acceptance.gate_m, acceptance.tolerance_m)
+    m1 = surface_fitness(ref_surf, tgt_surf, T, acceptance.gate_m, acceptance.tolerance_m) if updates else m0
+    accepted, message = _verdict(len(updates), chosen, fallback, its.note, residuals, m0, m1, acceptance)
+    if not accepted:
+        T = T0.copy()
+    drawn = _drawn_at(ref, tgt, T, start, its.last, sample, fine, slicing, arcs, fitting)
+    n_iter = len(its.updates_m)
+    metrics = (
+        Metric("fine accepted", "", "yes" if accepted else "no"),
+        Metric("fine iterations", "", n_iter),
+        Metric("pose directions taken from the surfaces", "", from_surface),
+        Metric("fine update (last iteration)", "m", updates[-1] if updates else 0.0),
+        Metric("corresponding sections", "", drawn.sections.n_pairs if drawn is not None else 0),
+        Metric("surface agreement, coarse", "", m0),
+        Metric("surface agreement, fine", "", m1),
+        Metric("final pose from", "", chosen if accepted else "coarse"),
+        Metric("surface residual (trimmed), coarse", "m", float(residuals[0])),
+        Metric("surface residual (trimmed), sections", "m", float(residuals[1])),
+        Metric("surface residual (trimmed), polished", "m", float(residuals[2])),
+        Metric("surface residual (trimmed), coarse polished", "m", float(residuals[3])),
+    )
+    progress(1.0, "done")
+    return FineResult(
+        ok=True, message=message, metrics=metrics, T_ref_target=T, T_coarse=T0, accepted=accepted,
+        iterations=n_iter, updates_m=tuple(updates), chosen=chosen if accepted else "coarse",
+        residuals_m=tuple(float(r) for r in residuals), from_surface=from_surface, measure_coarse=m0,
+        measure_fine=m1, slices=drawn.slices if drawn else start.slices, arcs=drawn.arcs if drawn else None,
+        sections=drawn.sections if drawn else None,
+    )
+
+
+def _drawn_at(ref: Scan, tgt: Scan, T: np.ndarray, start: FineStart, last: _Fitted | None, sample: np.ndarray,
+              fine: FineParams, slicing: SlicingParams, arcs: ArcParams, fitting: FitParams) -> _Fitted | None:
+    """What the app draws for the fine stage: slices, arcs and fits at the pose finally returned
+    (the last iteration's, unless the pose has moved since by more than the tolerance)."""
+    if last is None:
+        return None
+    T_last = last.sections.T_ref_target
+    if mean_move(T @ invert(T_last), apply_transform(T_last, sample)) > max(fine.tolerance_m, _REDRAW_M):
+        return _refit(ref, tgt, T, last, slicing, arcs, fitting)
+    return last
+
+
+def failed_fine(T0: np.ndarray, message: str) -> FineResult:
+    """The FineResult of a pair the fine stage cannot run on (`ok` False, the start transform kept)."""
+    nan4 = (float("nan"),) * 4
+    return FineResult(False, message, (Metric("fine accepted", "", "no"),), T0, T0, False, 0, (), "coarse", nan4, 0,
+                      float("nan"), float("nan"), None, None, None)

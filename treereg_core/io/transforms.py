@@ -1,0 +1,309 @@
+"""Transform files: transforms.json, CloudCompare matrix text and PDAL matrix strings.
+
+`transforms.json` is the one result file every stage and tool agrees on::
+
+    {"reference": "scan1.ply",
+     "transforms": {"scan2.ply": [[r00, r01, r02, tx], ..., [0, 0, 0, 1]], ...},
+     "params": {...}, "software": "treereg 0.1.0", ...extra keys}
+
+Keys of "transforms" are the scan files' base names; each 4x4 (row-major) is `T_ref_scan`, mapping a
+point of that scan into the reference frame. The reference may be absent (it maps by the identity).
+Other top-level keys (metrics, angular steps, stations, ...) are kept in `TransformFile.extra`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from .._version import __version__
+from ..errors import ConfigError
+from ..params import Params, to_dict
+from ..scan import Scan
+from .atomic import write_text_atomic
+
+#: Largest |R^T R - I| entry accepted for the rotation part of a transform.
+ORTHONORMAL_TOL = 1e-6
+#: Top-level keys with a fixed meaning; everything else goes to `TransformFile.extra`.
+RESERVED_KEYS: tuple[str, ...] = ("reference", "transforms", "params", "software")
+DEFAULT_NAME = "transforms.json"
+
+
+def check_transform(T: Any, where: str) -> np.ndarray:
+    """Return `T` as a 4x4 float64 rigid transform or raise `ConfigError` naming `where`.
+
+    Checks: 4x4 of numbers, all finite, last row 0 0 0 1, rotation part orthonormal within
+    `ORTHONORMAL_TOL` and a proper rotation (determinant +1, not a mirror).
+    """
+    try:
+        M = np.array(T, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{where}: not a 4x4 matrix of numbers") from None
+    if M.shape != (4, 4):
+        raise ConfigError(f"{where}: expected a 4x4 matrix (4 rows of 4 numbers), got shape {M.shape}")
+    if not np.isfinite(M).all():
+        raise ConfigError(f"{where}: the matrix contains NaN or infinite values")
+    if np.abs(M[3] - (0.0, 0.0, 0.0, 1.0)).max() > 1e-9:
+        raise ConfigError(f"{where}: the last row must be 0 0 0 1, got {' '.join(repr(float(v)) for v in M[3])}")
+    R = M[:3, :3]
+    dev = float(np.abs(R.T @ R - np.eye(3)).max())
+    if dev > ORTHONORMAL_TOL:
+        raise ConfigError(
+            f"{where}: the rotation part is not orthonormal (|R^T R - I| = {dev:.2g} > {ORTHONORMAL_TOL:g}); "
+            "a rigid transform cannot scale or shear"
+        )
+    if np.linalg.det(R) < 0:
+        raise ConfigError(f"{where}: the rotation part is a reflection (determinant -1), not a rotation")
+    return M
+
+
+@dataclass(frozen=True, eq=False)
+class TransformFile:
+    """The content of a transforms.json.
+
+    Attributes
+    ----------
+    reference
+        Base name of the reference scan (e.g. "scan1.ply").
+    transforms
+        Scan base name -> 4x4 `T_ref_scan` (read-only float64 arrays).
+    params
+        The parameters used (as `params.to_dict` gives them).
+    software
+        "treereg <version>".
+    extra
+        Any other top-level keys (metrics, "angular_step_deg", "stations", ...), JSON-ready values.
+    """
+
+    reference: str
+    transforms: dict[str, np.ndarray]
+    params: dict[str, Any] = field(default_factory=dict)
+    software: str = f"treereg {__version__}"
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.reference, str) or not self.reference:
+            raise ConfigError(f"reference: expected a scan name, got {self.reference!r}")
+        checked = {}
+        for name, T in dict(self.transforms).items():
+            M = check_transform(T, f"transforms[{name!r}]")
+            M.setflags(write=False)
+            checked[str(name)] = M
+        clash = sorted(set(self.extra) & set(RESERVED_KEYS))
+        if clash:
+            raise ConfigError(f"extra: keys {clash} are reserved; use the dataclass fields")
+        object.__setattr__(self, "transforms", checked)
+        object.__setattr__(self, "params", dict(self.params))
+        object.__setattr__(self, "extra", dict(self.extra))
+
+    @property
+    def names(self) -> list[str]:
+        """All scans: the reference first, then the others in file order."""
+        return [self.reference] + [n for n in self.transforms if n != self.reference]
+
+    def matrix(self, name: str) -> np.ndarray:
+        """`T_ref_scan` of scan `name` (the identity for the reference when it is not listed)."""
+        if name in self.transforms:
+            return self.transforms[name]
+        if name == self.reference:
+            return np.eye(4)
+        raise KeyError(f"no transform for {name!r}; scans are {self.names}")
+
+
+# ---- JSON --------------------------------------------------------------------------------------
+def _jsonable(obj: Any) -> Any:
+    """Plain JSON values: arrays -> lists, numpy scalars -> Python, NaN/inf -> null, Path -> str."""
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _jsonable(obj.tolist())
+    if isinstance(obj, np.generic):
+        return _jsonable(obj.item())
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, Path):
+        return str(obj)
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return _jsonable(dataclasses.asdict(obj))
+    return obj
+
+
+def _matrix_json(T: np.ndarray, indent: str) -> str:
+    """A 4x4 as a JSON list of rows, one row per line (readable), floats in full precision."""
+    rows = [json.dumps([float(v) for v in row]) for row in T]
+    inner = (",\n" + indent + "  ").join(rows)
+    return "[\n" + indent + "  " + inner + "\n" + indent + "]"
+
+
+def transforms_json_text(tf: TransformFile) -> str:
+    """The text of transforms.json for `tf` (what `write_transforms` writes)."""
+    doc: dict[str, Any] = {
+        "reference": tf.reference,
+        "transforms": {name: f"@@T{i}@@" for i, name in enumerate(tf.transforms)},
+        "params": _jsonable(tf.params),
+        "software": tf.software,
+    }
+    doc.update(_jsonable(tf.extra))
+    text = json.dumps(doc, indent=2, allow_nan=False)
+    # json.dumps would put each of the 16 numbers on its own line; rows read better.
+    for i, T in enumerate(tf.transforms.values()):
+        text = text.replace(f'"@@T{i}@@"', _matrix_json(T, "    "), 1)
+    return text + "\n"
+
+
+def write_transforms(path: str | Path, tf: TransformFile) -> Path:
+    """Write `tf` as JSON to `path`, atomically (temporary file, then rename)."""
+    path = Path(path)
+    write_text_atomic(path, transforms_json_text(tf))
+    return path
+
+
+def read_transforms(path: str | Path) -> TransformFile:
+    """Read and validate a transforms.json (also truth.json of a simulated case).
+
+    Raises
+    ------
+    ConfigError
+        Missing file, invalid JSON, a missing or mistyped key, or a matrix that is not a finite
+        rigid 4x4; the message names the file and the key.
+    """
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: no such transform file") from None
+    except IsADirectoryError:
+        raise ConfigError(f"{path}: is a directory, not a transform file") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise ConfigError(f"{path}: not valid JSON ({e})") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a JSON object with 'reference' and 'transforms'")
+    for key in ("reference", "transforms"):
+        if key not in data:
+            raise ConfigError(f"{path}: missing key {key!r}")
+    reference = data["reference"]
+    if not isinstance(reference, str) or not reference:
+        raise ConfigError(f"{path}: 'reference' must be a scan file name, got {reference!r}")
+    transforms = data["transforms"]
+    if not isinstance(transforms, dict):
+        raise ConfigError(f"{path}: 'transforms' must be an object of scan name -> 4x4 matrix")
+    checked = {name: check_transform(T, f"{path}: transforms[{name!r}]") for name, T in transforms.items()}
+    params = data.get("params", {})
+    if not isinstance(params, dict):
+        raise ConfigError(f"{path}: 'params' must be an object")
+    software = data.get("software", "")
+    if not isinstance(software, str):
+        raise ConfigError(f"{path}: 'software' must be a string")
+    extra = {k: v for k, v in data.items() if k not in RESERVED_KEYS}
+    return TransformFile(reference=reference, transforms=checked, params=params, software=software, extra=extra)
+
+
+# ---- CloudCompare / PDAL -----------------------------------------------------------------------
+def _num(v: float) -> str:
+    """Shortest text that reads back as exactly the same float64."""
+    return repr(float(v))
+
+
+def cloudcompare_matrix_text(T: np.ndarray) -> str:
+    """CloudCompare's matrix text: 4 lines of 4 numbers, row-major, full precision.
+
+    Paste into Edit > Apply transformation, or save as .txt and load there.
+    """
+    M = check_transform(T, "CloudCompare matrix")
+    return "\n".join(" ".join(_num(v) for v in row) for row in M) + "\n"
+
+
+_NUMBER = re.compile(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?|[-+]?(?:nan|inf)", re.IGNORECASE)
+
+
+def parse_cloudcompare_matrix(text: str) -> np.ndarray:
+    """Read a 4x4 from CloudCompare's matrix text (the 4 lines of 4 numbers; other lines ignored).
+
+    CloudCompare's console and saved files may add a title or timestamp line; only the lines that
+    hold exactly four numbers count, and there must be exactly four of them.
+    """
+    rows = []
+    for line in text.splitlines():
+        tokens = line.replace(",", " ").split()
+        if len(tokens) == 4 and all(_NUMBER.fullmatch(t) for t in tokens):
+            rows.append([float(t) for t in tokens])
+    if len(rows) != 4:
+        raise ConfigError(f"CloudCompare matrix: expected 4 lines of 4 numbers, found {len(rows)}")
+    return check_transform(rows, "CloudCompare matrix")
+
+
+def pdal_matrix_string(T: np.ndarray) -> str:
+    """The `matrix` option of PDAL's filters.transformation: 16 numbers, row-major, space separated."""
+    M = check_transform(T, "PDAL matrix")
+    return " ".join(_num(v) for v in M.ravel())
+
+
+def parse_pdal_matrix(text: str) -> np.ndarray:
+    """Read the 16-number PDAL matrix string back into a 4x4."""
+    tokens = text.split()
+    if len(tokens) != 16:
+        raise ConfigError(f"PDAL matrix: expected 16 numbers, found {len(tokens)}")
+    try:
+        values = [float(t) for t in tokens]
+    except ValueError as e:
+        raise ConfigError(f"PDAL matrix: {e}") from None
+    return check_transform(np.reshape(values, (4, 4)), "PDAL matrix")
+
+
+def _stems(names: list[str]) -> dict[str, str]:
+    """File stem per scan name for the export files; the full name where two stems would clash."""
+    stems = {n: Path(n).stem for n in names}
+    counts: dict[str, int] = {}
+    for s in stems.values():
+        counts[s] = counts.get(s, 0) + 1
+    return {n: (s if counts[s] == 1 else n) for n, s in stems.items()}
+
+
+def write_exports(out_dir: str | Path, tf: TransformFile, name: str = DEFAULT_NAME) -> list[Path]:
+    """Write transforms.json and, per scan, `<stem>.cloudcompare.txt` and `<stem>.pdal.txt`.
+
+    The reference gets its (identity) files too, so every scan can be treated the same way.
+    All writes are atomic. Returns the written paths, transforms.json first.
+    """
+    out = Path(out_dir)
+    written = [write_transforms(out / name, tf)]
+    for scan, stem in _stems(tf.names).items():
+        T = tf.matrix(scan)
+        cc = out / f"{stem}.cloudcompare.txt"
+        pdal = out / f"{stem}.pdal.txt"
+        write_text_atomic(cc, cloudcompare_matrix_text(T))
+        write_text_atomic(pdal, pdal_matrix_string(T) + "\n")
+        written += [cc, pdal]
+    return written
+
+
+def registration_file(scans: Sequence[Scan], transforms: dict[str, np.ndarray], params: Params, *, stage: str,
+                      metrics: dict[str, Any], sources: dict[str, str] | None = None,
+                      seconds: float | None = None) -> TransformFile:
+    """The TransformFile of a registration (what `treereg register` writes and the app exports).
+
+    `transforms` holds the registered scans (reference included); a target missing from it is
+    listed under "unregistered". Besides the matrices it records the parameters used, the stage
+    the transforms come from, every scan's angular steps, the per-pair metrics and, when known,
+    the source files and the time taken.
+    """
+    extra: dict[str, Any] = {"stage": stage}
+    if seconds is not None:
+        extra["seconds"] = round(float(seconds), 3)
+    extra["angular_step_deg"] = {s.name: list(s.angular_step_deg) for s in scans}
+    if sources:
+        extra["sources"] = dict(sources)
+    extra["metrics"] = metrics
+    missing = [s.name for s in scans[1:] if s.name not in transforms]
+    if missing:
+        extra["unregistered"] = missing
+    return TransformFile(reference=scans[0].name, transforms=dict(transforms), params=to_dict(params), extra=extra)

@@ -1,0 +1,1 @@
+"""Before anything is matched: the instrument's angular steps, ground removal and cropping."""

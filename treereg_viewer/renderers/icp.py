@@ -1,0 +1,46 @@
+"""The ICP stage: IcpResult, the baseline the paper compares its fine stage with (3.3).
+
+The scan layer shows every target at its ICP pose; the panel says how ICP ended for each pair and
+how far its pose lies from the fine one (both computed: this only compares two results).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import viser
+
+from treereg_core.geometry.rigid import apply_transform, rotation_error_deg
+
+from ..controller import Snapshot
+from ..view_panel import PanelContent
+from ..view_state import ViewState
+from .common import md_table, metrics_table, pair_label, target_index, title
+from .scans import target_pose
+
+
+def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> tuple[list[Any], PanelContent]:
+    out = snap.output("icp")
+    t = target_index(snap, "icp", view)
+    item = out.items[t]
+    if not item.ran:
+        return [], PanelContent(title("icp", snap, t), text=f"{item.message[0].upper()}{item.message[1:]}.")
+    text = (f"{pair_label(snap, t)}: ICP ({snap.params.icp.method.replace('_', '-')}) "
+            f"{'converged' if item.converged else 'stopped'} after {item.iterations} iterations"
+            f"{'' if item.ok else f' — {item.message}'}. Every target is shown at its ICP pose.")
+    rows = []
+    prep = snap.output("prepare")
+    for k, it in enumerate(out.items):
+        fine = target_pose(snap, "fine", k)
+        if not (it.ok and getattr(it, "ran", False)) or fine is None or prep is None:
+            continue
+        pts = prep.items[k + 1].scan.points
+        gap = float(np.linalg.norm(apply_transform(it.T_ref_target, pts) - apply_transform(fine, pts), axis=1).mean())
+        rows.append((pair_label(snap, k), f"{rotation_error_deg(it.T_ref_target, fine):.3f}", f"{gap * 1000:.1f}"))
+    table = md_table(("pair", "ICP vs fine: rotation (°)", "mean point distance (mm)"), rows)
+    table += "\n\n" + metrics_table({pair_label(snap, k): it.metrics for k, it in enumerate(out.items)})
+    return [], PanelContent(title("icp", snap, t), text=text, table=table)
+
+
+VIEW_FIELDS = ("target",)

@@ -1,7 +1,15 @@
-"""Shared test helpers. `SHARED` is the `shared/` folder beside the project checkout (CI puts it there)."""
+"""Shared test helpers. `SHARED` is the `shared/` folder beside the project checkout (CI puts it there);
+tests that read it skip, saying why, when it is absent."""
 
 from pathlib import Path
+
+import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared"
 REAL_TREES = SHARED / "data" / "real_trees"
+
+
+def needs(path: Path) -> pytest.MarkDecorator:
+    """Skip the test (with the missing path as the reason) when `path` is not there."""
+    return pytest.mark.skipif(not path.exists(), reason=f"{path} is not available (the shared data folder beside the checkout)")

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from treereg_core.arcs import separate_arcs
+from treereg_core.fine.arcs import separate_arcs
 from treereg_core.params import ArcParams
 from treereg_core.scan import Scan
 

@@ -26,10 +26,10 @@ CHROMIUM = "/usr/bin/chromium"
 if not Path(CHROMIUM).exists():
     pytest.skip(f"{CHROMIUM} is not installed", allow_module_level=True)
 
-from treereg_core.io import read_points  # noqa: E402
-from treereg_core.rigid import mean_displacement, rotation_error_deg  # noqa: E402
-from treereg_core.transform_io import read_transforms  # noqa: E402
-from treereg_viewer.demo import find_demo  # noqa: E402
+from treereg_core.io.scans import read_points  # noqa: E402
+from treereg_core.geometry.rigid import mean_displacement, rotation_error_deg  # noqa: E402
+from treereg_core.io.transforms import read_transforms  # noqa: E402
+from treereg_core.demo import DEMO_DIR  # noqa: E402
 from treereg_viewer.palette import scan_color  # noqa: E402
 
 REPO = Path(__file__).resolve().parent.parent
@@ -51,7 +51,7 @@ def served(tmp_path_factory):
     env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""), PYTHONUNBUFFERED="1")
     t0 = time.perf_counter()
     proc = subprocess.Popen(
-        [sys.executable, "-m", "treereg_core.cli", "view", "--port", "0", "--out", str(out)],
+        [sys.executable, "-m", "treereg_cli", "view", "--port", "0", "--out", str(out)],
         cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
     )
     url, lines = None, []
@@ -159,8 +159,8 @@ def _colour_pixels(img: np.ndarray, rgb: tuple[int, int, int], tol: int = 60) ->
 
 def _wait_all_done(page, timeout_ms=120_000):
     page.wait_for_function(
-        "() => [...document.querySelectorAll('p, div')].some(e => /✓ 7 Result/.test(e.textContent) && "
-        "!/[○…✗]/.test(e.textContent) && /0 Scans/.test(e.textContent))", timeout=timeout_ms)
+        "() => [...document.querySelectorAll('p, div')].some(e => /✓ 10 Result/.test(e.textContent) && "
+        "!/[○…✗]/.test(e.textContent) && /1 Scans/.test(e.textContent))", timeout=timeout_ms)
 
 
 def _go(page, label):
@@ -184,17 +184,20 @@ def test_walk_through_the_demo(served, browser):
           f"every stage done after {ready_seconds:.1f} s")
 
     # Step through every stage with Next; each shows its own panel.
-    titles = ["0 · Scans", "1 · Projection", "2 · Matching", "3 · Coarse", "4 · Slices", "5 · Arcs", "6 · Fits", "7 · Result"]
+    titles = ["1 Scans", "2 Projection", "3 Matching", "4 Coarse", "5 Slices", "6 Arcs", "7 Fits", "8 Fine", "9 ICP",
+              "10 Result"]
     expect(page.get_by_role("heading", name=titles[0])).to_be_visible()
-    for k in range(1, 8):
+    for k in range(1, len(titles)):
         page.get_by_role("button", name="Next", exact=True).click()
-        expect(page.get_by_role("heading", name=re.compile("^" + re.escape(titles[k])))).to_be_visible(timeout=20_000)
+        expect(page.get_by_role("heading", name=re.compile("^" + re.escape(titles[k]) + "(:|$)"))).to_be_visible(timeout=20_000)
         if k == 1:  # the image panel (docked left) shows each scan's projection image in its colour
             panel = _screenshot(page, "stage1_projection")[:, :560]
             for i in range(3):
                 assert _colour_pixels(panel, scan_color(i), tol=40) > 300, f"projection of scan {i + 1} missing"
         if k == 2:
             expect(page.get_by_text("Similarity", exact=False).first).to_be_visible()
+        if k == 7:
+            _screenshot(page, "stage8_fine")
     lap("stepped through every stage")
     result = _screenshot(page, "stage7_result")
     scene = result[:, 580:1300]  # between the docked panel (560 px) and the control panel
@@ -203,17 +206,17 @@ def test_walk_through_the_demo(served, browser):
     lap("screenshots checked")
 
     # Change a fine-stage parameter and re-run: only fine and evaluation run again.
-    _go(page, "6 Fits")
-    expect(page.get_by_role("heading", name=re.compile("^6 · Fits"))).to_be_visible()
+    _go(page, "8 Fine")
+    expect(page.get_by_role("heading", name=re.compile("^8 Fine"))).to_be_visible()
     box = page.get_by_label("max iterations", exact=True)
     box.fill("2")
     box.press("Enter")
-    expect(page.get_by_text(re.compile("Parameters changed: fine, evaluation must re-run"))).to_be_visible(timeout=10_000)
+    expect(page.get_by_text(re.compile("Parameters changed: 8 Fine, 10 Result must re-run"))).to_be_visible(timeout=10_000)
     t0 = time.perf_counter()
     page.get_by_role("button", name="Run", exact=True).click()
-    expect(page.get_by_text(re.compile(r"Ran fine, evaluation in [\d.]+ s"))).to_be_visible(timeout=60_000)
+    expect(page.get_by_text(re.compile(r"Ran 8 Fine, 10 Result in [\d.]+ s"))).to_be_visible(timeout=60_000)
     print(f"fine + evaluation re-run seen in the browser after {time.perf_counter() - t0:.1f} s: "
-          f"{page.get_by_text(re.compile('Ran fine')).first.inner_text()}")
+          f"{page.get_by_text(re.compile('Ran 8 Fine')).first.inner_text()}")
     lap("parameter changed and re-run")
 
     # A bad upload: a message, nothing else changes.
@@ -238,7 +241,7 @@ def test_walk_through_the_demo(served, browser):
     saved = out_dir / "downloaded_transforms.json"
     saved.write_bytes(data)
     tf = read_transforms(saved)
-    demo = find_demo()
+    demo = DEMO_DIR
     truth = read_transforms(demo / "truth.json")
     assert tf.reference == truth.reference
     assert json.loads(data)["params"]["fine"]["max_iterations"] == 2  # the parameters used
@@ -263,9 +266,9 @@ def test_two_tabs_see_one_state(served, browser):
     lap("tab 2 open")
     page1.get_by_label("Stage", exact=True).click()
     lap("tab 1 dropdown open")
-    page1.get_by_role("option", name="3 Coarse", exact=True).click()  # one tab steps; the other follows
+    page1.get_by_role("option", name="4 Coarse", exact=True).click()  # one tab steps; the other follows
     lap("tab 1 stepped")
-    expect(page2.get_by_role("heading", name=re.compile("^3 · Coarse"))).to_be_visible(timeout=10_000)
-    expect(page2.get_by_label("Stage", exact=True)).to_have_value("3 Coarse")
+    expect(page2.get_by_role("heading", name=re.compile("^4 Coarse"))).to_be_visible(timeout=10_000)
+    expect(page2.get_by_label("Stage", exact=True)).to_have_value("4 Coarse")
     ctx1.close()
     ctx2.close()

@@ -5,10 +5,10 @@ import json
 import numpy as np
 import pytest
 
-from treereg_core.cli import main
-from treereg_core.rigid import mean_displacement, rotation_error_deg
-from treereg_core.simulate import benchmark_cases, write_case
-from treereg_core.transform_io import parse_cloudcompare_matrix, read_transforms
+from treereg_cli.main import main
+from treereg_core.geometry.rigid import mean_displacement, rotation_error_deg
+from treereg_core.simulate.cases import benchmark_cases, write_case
+from treereg_core.io.transforms import parse_cloudcompare_matrix, read_transforms
 
 
 @pytest.fixture(scope="module")
@@ -47,12 +47,24 @@ def test_register_until_coarse_and_paper_preset(case_dir, tmp_path):
     code = main(["register", str(d / "scan1.ply"), str(d / "scan2.ply"), "--until", "coarse", "--out", str(out)])
     assert code == 0
     assert read_transforms(out).extra["stage"] == "coarse"
-    # The paper's literal settings may fail; if so the user gets exit status 1 and no file.
+    # The paper's literal settings: on this case its SVD over 15 ties is kept (enough agree).
     paper_out = tmp_path / "paper.json"
     code = main(["register", str(d / "scan1.ply"), str(d / "scan2.ply"), "--preset", "paper", "--until", "coarse",
                  "--out", str(paper_out)])
-    assert code in (0, 1)
-    assert paper_out.exists() == (code == 0)
+    assert code == 0
+    tf = read_transforms(paper_out)
+    assert tf.params["matching"]["n_pairs"] == 3 and tf.params["coarse"]["estimator"] == "svd"
+
+
+def test_a_registration_that_fails_exits_1_and_writes_nothing(case_dir, tmp_path, capsys):
+    d, _ = case_dir
+    cfg = tmp_path / "strict.json"
+    cfg.write_text(json.dumps({"coarse": {"min_ties": 1000}}))
+    out = tmp_path / "t.json"
+    assert main(["register", str(d / "scan1.ply"), str(d / "scan2.ply"), "--config", str(cfg), "--out", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert "registration failed" in err and "at least 1000 are needed" in err
+    assert not out.exists()
 
 
 def test_bad_scan_file_is_one_line_naming_it(tmp_path, case_dir, capsys):

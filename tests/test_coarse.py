@@ -5,19 +5,21 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from treereg_core import robust
-from treereg_core.coarse import estimate_coarse, match_sequences, register_coarse
-from treereg_core.ground import prepare_scan
+from treereg_core.geometry import robust
+from treereg_core.coarse.estimate import estimate_coarse
+from treereg_core.coarse.matching import match_sequences
+from treereg_core.prepare.ground import prepare_scan
 from treereg_core.params import PRESETS, Params
-from treereg_core.rigid import (
+from treereg_core.geometry.rigid import (
     apply_transform,
     make_transform,
     mean_displacement,
     rotation_error_deg,
     rotation_z,
 )
-from treereg_core.sequences import build_sequence
-from treereg_core.simulate import benchmark_cases
+from treereg_core.coarse.sequences import build_sequence
+from treereg_core.pipeline import Pipeline
+from treereg_core.simulate.cases import benchmark_cases
 
 
 def _ties_with_outliers(rng, T, n=300, outlier_fraction=0.6, noise=0.02):
@@ -69,12 +71,18 @@ def small_cases():
     return _small_cases()
 
 
+def coarse_results(case, params):
+    """The coarse stage's result for every target of a case, as `treereg register --until coarse` gets it."""
+    pipe = Pipeline(list(case.scans), params)
+    last = pipe.run("coarse")  # the coarse stage, or the stage where every pair failed before it
+    return last.items
+
+
 def test_robust_default_registers_small_simulated_cases(small_cases):
     params = Params()
     md_all = []
     for case in small_cases:
-        for k in (1, 2):
-            r = register_coarse(case.scans[0], case.scans[k], params, n_scans=3)
+        for k, r in zip((1, 2), coarse_results(case, params)):
             assert r.ok, r.message
             rot = rotation_error_deg(r.T_ref_target, case.T_ref_scan[k])
             md = mean_displacement(r.T_ref_target, case.T_ref_scan[k], case.scans[k].points)
@@ -89,10 +97,10 @@ def test_robust_default_registers_small_simulated_cases(small_cases):
 def test_stage_results_carry_what_the_app_draws(small_cases):
     case = small_cases[1]
     params = Params()
-    prepared = [prepare_scan(s, params.prepare) for s in case.scans[:2]]
+    prepared = [prepare_scan(s, prepare=params.prepare) for s in case.scans[:2]]
     assert all(p.ok for p in prepared)
-    seqs = [build_sequence(p.scan, params.projection, 3) for p in prepared]
-    m = match_sequences(seqs[0], seqs[1], prepared[0].scan, prepared[1].scan, params.matching)
+    seqs = [build_sequence(p.scan, projection=params.projection, n_scans=3) for p in prepared]
+    m = match_sequences(seqs[0], seqs[1], prepared[0].scan, prepared[1].scan, matching=params.matching)
     assert m.ok and m.similarity.shape == (len(seqs[0]), len(seqs[1]))
     assert len(m.pairs) == params.matching.n_pairs
     assert m.ref_xyz.shape == m.tgt_xyz.shape == (m.n_ties, 3)
@@ -100,41 +108,46 @@ def test_stage_results_carry_what_the_app_draws(small_cases):
     assert pm.xy_ref.shape == pm.xy_tgt.shape == (len(pm.hamming), 2) and pm.kept.all()
     # tie points lie on their own scan's points (centroids of a pixel's points)
     assert np.all(np.abs(m.ref_xyz).max(axis=0) <= np.abs(prepared[0].scan.points).max(axis=0) + 1e-9)
-    c = estimate_coarse(m, params.coarse)
+    c = estimate_coarse(m, coarse=params.coarse)
     assert c.ok and c.match is m
     names = [x.description for x in c.metrics]
     assert "inliers" in names and "inlier RMS residual" in names
 
 
-def test_paper_preset_runs_and_returns_a_result(small_cases):
-    case = small_cases[0]
+def test_paper_preset_is_literal_and_its_result_is_either_plausible_or_refused(small_cases):
     p = PRESETS["paper"]
-    r = register_coarse(case.scans[0], case.scans[1], p, n_scans=3)
-    # the paper's 3 pairs x 5 matches give at most 15 ties; it may fail, but as a result, not an exception
-    assert r.n_ties <= 15
-    assert r.T_ref_target.shape == (4, 4)
-    assert r.ok or r.message
-    m = r.match
-    assert m is not None and len(m.pairs) <= 3
-    assert all(len(pm.hamming) <= 5 for pm in m.pairs)
+    for case in small_cases:
+        for r in coarse_results(case, p):
+            # the paper's 3 pairs x 5 matches give at most 15 ties, all used by one SVD
+            m = r.match
+            assert len(m.pairs) <= 3 and all(len(pm.hamming) <= 5 for pm in m.pairs)
+            assert r.n_ties <= 15 and r.T_ref_target.shape == (4, 4)
+            assert "SVD" in dict((x.description, x.value) for x in r.metrics).get("estimator", "SVD")
+            if r.ok:  # kept only when enough ties agree and the scanner stays level
+                assert r.n_inliers >= p.coarse.min_ties
+                assert np.degrees(np.arccos(np.clip(r.T_ref_target[2, 2], -1, 1))) <= p.coarse.max_tilt_deg
+            else:  # refused with the way out
+                assert "ransac" in r.message or "tie points" in r.message
 
 
 def test_too_few_matches_fail_with_an_actionable_message(small_cases):
     case = small_cases[1]
     p = Params()
     p = replace(p, matching=replace(p.matching, n_pairs=1, matches_per_pair=2))
-    r = register_coarse(case.scans[0], case.scans[1], p, n_scans=3)
-    assert not r.ok
-    assert "tie points" in r.message and ("image pairs" in r.message or "theta" in r.message)
-    assert np.allclose(r.T_ref_target, np.eye(4))
+    pipe = Pipeline(list(case.scans), p)
+    last = pipe.run("coarse")
+    assert last.stage == "matching" and not any(it.ok for it in last.items)
+    r = last.items[0]
+    assert "tie points" in r.message and "more image pairs" in r.message and "theta" in r.message
+    assert list(pipe.transforms()) == [case.scans[0].name]  # no scan gets a transform
 
 
 def _demo_like_match():
     case = benchmark_cases(3, seed=0, small=True)[1].build()
     p = Params()
-    scans = [prepare_scan(s, p.prepare).scan for s in case.scans[:2]]
-    seqs = [build_sequence(s, p.projection, 3) for s in scans]
-    return match_sequences(seqs[0], seqs[1], scans[0], scans[1], p.matching)
+    scans = [prepare_scan(s, prepare=p.prepare).scan for s in case.scans[:2]]
+    seqs = [build_sequence(s, projection=p.projection, n_scans=3) for s in scans]
+    return match_sequences(seqs[0], seqs[1], scans[0], scans[1], matching=p.matching)
 
 
 def test_implausible_svd_transforms_are_rejected_not_returned_as_success():
@@ -146,14 +159,14 @@ def test_implausible_svd_transforms_are_rejected_not_returned_as_success():
     rng = np.random.default_rng(0)
     keep = rng.choice(match.n_ties, 15, replace=False)
     scrambled = replace(match, ref_xyz=match.ref_xyz[keep], tgt_xyz=match.tgt_xyz[rng.permutation(keep)])
-    res = estimate_coarse(scrambled, replace(svd, max_tilt_deg=None))
+    res = estimate_coarse(scrambled, coarse=replace(svd, max_tilt_deg=None))
     assert not res.ok
     assert "agree" in res.message and "ransac" in res.message
     # Ties that agree perfectly on an upside-down pose: rejected by the tilt check.
     flip = np.diag([1.0, -1.0, -1.0, 1.0])
     upside_down = replace(match, ref_xyz=apply_transform(flip, match.tgt_xyz))
-    res = estimate_coarse(upside_down, svd)
+    res = estimate_coarse(upside_down, coarse=svd)
     assert not res.ok and "tilts the scan by 180" in res.message
     assert res.n_inliers == res.n_ties  # the check is about the pose, not the fit
     # With the check switched off the same transform is returned as the paper would.
-    assert estimate_coarse(upside_down, replace(svd, max_tilt_deg=None)).ok
+    assert estimate_coarse(upside_down, coarse=replace(svd, max_tilt_deg=None)).ok

@@ -3,12 +3,12 @@
 import numpy as np
 import pytest
 
-from treereg_core import similarity
-from treereg_core.features import beta_check, detect, match, orb_input, snap_to_occupied
+from treereg_core.coarse import similarity
+from treereg_core.coarse.features import beta_check, detect, match, orb_input, snap_to_occupied
 from treereg_core.params import MatchingParams, ProjectionParams
-from treereg_core.projection import EMPTY, OCCUPIED, wrap_deg
-from treereg_core.sequences import build_sequence
-from treereg_core.simulate import simulate_case
+from treereg_core.coarse.projection import EMPTY, OCCUPIED, wrap_deg
+from treereg_core.coarse.sequences import build_sequence
+from treereg_core.simulate.cases import simulate_case
 
 
 def _image_with_branches() -> np.ndarray:
@@ -65,7 +65,7 @@ def test_beta_check_keeps_matches_within_one_sd_of_the_mean():
 @pytest.mark.parametrize("measure", similarity.MEASURES)
 def test_identical_views_are_the_most_similar(measure):
     case = simulate_case(seed=2, angular_step_deg=(0.3, 0.3), height_m=7.0)
-    seq = build_sequence(case.scans[0], ProjectionParams(theta_deg=20.0), 3)
+    seq = build_sequence(case.scans[0], projection=ProjectionParams(theta_deg=20.0), n_scans=3)
     sim = similarity.similarity_matrix(seq, seq, measure)
     assert sim.shape == (len(seq), len(seq))
     assert (np.argmax(sim, axis=1) == np.arange(len(seq))).mean() > 0.9
@@ -73,7 +73,7 @@ def test_identical_views_are_the_most_similar(measure):
 
 def test_most_similar_pairs_show_the_same_view_of_the_tree():
     case = simulate_case(seed=5, angular_step_deg=(0.25, 0.25), height_m=8.0)
-    seqs = [build_sequence(s, ProjectionParams(), 3) for s in case.scans[:2]]
+    seqs = [build_sequence(s, projection=ProjectionParams(), n_scans=3) for s in case.scans[:2]]
     T = case.T_ref_scan[1]
     yaw = np.degrees(np.arctan2(T[1, 0], T[0, 0]))
     sim = similarity.similarity_matrix(seqs[0], seqs[1], "chamfer")

@@ -10,12 +10,17 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from treereg_core.fine import register_fine
-from treereg_core.ground import prepare_scan
+from treereg_core.fine.pose import FINE_SECTIONS, register_fine
+from treereg_core.prepare.ground import prepare_scan
 from treereg_core.params import PRESETS, Params
-from treereg_core.rigid import apply_transform, make_transform, mean_displacement, rotation_error_deg, rotation_z
-from treereg_core.simulate import benchmark_cases, coarse_like_error
-from treereg_core.surface import surface_of, trimmed_residuals
+from treereg_core.geometry.rigid import apply_transform, make_transform, mean_displacement, rotation_error_deg, rotation_z
+from treereg_core.simulate.cases import benchmark_cases, coarse_like_error
+from treereg_core.fine.surface import surface_of, trimmed_residuals
+
+
+def fine(ref, tgt, start, params):
+    """The fine stage on its own (the slices, arcs and sections of its first iteration made for it)."""
+    return register_fine(ref, tgt, start, **params.pick(*FINE_SECTIONS))
 
 
 def _errors(T, T_true, pts):
@@ -30,7 +35,7 @@ def cases():
     out = []
     for k in (0, 1, 2):
         case = specs[k].build()
-        scans = [prepare_scan(s, Params().prepare).scan for s in case.scans]
+        scans = [prepare_scan(s, prepare=Params().prepare).scan for s in case.scans]
         out.append((scans, case.T_ref_scan))
     return out
 
@@ -41,10 +46,10 @@ def test_fine_from_perturbed_truth_ends_close_and_never_worse(cases):
     for scans, T_true in cases:
         for k in (1, 2):
             start = coarse_like_error(T_true[k], scans[k].points, rng)
-            res = register_fine(scans[0], scans[k], start, Params())
+            res = fine(scans[0], scans[k], start, Params())
             assert res.ok
             rot0, disp0 = _errors(start, T_true[k], scans[k].points)
-            rot1, disp1 = _errors(res.T_ref_tgt, T_true[k], scans[k].points)
+            rot1, disp1 = _errors(res.T_ref_target, T_true[k], scans[k].points)
             assert rot1 < 0.5 and disp1 < 0.03, (rot1, disp1)
             assert disp1 <= disp0 and rot1 <= rot0
             finals.append(disp1)
@@ -54,8 +59,8 @@ def test_fine_from_perturbed_truth_ends_close_and_never_worse(cases):
 
 def test_fine_keeps_the_truth_when_started_there(cases):
     scans, T_true = cases[2]
-    res = register_fine(scans[0], scans[1], T_true[1], Params())
-    assert mean_displacement(res.T_ref_tgt, T_true[1], scans[1].points) < 0.003
+    res = fine(scans[0], scans[1], T_true[1], Params())
+    assert mean_displacement(res.T_ref_target, T_true[1], scans[1].points) < 0.003
 
 
 def _nudged(T_true, points, mm, deg):
@@ -69,12 +74,12 @@ def test_trimmed_residual_ranks_millimetres(cases):
     # The selection of the final pose rests on this measure telling a pose 2 mm / 0.05 deg off
     # from the truth, and 1 mm off from 3 mm off.
     scans, T_true = cases[2]
-    fp = Params().fine
-    ref = surface_of(scans[0].points, fp.measure_voxel_m)
-    tgt = surface_of(scans[1].points, fp.measure_voxel_m, 20_000)
+    sp, ap = Params().surface, Params().acceptance
+    ref = surface_of(scans[0].points, sp.voxel_m)
+    tgt = surface_of(scans[1].points, sp.voxel_m, 20_000)
     poses = [T_true[1], _nudged(T_true[1], scans[1].points, 2.0, 0.05),
              _nudged(T_true[1], scans[1].points, 1.0, 0.0), _nudged(T_true[1], scans[1].points, 3.0, 0.0)]
-    r = trimmed_residuals(ref, tgt, poses, fp.measure_gate_m, fp.select_trim)
+    r = trimmed_residuals(ref, tgt, poses, ap.gate_m, ap.select_trim)
     assert r[0] < r[1] and r[2] < r[3], r
 
 
@@ -83,26 +88,26 @@ def test_final_pose_is_never_further_from_the_surfaces_than_the_start(cases):
     # cylinders, the arcs are partial). The pose returned is the candidate (start, sections,
     # either polished by the surfaces) with the lowest trimmed surface residual: never above the
     # start's, and when that is the start, it is returned unchanged with a message.
-    fp = Params().fine
+    sp, ap = Params().surface, Params().acceptance
     for (scans, T_true), k in ((cases[0], 1), (cases[1], 2)):
-        res = register_fine(scans[0], scans[k], T_true[k], Params())
-        ref = surface_of(scans[0].points, fp.measure_voxel_m)
-        tgt = surface_of(scans[k].points, fp.measure_voxel_m, 20_000)
-        r_start, r_final = trimmed_residuals(ref, tgt, [T_true[k], res.T_ref_tgt], fp.measure_gate_m, fp.select_trim)
+        res = fine(scans[0], scans[k], T_true[k], Params())
+        ref = surface_of(scans[0].points, sp.voxel_m)
+        tgt = surface_of(scans[k].points, sp.voxel_m, 20_000)
+        r_start, r_final = trimmed_residuals(ref, tgt, [T_true[k], res.T_ref_target], ap.gate_m, ap.select_trim)
         assert r_final <= r_start + 1e-6, (r_start, r_final)
-        assert mean_displacement(res.T_ref_tgt, T_true[k], scans[k].points) < 0.004
+        assert mean_displacement(res.T_ref_target, T_true[k], scans[k].points) < 0.004
         source = {m.description: m.value for m in res.metrics}["final pose from"]
         if source == "coarse":
-            assert np.array_equal(res.T_ref_tgt, T_true[k]) and "kept the coarse transform" in res.message
+            assert np.array_equal(res.T_ref_target, T_true[k]) and "kept the coarse transform" in res.message
 
 
 def test_fine_keeps_coarse_with_a_message_when_it_cannot_help(cases):
     scans, T_true = cases[2]
     # 1.5 m off: no section of the target lies within the correspondence gate of the reference's.
     far = make_transform(np.eye(3), [1.5, 0.0, 0.0]) @ T_true[1]
-    res = register_fine(scans[0], scans[1], far, Params())
+    res = fine(scans[0], scans[1], far, Params())
     assert res.ok and not res.accepted
-    assert np.array_equal(res.T_ref_tgt, far)
+    assert np.array_equal(res.T_ref_target, far)
     assert "kept the coarse transform" in res.message
 
 
@@ -111,12 +116,12 @@ def test_acceptance_test_rejects_an_update_that_makes_things_worse(cases):
     # target by centimetres to decimetres here; with the acceptance test on, that update is refused.
     scans, T_true = cases[2]
     p = PRESETS["paper"]
-    free = register_fine(scans[0], scans[1], T_true[1], p)
-    guarded = register_fine(scans[0], scans[1], T_true[1], replace(p, fine=replace(p.fine, accept_test=True)))
-    assert mean_displacement(free.T_ref_tgt, T_true[1], scans[1].points) > 0.03
+    free = fine(scans[0], scans[1], T_true[1], p)
+    guarded = fine(scans[0], scans[1], T_true[1], replace(p, acceptance=replace(p.acceptance, test=True)))
+    assert mean_displacement(free.T_ref_target, T_true[1], scans[1].points) > 0.03
     assert free.accepted  # the paper preset has no acceptance test
     assert not guarded.accepted and guarded.ok
-    assert np.array_equal(guarded.T_ref_tgt, T_true[1])
+    assert np.array_equal(guarded.T_ref_target, T_true[1])
     assert "made the alignment worse" in guarded.message
     assert guarded.measure_fine < guarded.measure_coarse
 
@@ -124,17 +129,20 @@ def test_acceptance_test_rejects_an_update_that_makes_things_worse(cases):
 def test_fine_result_holds_what_the_app_draws(cases):
     scans, T_true = cases[1]
     rng = np.random.default_rng(7)
-    res = register_fine(scans[0], scans[1], coarse_like_error(T_true[1], scans[1].points, rng), Params())
+    res = fine(scans[0], scans[1], coarse_like_error(T_true[1], scans[1].points, rng), Params())
     sl = res.slices
     assert sl is not None and sl.n_slices == len(Params().slicing.quantiles)
-    assert len(res.ref_arcs) == len(res.tgt_arcs) == sl.n_slices
-    assert all(len(a.labels) == len(a.indices) for a in res.ref_arcs + res.tgt_arcs)
-    assert res.correspondences is not None and len(res.correspondences.pairs) >= 3
-    i, j = res.correspondences.pairs.T
-    assert i.max() < len(res.ref_sections) and j.max() < len(res.tgt_sections)
-    assert res.tie_points_ref.shape == res.tie_points_tgt.shape and res.tie_points_ref.shape[1] == 3
+    assert len(res.arcs.ref) == len(res.arcs.tgt) == sl.n_slices
+    assert all(len(a.labels) == len(a.indices) for a in res.arcs.ref + res.arcs.tgt)
+    sec = res.sections
+    # drawn at the final pose (or the last iteration's, when within the 5 mm the app cannot show)
+    assert sec is not None and mean_displacement(sec.T_ref_target, res.T_ref_target, scans[1].points) < 0.005
+    assert len(sec.correspondences.pairs) >= 3
+    i, j = sec.correspondences.pairs.T
+    assert i.max() < len(sec.ref.sections) and j.max() < len(sec.tgt.sections)
+    assert sec.tie_points_ref.shape == sec.tie_points_tgt.shape and sec.tie_points_ref.shape[1] == 3
     # At the final pose corresponding centres are close (the target drawn in the reference frame).
-    assert np.median(res.correspondences.distances_m) < 0.02
+    assert np.median(sec.correspondences.distances_m) < 0.02
     assert {m.description for m in res.metrics} >= {"fine accepted", "corresponding sections"}
 
 
@@ -142,11 +150,11 @@ def test_paper_preset_runs_the_literal_tie_point_method(cases):
     scans, T_true = cases[2]
     rng = np.random.default_rng(3)
     start = coarse_like_error(T_true[1], scans[1].points, rng)
-    res = register_fine(scans[0], scans[1], start, PRESETS["paper"])
+    res = fine(scans[0], scans[1], start, PRESETS["paper"])
     assert res.ok and res.iterations <= 1
     assert res.slices is not None and res.slices.n_slices == 3
     # Tie points: circle centres (lowest slice) and two per cylinder.
-    assert len(res.tie_points_ref) >= len(res.correspondences.pairs)
+    assert len(res.sections.tie_points_ref) >= res.sections.n_pairs
 
 
 def test_surfaces_take_over_when_there_are_too_few_sections(cases):
@@ -154,20 +162,20 @@ def test_surfaces_take_over_when_there_are_too_few_sections(cases):
     rng = np.random.default_rng(11)
     start = coarse_like_error(T_true[2], scans[2].points, rng)
     p = Params()
-    res = register_fine(scans[0], scans[2], start, replace(p, fine=replace(p.fine, min_pairs=1000)))
+    res = fine(scans[0], scans[2], start, replace(p, fine=replace(p.fine, min_pairs=1000)))
     assert res.accepted and "aligned by the surfaces" in res.message
-    rot, disp = _errors(res.T_ref_tgt, T_true[2], scans[2].points)
+    rot, disp = _errors(res.T_ref_target, T_true[2], scans[2].points)
     assert disp < 0.01 and rot < 0.3
     assert res.measure_fine > res.measure_coarse
 
 
 def test_slices_are_taken_at_reference_heights_with_the_target_mapped(cases):
     from treereg_core.params import SlicingParams
-    from treereg_core.slicing import slice_scans
+    from treereg_core.fine.slicing import slice_scans
 
     scans, T_true = cases[2]
     p = SlicingParams(quantiles=(0.25, 0.5, 0.75), thickness_m=0.1)
-    sl = slice_scans(scans[0], scans[1], T_true[1], p)
+    sl = slice_scans(scans[0], scans[1], T_true[1], slicing=p)
     lo, hi = sl.z_extent_m
     assert np.allclose(sl.heights_m, lo + np.array([0.25, 0.5, 0.75]) * (hi - lo))
     z_tgt = apply_transform(T_true[1], scans[1].points)[:, 2]
@@ -176,6 +184,6 @@ def test_slices_are_taken_at_reference_heights_with_the_target_mapped(cases):
         assert np.all(np.abs(z_tgt[it] - h) <= 0.05)
         assert len(it) == np.count_nonzero(np.abs(z_tgt - h) <= 0.05)
     # Lifting the target by 20 cm in the reference frame selects other target points.
-    lifted = slice_scans(scans[0], scans[1], make_transform(np.eye(3), [0, 0, 0.2]) @ T_true[1], p)
+    lifted = slice_scans(scans[0], scans[1], make_transform(np.eye(3), [0, 0, 0.2]) @ T_true[1], slicing=p)
     assert not np.array_equal(lifted.tgt_indices[1], sl.tgt_indices[1])
     assert all(np.array_equal(a, b) for a, b in zip(lifted.ref_indices, sl.ref_indices))

@@ -4,7 +4,7 @@ arcs, seeded noise; fit; compare (as scikit-image's measure.fit tests do)."""
 import numpy as np
 import pytest
 
-from treereg_core.fitting import (
+from treereg_core.fine.fitting import (
     CylinderFit,
     Section,
     arc_coverage_deg,

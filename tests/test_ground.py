@@ -2,17 +2,17 @@
 
 import numpy as np
 
-from treereg_core.ground import prepare_scan
+from treereg_core.prepare.ground import prepare_scan
 from treereg_core.params import PrepareParams
 from treereg_core.scan import Scan
-from treereg_core.simulate import simulate_case
-from treereg_core.simulate_tree import LABEL_GROUND
+from treereg_core.simulate.cases import simulate_case
+from treereg_core.simulate.tree import LABEL_GROUND
 
 
 def test_ground_of_a_simulated_scan_is_removed_and_the_tree_kept():
     case = simulate_case(seed=3, angular_step_deg=(0.25, 0.25), height_m=8.0, ground=True, tilt_deg=0.5)
     for scan, labels in zip(case.scans, case.labels):
-        prep = prepare_scan(scan, PrepareParams())
+        prep = prepare_scan(scan, prepare=PrepareParams())
         assert prep.ok and prep.plane is not None
         is_ground = labels == LABEL_GROUND
         assert prep.ground_mask[is_ground].mean() > 0.98
@@ -27,7 +27,7 @@ def test_ground_of_a_simulated_scan_is_removed_and_the_tree_kept():
 
 def test_scan_without_ground_is_left_alone():
     case = simulate_case(seed=4, angular_step_deg=(0.25, 0.25), height_m=8.0, ground=False)
-    prep = prepare_scan(case.scans[0], PrepareParams())
+    prep = prepare_scan(case.scans[0], prepare=PrepareParams())
     assert prep.ok and prep.plane is None and not prep.ground_mask.any() and prep.kept_mask.all()
     assert any("no ground" in str(m.value) for m in prep.metrics)
 
@@ -38,7 +38,7 @@ def test_crop_radius_and_heights():
                             rng.uniform(-1.5, 6, 3000)])
     far = np.column_stack([rng.uniform(15, 18, 500), rng.uniform(-3, 3, 500), rng.uniform(-1.5, 6, 500)])
     scan = Scan.from_points(np.vstack([stem, far]), "s", angular_step_deg=(0.1, 0.1))
-    prep = prepare_scan(scan, PrepareParams(remove_ground=False, crop_radius_m=2.0, crop_z_max_m=5.0))
+    prep = prepare_scan(scan, prepare=PrepareParams(remove_ground=False, crop_radius_m=2.0, crop_z_max_m=5.0))
     assert prep.ok and prep.stem_xy is not None
     assert np.hypot(prep.stem_xy[0] - 10, prep.stem_xy[1] - 2) < 0.2
     assert prep.kept_mask[3000:].sum() == 0
@@ -48,5 +48,5 @@ def test_crop_radius_and_heights():
 def test_crop_that_leaves_nothing_is_a_result_not_an_exception():
     rng = np.random.default_rng(1)
     scan = Scan.from_points(rng.uniform(0, 5, (1000, 3)), "s", angular_step_deg=(0.1, 0.1))
-    prep = prepare_scan(scan, PrepareParams(remove_ground=False, crop_z_min_m=100.0))
+    prep = prepare_scan(scan, prepare=PrepareParams(remove_ground=False, crop_z_min_m=100.0))
     assert not prep.ok and "crop" in prep.message

@@ -3,10 +3,11 @@
 import numpy as np
 import pytest
 
-from treereg_core.icp import estimate_normals, icp, voxel_downsample
+from treereg_core.evaluate.icp import align_icp
+from treereg_core.geometry.normals import estimate_normals, voxel_downsample
 from treereg_core.params import IcpParams
-from treereg_core.rigid import apply_transform, invert, make_transform, mean_displacement, rotation_error_deg, rotation_z
-from treereg_core.simulate import benchmark_cases
+from treereg_core.geometry.rigid import apply_transform, invert, make_transform, mean_displacement, rotation_error_deg, rotation_z
+from treereg_core.simulate.cases import benchmark_cases
 
 
 @pytest.fixture(scope="module")
@@ -32,31 +33,31 @@ def test_icp_recovers_a_small_offset_of_the_same_surface(case, method, tol_m, to
     T_err = _offset(ref, 0.4, [0.02, -0.015, 0.01])
     tgt = apply_transform(invert(T_err), tgt_ref_frame)  # so that T_err maps tgt back
     start = np.eye(4)
-    res = icp(ref[::2], tgt, start, IcpParams(method=method, voxel_m=0.01, max_distance_m=0.2, trim=0.8))
+    res = align_icp(ref[::2], tgt, start, icp=IcpParams(method=method, voxel_m=0.01, max_distance_m=0.2, trim=0.8))
     assert res.ok
-    assert rotation_error_deg(res.T, T_err) < tol_deg
-    assert mean_displacement(res.T, T_err, tgt) < tol_m
-    assert mean_displacement(res.T, T_err, tgt) < mean_displacement(start, T_err, tgt) / 2
+    assert rotation_error_deg(res.T_ref_target, T_err) < tol_deg
+    assert mean_displacement(res.T_ref_target, T_err, tgt) < tol_m
+    assert mean_displacement(res.T_ref_target, T_err, tgt) < mean_displacement(start, T_err, tgt) / 2
 
 
 def test_icp_on_two_stations_runs_from_a_near_pose_and_reports(case):
     ref, tgt = case.scans[0], case.scans[1]
     T_true = case.T_ref_scan[1]
     start = _offset(apply_transform(T_true, tgt.points), 0.2, [0.01, 0.005, 0.0]) @ T_true
-    res = icp(ref.points, tgt.points, start, IcpParams())
+    res = align_icp(ref.points, tgt.points, start, icp=IcpParams())
     assert res.ok and res.iterations >= 1 and 0 < res.fitness <= 1 and np.isfinite(res.rmse_m)
     # Partial overlap (each station sees other sides of thin branches) biases ICP; from 1 cm it
     # stays within a few cm of the truth.
-    assert mean_displacement(res.T, T_true, tgt.points) < 0.03
-    assert rotation_error_deg(res.T, T_true) < 0.5
+    assert mean_displacement(res.T_ref_target, T_true, tgt.points) < 0.03
+    assert rotation_error_deg(res.T_ref_target, T_true) < 0.5
 
 
 def test_icp_reports_failure_when_nothing_is_within_reach(case):
     ref, tgt = case.scans[0], case.scans[1]
     far = make_transform(np.eye(3), [50.0, 0, 0]) @ case.T_ref_scan[1]
-    res = icp(ref.points, tgt.points, far, IcpParams(max_distance_m=0.5))
+    res = align_icp(ref.points, tgt.points, far, icp=IcpParams(max_distance_m=0.5))
     assert not res.ok and "max_distance" in res.message
-    assert np.array_equal(res.T, far)
+    assert np.array_equal(res.T_ref_target, far)
 
 
 def test_voxel_downsample_and_normals():

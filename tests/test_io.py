@@ -7,15 +7,16 @@ import warnings
 from pathlib import Path
 
 import laspy
+from conftest import REAL_TREES, needs
 import numpy as np
 import pytest
 
-from treereg_core import io as tio
+from treereg_core.io import scans as tio
 from treereg_core.errors import ScanError
-from treereg_core.io import ScanWarning, read_points, read_scan, write_scan
-from treereg_core.simulate import simulate_case
+from treereg_core.io.scans import ScanWarning, read_points, read_scan, write_scan
+from treereg_core.simulate.cases import simulate_case
 
-REAL_SCAN = Path(__file__).resolve().parents[2] / "shared" / "data" / "real_trees" / "rtls_single_scan_scanner_at_origin.xyz.gz"
+REAL_SCAN = REAL_TREES / "rtls_single_scan_scanner_at_origin.xyz.gz"
 
 
 @pytest.fixture(scope="module")
@@ -107,7 +108,7 @@ def test_gzipped_text_with_hash_header(tmp_path, pts):
     np.testing.assert_array_equal(read_points(p), pts)
 
 
-@pytest.mark.skipif(not REAL_SCAN.exists(), reason="real scan not available")
+@needs(REAL_SCAN)
 def test_real_gzipped_riegl_scan():
     p = read_points(REAL_SCAN)
     assert p.shape == (1_046_843, 3)

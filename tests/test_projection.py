@@ -3,11 +3,11 @@
 import numpy as np
 
 from treereg_core.params import ProjectionParams
-from treereg_core.projection import EMPTY, OCCUPIED, project, spherical_deg
-from treereg_core.rigid import rotation_z
+from treereg_core.coarse.projection import EMPTY, OCCUPIED, project, spherical_deg
+from treereg_core.geometry.rigid import rotation_z
 from treereg_core.scan import Scan
-from treereg_core.sequences import build_sequence, sequence_angles_deg
-from treereg_core.tiepoints import pixel_centroids
+from treereg_core.coarse.sequences import build_sequence, sequence_angles_deg
+from treereg_core.coarse.tiepoints import pixel_centroids
 
 
 def _tree_like(rng: np.random.Generator, centre_xy=(10.0, 0.0), n: int = 5000) -> np.ndarray:
@@ -60,8 +60,8 @@ def test_tree_across_the_azimuth_wrap_stays_one_compact_image():
     rng = np.random.default_rng(2)
     pts = _tree_like(rng, centre_xy=(-10.0, 0.0))  # straddles alpha = +-180
     scan = Scan.from_points(pts, "wrap", angular_step_deg=(0.1, 0.1))
-    rel = build_sequence(scan, ProjectionParams(theta_deg=30.0, relative_azimuth=True, max_image_px=None), 3)
-    ab = build_sequence(scan, ProjectionParams(theta_deg=30.0, relative_azimuth=False, max_image_px=None), 3)
+    rel = build_sequence(scan, projection=ProjectionParams(theta_deg=30.0, relative_azimuth=True, max_image_px=None), n_scans=3)
+    ab = build_sequence(scan, projection=ProjectionParams(theta_deg=30.0, relative_azimuth=False, max_image_px=None), n_scans=3)
     k0 = rel.angles_deg.index(0.0)
     width_rel = rel.projections[k0].shape[1]
     width_abs = ab.projections[k0].shape[1]
@@ -85,7 +85,7 @@ def test_sequence_spans_plus_minus_360_over_n_and_keeps_the_scan_at_zero():
     pts = _tree_like(rng, centre_xy=(6.0, 8.0))
     scan = Scan.from_points(pts, "s", angular_step_deg=(0.1, 0.1))
     p = ProjectionParams(theta_deg=10.0, max_image_px=None)
-    seq = build_sequence(scan, p, n_scans=3)
+    seq = build_sequence(scan, projection=p, n_scans=3)
     assert len(seq) == 25 and seq.angles_deg[0] == -120.0 and seq.angles_deg[-1] == 120.0
     assert np.allclose(seq.centre_xy, pts[:, :2].mean(axis=0))
     # the image at rotation 0 is the scan's own projection
@@ -100,7 +100,7 @@ def test_sequence_spans_plus_minus_360_over_n_and_keeps_the_scan_at_zero():
 def test_image_size_cap_enlarges_pixels_uniformly():
     rng = np.random.default_rng(4)
     scan = Scan.from_points(_tree_like(rng), "s", angular_step_deg=(0.01, 0.01))
-    seq = build_sequence(scan, ProjectionParams(theta_deg=60.0, max_image_px=300), 3)
+    seq = build_sequence(scan, projection=ProjectionParams(theta_deg=60.0, max_image_px=300), n_scans=3)
     assert max(max(p.shape) for p in seq.projections) <= 300 + 2 * 10 + 2
     assert np.isclose(seq.pixel_deg[0] / seq.pixel_deg[1], 1.0)
 
@@ -109,7 +109,7 @@ def test_tie_points_are_pixel_centroids_in_the_scans_own_frame():
     rng = np.random.default_rng(5)
     pts = _tree_like(rng, centre_xy=(8.0, -3.0))
     scan = Scan.from_points(pts, "s", angular_step_deg=(0.1, 0.1))
-    seq = build_sequence(scan, ProjectionParams(theta_deg=40.0, max_image_px=None), 3)
+    seq = build_sequence(scan, projection=ProjectionParams(theta_deg=40.0, max_image_px=None), n_scans=3)
     k = 0  # rotated by -120 deg
     proj = seq.projections[k]
     rows, cols = np.nonzero(proj.image == OCCUPIED)
@@ -140,7 +140,7 @@ def test_tie_points_are_pixel_centroids_in_the_scans_own_frame():
 def test_sequence_span_never_leaves_relative_headings_uncovered():
     rng = np.random.default_rng(6)
     scan = Scan.from_points(_tree_like(rng), "s", angular_step_deg=(0.2, 0.2))
-    paper = build_sequence(scan, ProjectionParams(theta_deg=12.0, min_span_deg=0.0, max_image_px=None), 5)
-    robust = build_sequence(scan, ProjectionParams(theta_deg=12.0), 5)
+    paper = build_sequence(scan, projection=ProjectionParams(theta_deg=12.0, min_span_deg=0.0, max_image_px=None), n_scans=5)
+    robust = build_sequence(scan, projection=ProjectionParams(theta_deg=12.0), n_scans=5)
     assert (paper.angles_deg[0], paper.angles_deg[-1]) == (-72.0, 72.0)  # 360 / n, n = 5
     assert robust.angles_deg[0] <= -84.0 and robust.angles_deg[-1] >= 84.0  # two sequences cover +-180

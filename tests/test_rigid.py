@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from treereg_core.rigid import (
+from treereg_core.geometry.rigid import (
     apply_transform,
     invert,
     kabsch,

@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from treereg_core.angular_step import estimate_angular_step
+from treereg_core.prepare.angular_step import estimate_angular_step
 from treereg_core.errors import ScanError
-from treereg_core.rigid import rotation_z
+from treereg_core.geometry.rigid import rotation_z
 from treereg_core.scan import MIN_POINTS, Scan, spherical_angles_deg
-from treereg_core.simulate import simulate_case
+from treereg_core.simulate.cases import simulate_case
 
 
 def grid_scan(phi: float, varphi: float, seed: int = 0, dropout: float = 0.05, sigma_m: float = 0.003,

@@ -13,21 +13,23 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import REAL_TREES
+from conftest import REAL_TREES, needs
 from scipy.spatial import cKDTree
 
-from treereg_core.cli import main
+from treereg_cli.main import main
 from treereg_core.errors import ConfigError
-from treereg_core.rigid import apply_transform, invert, make_transform
+from treereg_core.geometry.rigid import apply_transform, invert, make_transform
 from treereg_core.scan import Scan
-from treereg_core.simulate import CaseSpec, benchmark_cases, read_case, simulate_case
-from treereg_core.simulate_scanner import (
+from treereg_core.demo import DEMO_DIR
+from treereg_core.io.cases import read_case
+from treereg_core.simulate.cases import CaseSpec, benchmark_cases, simulate_case
+from treereg_core.simulate.scanner import (
     _intersect_cylinders,
     _intersect_disks,
     _intersect_spheres,
     scan_scene,
 )
-from treereg_core.simulate_tree import (
+from treereg_core.simulate.tree import (
     LABEL_LEAF,
     LABEL_TRUNK,
     Cylinders,
@@ -271,6 +273,7 @@ def test_tree_has_the_asked_size_and_orders():
 
 
 # ---- stations from a point cloud -----------------------------------------------------------
+@needs(ADTREE)
 def test_stations_from_a_real_tree_keep_the_nearest_point_per_cell():
     case = simulate_case(seed=1, angular_step_deg=0.1, from_points=str(ADTREE), range_sigma_m=0.0, dropout=0.0)
     cloud = case.cloud
@@ -300,6 +303,7 @@ def test_stations_from_a_real_tree_keep_the_nearest_point_per_cell():
                                    np.sort(np.linalg.norm(scan.points, axis=1)), atol=1e-9)
 
 
+@needs(ADTREE)
 def test_stations_from_points_add_range_noise_along_the_ray():
     case = simulate_case(seed=1, angular_step_deg=0.1, from_points=str(ADTREE), range_sigma_m=0.003)
     d, _ = cKDTree(case.cloud).query(case.world_points(1))
@@ -314,7 +318,8 @@ def test_cli_writes_a_case_folder_that_reads_back(tmp_path, capsys):
                "--tilt", "--out", str(out)])
     assert rc == 0
     assert sorted(p.name for p in out.iterdir()) == ["scan1.ply", "scan2.ply", "scan3.ply", "truth.json"]
-    scans, truth = read_case(out)
+    case = read_case(out)
+    scans, truth = case.scans, case.truth_file
     expected = simulate_case(seed=4, angular_step_deg=(0.3, 0.25), height_m=6.0, ground=True, tilt_deg=0.3)
     assert truth.reference == "scan1.ply"
     assert truth.extra["angular_step_deg"] == [0.3, 0.25]
@@ -326,6 +331,7 @@ def test_cli_writes_a_case_folder_that_reads_back(tmp_path, capsys):
     assert "wrote scan1.ply" in capsys.readouterr().out
 
 
+@needs(ADTREE)
 def test_cli_refuses_tree_options_with_a_point_cloud(tmp_path, capsys):
     rc = main(["simulate", "--from-points", str(ADTREE), "--leaves", "--out", str(tmp_path / "x")])
     assert rc == 2
@@ -364,7 +370,7 @@ def test_small_benchmark_cases_are_quick_and_small():
 
 
 # ---- the bundled demo ----------------------------------------------------------------------
-ASSETS = Path(__file__).resolve().parents[1] / "assets"
+ASSETS = Path(__file__).resolve().parents[1] / "assets"  # the demo's README (how it is made)
 
 
 def test_the_demo_case_is_small_and_regenerates_from_its_readme_command(tmp_path):
@@ -373,11 +379,11 @@ def test_the_demo_case_is_small_and_regenerates_from_its_readme_command(tmp_path
     argv = shlex.split(line)[1:]
     argv[argv.index("--out") + 1] = str(tmp_path / "demo")
     assert main(argv) == 0
-    demo, truth = read_case(ASSETS / "demo")
-    again, truth_again = read_case(tmp_path / "demo")
-    assert len(demo) == 3
-    for a, b in zip(demo, again):
-        assert (ASSETS / "demo" / a.name).stat().st_size <= 2_000_000
+    demo, again = read_case(DEMO_DIR), read_case(tmp_path / "demo")
+    truth, truth_again = demo.truth_file, again.truth_file
+    assert len(demo.scans) == 3
+    for a, b in zip(demo.scans, again.scans):
+        assert (DEMO_DIR / a.name).stat().st_size <= 2_000_000
         assert a.n_points <= 60_000 and a.n_points == b.n_points
         np.testing.assert_allclose(a.points, b.points, rtol=0, atol=1e-9)
         np.testing.assert_allclose(truth.matrix(a.name), truth_again.matrix(a.name), rtol=0, atol=1e-12)

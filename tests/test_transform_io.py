@@ -7,12 +7,12 @@ import json
 import numpy as np
 import pytest
 
-from treereg_core import __version__
+from treereg_core._version import __version__
 from treereg_core.errors import ConfigError
 from treereg_core.params import PRESETS, to_dict
 from treereg_core.results import Metric
-from treereg_core.rigid import apply_transform, make_transform, rotation_z
-from treereg_core.transform_io import (
+from treereg_core.geometry.rigid import apply_transform, make_transform, rotation_z
+from treereg_core.io.transforms import (
     TransformFile,
     cloudcompare_matrix_text,
     parse_cloudcompare_matrix,

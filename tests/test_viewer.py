@@ -18,16 +18,17 @@ import numpy as np
 import pytest
 import viser
 
-from treereg_core.io import read_points
-from treereg_core.pipeline import STAGES
-from treereg_core.rigid import mean_displacement, rotation_error_deg
-from treereg_core.transform_io import read_transforms
+from treereg_core.demo import DEMO_DIR, demo_case
+from treereg_core.geometry.rigid import mean_displacement, rotation_error_deg
+from treereg_core.io.scans import read_points
+from treereg_core.io.transforms import read_transforms
+from treereg_core.stages import STAGE_NAMES, STAGES
 from treereg_viewer.app import TreeregApp
 from treereg_viewer.controller import Controller
-from treereg_viewer.demo import find_demo, load_case
 from treereg_viewer.export import export_bundle
 from treereg_viewer.palette import scan_color
-from treereg_viewer.stages import APP_STAGES
+from treereg_viewer.renderers import RENDERERS
+from treereg_viewer.stages import APP_STAGES, VIEWS, label
 
 #: The fine stage's tolerance (issue 4): rotation error and mean displacement against truth.
 ROT_TOL_DEG = 0.5
@@ -45,9 +46,9 @@ class Case:
 
 @pytest.fixture(scope="module")
 def case():
-    """The demo `treereg view` opens (assets/demo: three stations of an 8 m tree on ground, with truth)."""
-    scans, truth = load_case(find_demo())
-    return Case(scans, truth)
+    """The demo `treereg view` opens (three stations of an 8 m tree on ground, with truth)."""
+    demo = demo_case()
+    return Case(list(demo.scans), demo.truth)
 
 
 def _idle(app: TreeregApp, timeout: float = 120.0) -> None:
@@ -90,7 +91,7 @@ def small_app(case):
 def test_app_runs_every_stage_and_matches_truth(env, case):
     server, app = env
     snap = app.controller.snapshot
-    assert [snap.status(s) for s in STAGES] == ["done"] * len(STAGES), snap.message
+    assert [snap.status(s) for s in STAGE_NAMES] == ["done"] * len(STAGE_NAMES), snap.message
     truth = case.truth()
     for scan in case.scans[1:]:
         T = snap.transforms[scan.name]
@@ -106,83 +107,97 @@ def test_app_runs_every_stage_and_matches_truth(env, case):
     assert len(set(np.round(heights, 3))) == 3
 
 
+def test_the_apps_stages_are_the_pipelines():
+    assert tuple(APP_STAGES) == tuple(STAGES)
+    assert set(VIEWS) == set(STAGE_NAMES) == set(RENDERERS)  # every stage has its view and its drawing
+
+
 def test_next_steps_through_every_stage_and_draws_its_layer(env, case):
     server, app = env
-    app.select_stage(0)
+    app.select_stage("prepare")
     _idle(app)
     expected = {  # a node each stage must draw
-        2: "/stage2/ties", 3: "/stage3/ties", 4: "/stage4/ref0", 5: "/stage5/ref0", 6: "/stage6/ref_fits",
+        "matching": "/matching/ties", "coarse": "/coarse/ties", "slices": "/slices/ref0", "arcs": "/arcs/ref0",
+        "sections": "/sections/ref_fits", "fine": "/fine/ref_fits",
     }
     snap = app.controller.snapshot
-    for k in range(1, len(APP_STAGES)):
+    for k, name in list(enumerate(STAGE_NAMES))[1:]:
         app.stages.step.value = "Next"  # the browser's click on "Next"
         _idle(app)
-        assert app.view.stage == k
-        assert app.panel.title.startswith(f"### {k} ·"), app.panel.title
-        assert app.stages.selector.value == APP_STAGES[k].label
-        assert [f.visible for f in app.stages.folders.values()] == [j == k for j in range(len(APP_STAGES))]
-        assert [g.visible for g in app.drawer._groups.values()] == [j == k for j in range(len(APP_STAGES))]
-        if k in expected:
-            assert expected[k] in _nodes(server), (k, sorted(n for n in _nodes(server) if n.startswith(f"/stage{k}")))
-        if k == 1:  # all three scans' projection images, each in its colour, in the panel
+        assert app.view.stage == name
+        assert app.panel.title.startswith(f"### {k + 1} {APP_STAGES[k].title}"), app.panel.title
+        assert app.stages.selector.value == label(name)
+        assert [f.visible for f in app.stages.folders.values()] == [j == k for j in range(len(STAGE_NAMES))]
+        assert [g.visible for g in app.drawer._groups.values()] == [j == k for j in range(len(STAGE_NAMES))]
+        if name in expected:
+            assert expected[name] in _nodes(server), (name, sorted(n for n in _nodes(server) if n.startswith(f"/{name}")))
+        if name == "projection":  # all three scans' projection images, each in its colour, in the panel
             img = app.panel.images[0].image
             assert app.panel.images[0].visible
             for i in range(len(case.scans)):
                 assert np.all(img == np.array(scan_color(i), np.uint8), axis=-1).sum() > 200
-        if k == 2:
+        if name == "matching":
             assert app.panel.plots[0].visible  # similarity matrix
             assert app.panel.images[0].visible  # ORB matches side by side
-        if k == 3:  # targets at their coarse pose
+        if name in ("coarse", "slices", "arcs", "sections"):  # targets at their coarse pose
             T = snap.output("coarse").items[0].T_ref_target
             assert np.allclose(app.drawer._scan_frames[1].position, T[:3, 3], atol=1e-6)
+        if name == "coarse":
             # The residual histogram's dashed line is the distance that split inliers from outliers.
             c = snap.output("coarse").items[0]
             line = app.panel.plots[0].figure.layout.shapes[0].x0
             res, inl = np.asarray(c.residuals_m), np.asarray(c.inliers)
             assert np.mean(res[inl] < line) > 0.95 and np.mean(res[~inl] >= line) > 0.95, line
-        if k in (2, 3, 7):  # viser's client draws a plot `aspect` times as tall as wide: ours are wide
+        if name in ("matching", "coarse", "evaluation"):  # viser's client draws a plot `aspect` times as tall as wide: ours are wide
             assert app.panel.plots[0].visible and app.panel.plots[0].aspect < 1.0
-        if k == 5:  # arcs coloured per component: branch slices hold several arcs, several colours
-            handles = [h for n, h in server.scene._handle_from_node_name.items() if n.startswith("/stage5/ref")]
+        if name == "arcs":  # arcs coloured per component: branch slices hold several arcs, several colours
+            handles = [h for n, h in server.scene._handle_from_node_name.items() if n.startswith("/arcs/ref")]
             colours = np.unique(np.concatenate([np.asarray(h.colors).reshape(-1, 3) for h in handles]), axis=0)
             assert len(colours) >= 3
-        if k == 7:  # final pose: fine
-            T = snap.output("fine").items[0].T_ref_tgt
+        if name in ("fine", "evaluation"):  # final pose: fine
+            T = snap.output("fine").items[0].T_ref_target
             assert np.allclose(app.drawer._scan_frames[1].position, T[:3, 3], atol=1e-6)
+        if name == "icp":
+            T = snap.output("icp").items[0].T_ref_target
+            assert np.allclose(app.drawer._scan_frames[1].position, T[:3, 3], atol=1e-6)
+        if name == "evaluation":
             assert "fine" in app.panel.table and "coarse" in app.panel.table
     app.stages.step.value = "Next"  # past the end: stays on the last stage
     _idle(app)
-    assert app.view.stage == len(APP_STAGES) - 1
+    assert app.view.stage == STAGE_NAMES[-1]
 
 
 def test_parameter_change_reruns_only_that_stage_and_later(env, case):
     server, app = env
     ctl = app.controller
-    before = {s: ctl.snapshot.output(s) for s in STAGES}
+    before = {s: ctl.snapshot.output(s) for s in STAGE_NAMES}
+    runs_before = dict(ctl.snapshot.runs)
     seen: list[tuple[bool, bool]] = []
     ctl.subscribe(lambda snap: seen.append((snap.busy, app.stages.run_button.disabled)))
-    app.select_stage(6)
+    app.select_stage("fine")
     widget = app.stages.sections["fine"].handles["max_iterations"]
     widget.value = 3  # the user types a new value
     _idle(app)
     snap = ctl.snapshot
     assert snap.params.fine.max_iterations == 3
-    assert [snap.status(s) for s in STAGES] == ["done"] * 4 + ["stale", "stale"]
+    assert [snap.status(s) for s in STAGE_NAMES] == ["done"] * 7 + ["stale", "done", "stale"]
     app.stages.run_button.value = True  # press Run
     _idle(app)
     snap = ctl.snapshot
-    assert [snap.status(s) for s in STAGES] == ["done"] * len(STAGES)
-    for s in ("prepare", "projection", "matching", "coarse"):
+    assert [snap.status(s) for s in STAGE_NAMES] == ["done"] * len(STAGE_NAMES)
+    for s in ("prepare", "projection", "matching", "coarse", "slices", "arcs", "sections", "icp"):
         assert snap.output(s) is before[s]  # cached, not re-run
     for s in ("fine", "evaluation"):
         assert snap.output(s) is not before[s]
+    assert {s: snap.runs[s] - runs_before[s] for s in STAGE_NAMES if snap.runs[s] != runs_before[s]} == \
+        {"fine": 1, "evaluation": 1}
     assert any(busy and disabled for busy, disabled in seen), "Run was not disabled while busy"
     assert seen[-1] == (False, False)
-    assert "fine" in snap.message and "Ran" in snap.message
+    assert snap.message.startswith("Ran 8 Fine, 10 Result in")
     T = snap.transforms[case.scans[1].name]
     assert rotation_error_deg(T, case.truth()[case.scans[1].name]) < ROT_TOL_DEG
     # Nothing stale from the Result stage on: Run re-runs that stage only.
-    app.select_stage(7)
+    app.select_stage("evaluation")
     app.stages.run_button.value = True
     _idle(app)
     again = ctl.snapshot
@@ -205,7 +220,26 @@ def test_invalid_parameter_is_rejected_and_the_input_shows_what_is_in_force(env)
     _idle(app)
     assert number.value == before.params.coarse.inlier_m
     assert "coarse.inlier_m" in app.stages.message_md.content
-    assert all(ctl.snapshot.output(s) is before.output(s) for s in STAGES)
+    assert all(ctl.snapshot.output(s) is before.output(s) for s in STAGE_NAMES)
+
+
+def test_an_arcs_parameter_reruns_arcs_and_what_follows_never_slicing(small_app):
+    app = small_app
+    ctl = app.controller
+    app.stages.run_button.value = True
+    _idle(app)
+    runs = dict(ctl.snapshot.runs)
+    assert all(runs[s] == 1 for s in STAGE_NAMES)
+    app.select_stage("arcs")
+    app.stages.sections["arcs"].handles["min_points"].value = 20
+    app.stages.run_button.value = True
+    _idle(app)
+    snap = ctl.snapshot
+    assert snap.params.arcs.min_points == 20
+    assert {s: snap.runs[s] - runs[s] for s in STAGE_NAMES} == {
+        "prepare": 0, "projection": 0, "matching": 0, "coarse": 0, "slices": 0,
+        "arcs": 1, "sections": 1, "fine": 1, "icp": 0, "evaluation": 1}
+    assert "Ran 6 Arcs, 7 Fits, 8 Fine, 10 Result in" in snap.message
 
 
 def test_bad_upload_shows_a_message_and_changes_nothing(env, case):
@@ -231,7 +265,7 @@ def test_bad_upload_shows_a_message_and_changes_nothing(env, case):
         assert "treereg-upload-" not in snap.message and "/tmp" not in snap.message
         assert name in app.stages.message_md.content
         assert snap.scans == before.scans
-        assert all(snap.output(s) is before.output(s) for s in STAGES)
+        assert all(snap.output(s) is before.output(s) for s in STAGE_NAMES)
         assert len(app.scans._checkboxes) == len(before.scans)
 
 
@@ -273,19 +307,19 @@ def test_failed_stage_shows_its_message_and_later_stages_stay_stale(small_app):
     app = small_app
     ctl = app.controller
     app.stages.sections["coarse"].handles["min_ties"].value = 1000  # more ties than matching can give
-    app.select_stage(3)  # stepping onto a stale stage runs it
+    app.select_stage("coarse")  # stepping onto a stale stage runs it
     _idle(app)
     snap = ctl.snapshot
     assert snap.status("coarse") == "failed"
     assert snap.status("fine") == "stale" and snap.status("evaluation") == "stale"
-    assert "coarse failed" in app.stages.message_md.content
-    assert app.stages.progress.value == pytest.approx(50.0)  # 3 of 6 stages up to date, not a full bar
+    assert "4 Coarse failed" in app.stages.message_md.content
+    assert app.stages.progress.value == pytest.approx(30.0)  # 3 of 10 stages up to date, not a full bar
     assert "Failed" in app.panel._text.content
     assert "Traceback" not in app.stages.message_md.content + app.panel._text.content
-    app.select_stage(4)  # a failure upstream: stepping on does not run anything
+    app.select_stage("slices")  # a failure upstream: stepping on does not run anything
     _idle(app)
-    assert ctl.snapshot.status("fine") == "stale"
-    assert "coarse failed" in app.panel._text.content
+    assert ctl.snapshot.status("slices") == "stale"
+    assert "4 Coarse failed" in app.panel._text.content
 
 
 def test_presets_and_parameter_files_round_trip(small_app, tmp_path):
@@ -315,7 +349,7 @@ def test_presets_and_parameter_files_round_trip(small_app, tmp_path):
 
 def test_good_upload_adds_a_scan_in_the_next_colour(small_app, case):
     app = small_app
-    data = (find_demo() / case.scans[2].name).read_bytes()
+    data = (DEMO_DIR / case.scans[2].name).read_bytes()
     _upload(app.scans.upload, "extra.ply", data)
     _idle(app)
     snap = app.controller.snapshot
@@ -324,7 +358,7 @@ def test_good_upload_adds_a_scan_in_the_next_colour(small_app, case):
     assert [cb.label for cb in app.scans._checkboxes][-1] == "4: extra.ply"
     node = app.server.scene._handle_from_node_name["/scans/s3/points"]
     assert np.all(np.asarray(node.colors).reshape(-1, 3) == scan_color(3))
-    assert "extra.ply → scan1.ply" in app.stages.view_controls["target2"].options
+    assert "extra.ply → scan1.ply" in app.stages.view_controls["target_matching"].options
     # Rows with NaN are dropped by the reader: the message says so, the scan is added.
     pts = case.scans[1].points[:3000].copy()
     pts[::4, 2] = np.nan
@@ -367,7 +401,7 @@ def test_paper_preset_runs_and_its_failure_is_explained(small_app, case):
     assert snap.status("coarse") == "failed"
     message = app.stages.message_md.content
     assert "scan3.ply" in message and "estimator = ransac" in message
-    assert "✗ 3 Coarse" in app.stages.status_md.content
+    assert "✗ 4 Coarse" in app.stages.status_md.content
     assert "scan3.ply" not in snap.transforms  # no transform claimed for the failed pair
     # scan 2's pair went on to the end; if the paper's settings put it far from the truth, the app
     # names it (judged against the demo's truth), and only then.
@@ -377,8 +411,8 @@ def test_paper_preset_runs_and_its_failure_is_explained(small_app, case):
     far = (rotation_error_deg(snap.transforms[s2.name], truth[s2.name]) > 1.0
            or mean_displacement(snap.transforms[s2.name], truth[s2.name], s2.points) > 0.05)
     assert (f"{s2.name} → {case.scans[0].name}: the final transform is" in app.stages.message_md.content) == far
-    for k in range(8):  # every stage draws with one pair failed, no drawing error
-        app.select_stage(k)
+    for name in STAGE_NAMES:  # every stage draws with one pair failed, no drawing error
+        app.select_stage(name)
         _idle(app)
         assert "Drawing failed" not in app.stages.message_md.content
 
@@ -417,7 +451,7 @@ def test_started_with_the_paper_preset_the_files_tab_says_so(case):
 
 
 def test_frame_view_shows_the_stage_content(env, case):
-    """Stages 0-2: every scan (own frames, scattered) in view; from 3 on: the reference tree, whole."""
+    """Before coarse: every scan (own frames, scattered) in view; from coarse on: the reference tree, whole."""
     from treereg_viewer.camera import FOV_Y_RAD, SCENE_ASPECT, frame
 
     server, app = env
@@ -428,10 +462,10 @@ def test_frame_view_shows_the_stage_content(env, case):
         a, b = np.asarray(p) - pose.position, np.asarray(pose.look_at) - pose.position
         return np.arccos(a @ b / np.linalg.norm(a) / np.linalg.norm(b))
 
-    pose = frame(snap, 0)
+    pose = frame(snap, "prepare")
     for s in case.scans:
         assert angle(pose, s.points.mean(axis=0)) < half_x
-    pose = frame(snap, 4)
+    pose = frame(snap, "slices")
     tree = snap.output("prepare").items[0].scan.points
     top, bottom = tree[np.argmax(tree[:, 2])], tree[np.argmin(tree[:, 2])]
     assert angle(pose, top) < FOV_Y_RAD / 2 and angle(pose, bottom) < FOV_Y_RAD / 2
@@ -484,8 +518,31 @@ def test_callbacks_from_many_threads_leave_one_consistent_state(small_app):
     assert ctl.snapshot.params == ctl.params
 
 
-def test_view_command_binds_localhost_by_default():
-    from treereg_core.cli import build_parser
+def test_view_serves_on_loopback_only(tmp_path):
+    """`treereg view` (no --host): the listening socket is bound to 127.0.0.1, nothing else."""
+    import os
+    import re
+    import subprocess
+    import sys
+    import time
 
-    args = build_parser().parse_args(["view", "--port", "0"])
-    assert args.host == "127.0.0.1" and args.scans == [] and args.func.__name__ == "_run_view"
+    proc = subprocess.Popen([sys.executable, "-m", "treereg_cli", "view", "--port", "0"], stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    try:
+        port, deadline = None, time.monotonic() + 60
+        while port is None and time.monotonic() < deadline:
+            line = proc.stdout.readline()
+            if m := re.search(r"http://127\.0\.0\.1:(\d+)/", line):
+                port = int(m.group(1))
+        assert port, "the app did not print its address"
+        listening = []  # (local address, port) of listening TCP sockets, from the kernel's table
+        for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+            for row in Path(table).read_text().splitlines()[1:]:
+                local, state = row.split()[1], row.split()[3]
+                addr, p = local.split(":")
+                if state == "0A" and int(p, 16) == port:
+                    listening.append(addr)
+        assert listening == ["0100007F"], listening  # 127.0.0.1, little-endian hex; no 0.0.0.0, no ::
+    finally:
+        proc.terminate()
+        proc.wait(10)

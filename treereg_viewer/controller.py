@@ -28,6 +28,8 @@ from treereg_core.scan import Scan
 from treereg_core.stage import StageOutput
 from treereg_core.stages import STAGE_NAMES as STAGES
 
+from .stages import label
+
 log = logging.getLogger(__name__)
 
 
@@ -313,7 +315,7 @@ class Controller:
         if req.params_changed or desired != pipe.params:
             stale = pipe.set_params(desired)
             if stale and not req.run_until:
-                changed = f"Parameters changed: {', '.join(stale)} must re-run (press Run)."
+                changed = f"Parameters changed: {', '.join(label(s) for s in stale)} must re-run (press Run)."
                 # A note from the same moment (a preset applied, a value rejected) says more: keep it.
                 message, error = (message, error) if req.notes else (changed, False)
         self._publish(message=message, error=error)
@@ -336,7 +338,7 @@ class Controller:
             stage = text.split(":", 1)[0] if text else None
             if stage in STAGES and stage != running["stage"]:
                 running["stage"] = stage
-                self._publish(busy=True, running=stage, message=f"Running {stage}…")
+                self._publish(busy=True, running=stage, message=f"Running {label(stage)}…")
             for fn in self._progress_listeners:
                 fn(fraction, text)
 
@@ -348,17 +350,17 @@ class Controller:
             log.exception("pipeline stage %s failed", stage)
             pipe.invalidate(stage)  # the stage has no valid output: it and all later ones are stale
             self._crashed[stage] = f"{type(e).__name__}: {e}"
-            self._publish(message=f"{stage} failed: {type(e).__name__}: {e}", error=True)
+            self._publish(message=f"{label(stage)} failed: {type(e).__name__}: {e}", error=True)
             return
         seconds = time.perf_counter() - t0
         # Report the first stage that failed (the cause); pairs that did not fail went on past it.
         failed = next((s for s in todo if (o := pipe.output(s)) is not None and not o.ok), None)
         if failed is not None:
             went_on = last is not None and last.stage != failed and any(it.ok for it in last.items)
-            more = f" The other pairs went on to {last.stage}." if went_on else ""
-            self._publish(message=f"{failed} failed: {pipe.output(failed).message}.{more}", error=True)
+            more = f" The other pairs went on to {label(last.stage)}." if went_on else ""
+            self._publish(message=f"{label(failed)} failed: {pipe.output(failed).message}.{more}", error=True)
         elif todo:
-            self._publish(message=f"Ran {', '.join(todo)} in {seconds:.1f} s.")
+            self._publish(message=f"Ran {', '.join(label(s) for s in todo)} in {seconds:.1f} s.")
         else:
             self._publish(message="")
 

@@ -1,0 +1,119 @@
+"""The layout promises of ARCHITECTURE.md, checked: the core never imports the app, no module
+imports itself back through others, the core is split by concern, every stage is registered once."""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+from conftest import ROOT
+
+PACKAGES = ("treereg_core", "treereg_viewer", "treereg_cli")
+
+
+def _module_name(path: Path) -> str:
+    parts = list(path.relative_to(ROOT).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts = parts[:-1]
+    return ".".join(parts)
+
+
+def _modules() -> dict[str, Path]:
+    return {_module_name(p): p for pkg in PACKAGES for p in (ROOT / pkg).rglob("*.py")}
+
+
+def _imports(name: str, path: Path, known: set[str]) -> set[str]:
+    """Project modules `name` imports (anywhere in the file, function bodies included)."""
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    out: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            targets = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                anchor = package.split(".")[: len(package.split(".")) - node.level + 1]
+                base = ".".join(anchor + ([base] if base else []))
+            targets = [f"{base}.{a.name}" for a in node.names]
+        else:
+            continue
+        for t in targets:
+            # the longest known module the import names (a name imported from a module counts as the module)
+            while t and t not in known:
+                t = t.rpartition(".")[0]
+            if t and t != name:
+                out.add(t)
+    return out
+
+
+def test_importing_the_core_never_imports_the_app():
+    code = "import treereg_core, treereg_core.stages, treereg_core.pipeline, sys; " \
+           "print([m for m in sys.modules if 'viser' in m or 'treereg_viewer' in m])"
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
+
+
+def test_no_import_cycles_among_the_projects_modules():
+    mods = _modules()
+    known = set(mods)
+    graph = {m: _imports(m, p, known) for m, p in mods.items()}
+    # Package __init__ files are entered on the way to any submodule; an edge into a package means
+    # "its __init__", which must not lead back.
+    state: dict[str, int] = {}
+    cycles: list[list[str]] = []
+
+    def visit(m: str, stack: list[str]) -> None:
+        state[m] = 1
+        for n in sorted(graph.get(m, ())):
+            if state.get(n) == 1:
+                cycles.append(stack[stack.index(n):] + [n])
+            elif n not in state:
+                visit(n, stack + [n])
+        state[m] = 2
+
+    for m in sorted(graph):
+        if m not in state:
+            visit(m, [m])
+    assert not cycles, "import cycles: " + "; ".join(" -> ".join(c) for c in cycles)
+
+
+def test_the_core_is_split_by_concern_and_only_the_cli_knows_both():
+    core = ROOT / "treereg_core"
+    subpackages = {p.name for p in core.iterdir() if (p / "__init__.py").is_file()}
+    assert {"io", "geometry", "prepare", "coarse", "fine", "evaluate", "simulate", "demo"} <= subpackages
+    mods = _modules()
+    known = set(mods)
+    for m, p in mods.items():
+        deps = _imports(m, p, known)
+        if m.startswith("treereg_core"):
+            assert not any(d.startswith(("treereg_viewer", "treereg_cli")) for d in deps), (m, deps)
+        if m.startswith("treereg_viewer"):
+            assert not any(d.startswith("treereg_cli") for d in deps), (m, deps)
+    # Only one module runs OpenCV (ORB).
+    cv2_users = [m for m, p in mods.items() if "import cv2" in p.read_text()]
+    assert cv2_users == ["treereg_core.coarse.features"], cv2_users
+
+
+def test_every_stage_is_registered_once_with_its_sections_and_upstream():
+    from treereg_core.params import SECTIONS
+    from treereg_core.stages import STAGE_NAMES, STAGES, downstream
+
+    assert len(set(STAGE_NAMES)) == len(STAGE_NAMES)
+    for i, s in enumerate(STAGES):
+        assert set(s.sections) <= set(SECTIONS), s.name
+        assert all(STAGE_NAMES.index(u) < i for u in s.upstream), s.name
+    # Each parameter section is read by at least one stage (no orphan settings).
+    read = {sec for s in STAGES for sec in s.sections}
+    assert read == set(SECTIONS)
+    assert downstream("arcs") == ("arcs", "sections", "fine", "evaluation")
+    assert "slices" not in downstream("arcs") and "icp" not in downstream("fine")
+
+
+def test_the_public_api_is_one_import():
+    import treereg_core as T
+
+    for name in ("register", "Pipeline", "Params", "Scan", "read_scan", "FineResult", "CoarseResult", "STAGES"):
+        assert getattr(T, name) is not None
+    assert set(T.__all__) >= {"register", "Pipeline", "Params", "Scan", "read_scan"}

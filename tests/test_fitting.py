@@ -48,7 +48,8 @@ def test_taubin_flags_degenerate_input():
     assert not fit_circle_taubin(np.array([[0.0, 0.0], [1.0, 1.0]])).ok
     line = np.c_[np.linspace(0, 1, 20), np.linspace(0, 1, 20)]
     fit = fit_circle_taubin(line)
-    assert not fit.ok or fit.radius_m > 100  # a straight line is a circle of infinite radius
+    assert not fit.ok and fit.reason == "points are collinear"  # a circle of infinite radius: refused
+    assert np.isnan(fit.radius_m) and not fit.plausible
 
 
 @pytest.mark.parametrize("axis,arc,length", [((0, 0, 1), 150, 0.1), ((0.6, 0.2, 0.7), 180, 0.4), ((1, 0.3, 0.2), 140, 0.6)])

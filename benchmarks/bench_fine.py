@@ -14,7 +14,8 @@ Prints markdown tables:
 7. time per stage on 3 scans x ~300k points and the peak memory (tracemalloc) of fine.
 
 Times are ratios to the median coarse time per pair of this same run (= 1.0); its seconds are
-printed with the summary.
+printed with the summary. Everything except the perturbed-truth starts and the ablation (the fine
+stage alone, by design) runs through the pipeline, as `treereg register` does.
 
     python benchmarks/bench_fine.py                      # full run (several minutes)
     python benchmarks/bench_fine.py --n 6 --small --real-seeds 1 --no-timing   # quick look
@@ -25,40 +26,27 @@ from __future__ import annotations
 import sys
 import time
 import tracemalloc
-from dataclasses import dataclass, field
-from pathlib import Path
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from common import (  # noqa: E402
+    SUMMARY_HEADER, Err, Report, error_of, features_of, md_table, parser, real_tree_cases, run_case, summary_row,
+)
 
-from common import Report, parser, real_tree_cases  # noqa: E402
-
-from treereg_core.coarse import register_coarse  # noqa: E402
-from treereg_core.evaluation import evaluate_pair  # noqa: E402
-from treereg_core.fine import register_fine  # noqa: E402
-from treereg_core.ground import prepare_scan  # noqa: E402
-from treereg_core.icp import icp  # noqa: E402
+from treereg_core.evaluate.icp import align_icp  # noqa: E402
+from treereg_core.fine.pose import FINE_SECTIONS, register_fine  # noqa: E402
 from treereg_core.params import PRESETS, Params  # noqa: E402
-from treereg_core.rigid import mean_displacement, rotation_error_deg  # noqa: E402
-from treereg_core.scan import Scan  # noqa: E402
-from treereg_core.simulate import CaseSpec, SimulatedCase, benchmark_cases, coarse_like_error  # noqa: E402
+from treereg_core.pipeline import Pipeline  # noqa: E402
+from treereg_core.simulate.cases import CaseSpec, SimulatedCase, benchmark_cases, coarse_like_error  # noqa: E402
 
 MAX_ROT_DEG = 0.5
 MAX_DISP_M = 0.03
 METHODS = ("coarse", "fine", "fine (paper)", "ICP")
-
-
-@dataclass
-class Err:
-    rot_deg: float
-    disp_m: float
-    seconds: float = 0.0
-    note: str = ""
-
-    @property
-    def success(self) -> bool:
-        return self.rot_deg < MAX_ROT_DEG and self.disp_m < MAX_DISP_M
+#: The sections of the paper's fine step (slices, arcs, fits, tie points): "fine (paper)" takes them
+#: from the paper preset and everything before from the robust default, so it starts where the
+#: robust coarse stage ended (the pipeline re-runs only the stages these sections feed).
+PAPER_FINE_SECTIONS = ("slicing", "arcs", "fitting") + FINE_SECTIONS
 
 
 @dataclass
@@ -75,96 +63,83 @@ class PairRow:
         return a.disp_m > c.disp_m + 5e-4 or a.rot_deg > c.rot_deg + 0.01
 
 
-def features_of(spec: CaseSpec) -> str:
-    f = [name for name in ("leaves", "bent", "ground") if getattr(spec, name)]
-    if spec.tilt_deg:
-        f.append(f"tilt {spec.tilt_deg:g}")
-    if spec.lean_deg:
-        f.append(f"lean {spec.lean_deg:g}")
-    return ", ".join(f) or "plain"
+def paper_fine_params(base: Params) -> Params:
+    paper = PRESETS["paper"]
+    return replace(base, **{s: getattr(paper, s) for s in PAPER_FINE_SECTIONS})
 
 
-def prepared(scans: tuple[Scan, ...], params: Params) -> list[Scan]:
-    """The scans as the pipeline hands them to fine registration."""
-    return [prepare_scan(s, params.prepare).scan for s in scans]
+def case_rows(name: str, features: str, case: SimulatedCase) -> tuple[list[PairRow], list[dict[str, float]]]:
+    """`treereg register`'s path (robust) up to the evaluation (with ICP), then the paper's fine step
+    from the same coarse result; per pair the errors of each method and the paper's d (eq. 8)."""
+    robust = PRESETS["robust"]
+    run = run_case(case, robust, "evaluation")
+    pipe: Pipeline = run.pipeline
+    rows, d = [], []
+    coarse_s = run.total(("prepare", "projection", "matching", "coarse")) / (len(case.scans) - 1)
+    fine_s = run.total(("slices", "arcs", "sections", "fine")) / (len(case.scans) - 1)
+    for k in range(1, len(case.scans)):
+        c, f, i, ev = (run.item(s, k) for s in ("coarse", "fine", "icp", "evaluation"))
+        errs = {"coarse": error_of(c.T_ref_target, case, k, coarse_s, c.message, c.ok)}
+        # A pair whose coarse stage failed has no fine or ICP result: it counts as a failure at its start.
+        errs["fine"] = error_of(getattr(f, "T_ref_target", c.T_ref_target), case, k, fine_s, f.message, f.ok)
+        errs["ICP"] = error_of(getattr(i, "T_ref_target", c.T_ref_target), case, k,
+                               run.seconds.get("icp", 0.0) / (len(case.scans) - 1), i.message, i.ok)
+        rows.append(PairRow(name, features, case.scans[k].n_points, f"{k + 1}->1", errs))
+        d.append({m: e.mean_distance_m for m, e in ev.by_method().items()} if ev.ok else {})
+    paper = run_case(case, paper_fine_params(robust), "fine", pipe=pipe)
+    for k, row in zip(range(1, len(case.scans)), rows):
+        f = paper.item("fine", k)
+        row.errs["fine (paper)"] = error_of(getattr(f, "T_ref_target", run.item("coarse", k).T_ref_target), case, k, paper.total(PAPER_STAGES) / (len(case.scans) - 1), f.message, f.ok)
+    return rows, d
 
 
-def run_pair(case: SimulatedCase, k: int, start: np.ndarray | None, methods: tuple[str, ...],
-             fine_params: Params | None = None) -> tuple[dict[str, Err], dict[str, np.ndarray]]:
-    """Coarse (or the given start), then fine / fine (paper) / ICP from it, with errors and transforms."""
-    T_true = case.T_ref_scan[k]
-    raw = case.scans[k].points
-    errs: dict[str, Err] = {}
-    Ts: dict[str, np.ndarray] = {}
-    robust, paper = PRESETS["robust"], PRESETS["paper"]
-    if start is None:
-        t0 = time.perf_counter()
-        c = register_coarse(case.scans[0], case.scans[k], robust, n_scans=len(case.scans))
-        start = c.T_ref_target
-        errs["coarse"] = Err(rotation_error_deg(start, T_true), mean_displacement(start, T_true, raw),
-                             time.perf_counter() - t0, "" if c.ok else c.message)
-    else:
-        errs["coarse"] = Err(rotation_error_deg(start, T_true), mean_displacement(start, T_true, raw))
-    Ts["coarse"] = start
-    prep_r = prepared(case.scans, robust)
-    for m in methods:
-        t0 = time.perf_counter()
-        if m == "fine":
-            r = register_fine(prep_r[0], prep_r[k], start, fine_params or robust)
-            T, note = r.T_ref_tgt, r.message
-        elif m == "fine (paper)":
-            prep_p = prepared(case.scans, paper)
-            t0 = time.perf_counter()
-            r = register_fine(prep_p[0], prep_p[k], start, paper)
-            T, note = r.T_ref_tgt, r.message
-        elif m == "ICP":
-            r = icp(prep_r[0].points, prep_r[k].points, start, robust.icp)
-            T, note = r.T, r.message
-        else:
-            continue
-        errs[m] = Err(rotation_error_deg(T, T_true), mean_displacement(T, T_true, raw), time.perf_counter() - t0, note)
-        Ts[m] = T
-    return errs, Ts
+PAPER_STAGES = ("slices", "arcs", "sections", "fine")
+
+
+def fine_alone(case: SimulatedCase, k: int, start: np.ndarray, params: Params) -> tuple[Err, float]:
+    """The fine stage's own function from a given start (prepared scans as the pipeline prepares them)."""
+    prep = Pipeline(list(case.scans), params)
+    prep.run("prepare")
+    scans = [it.scan for it in prep.output("prepare").items]
+    t0 = time.perf_counter()
+    r = register_fine(scans[0], scans[k], start, **params.pick(*FINE_SECTIONS))
+    dt = time.perf_counter() - t0
+    return error_of(r.T_ref_target, case, k, dt, r.message), dt
+
+
+def icp_alone(case: SimulatedCase, k: int, start: np.ndarray, params: Params) -> Err:
+    prep = Pipeline(list(case.scans), params)
+    prep.run("prepare")
+    scans = [it.scan for it in prep.output("prepare").items]
+    t0 = time.perf_counter()
+    r = align_icp(scans[0].points, scans[k].points, start, icp=params.icp)
+    return error_of(r.T_ref_target, case, k, time.perf_counter() - t0, r.message)
 
 
 def pair_table(rows: list[PairRow], methods: tuple[str, ...], baseline_s: float) -> str:
-    head = "| case | features | points | pair |"
-    sub = "|---|---|---|---|"
+    header = ["case", "features", "points", "pair"]
     for m in methods:
-        head += f" {m}: rot (deg) | disp (m) | time (x) |"
-        sub += "---|---|---|"
-    lines = [head, sub]
+        header += [f"{m}: rot (deg)", "disp (m)", "time (x)"]
+    out = []
     for r in rows:
-        line = f"| {r.case} | {r.features} | {r.points} | {r.pair} |"
+        line = [r.case, r.features, r.points, r.pair]
         for m in methods:
             e = r.errs[m]
-            mark = "" if e.success else " ✗"
+            mark = "" if e.within(MAX_ROT_DEG, MAX_DISP_M) else " ✗"
             worse = " ↑" if m != "coarse" and r.worse(m) else ""
-            t = f"{e.seconds / baseline_s:.2f}" if e.seconds else "-"
-            line += f" {e.rot_deg:.3f}{mark} | {e.disp_m:.4f}{worse} | {t} |"
-        lines.append(line)
-    return "\n".join(lines)
+            line += [f"{e.rot_deg:.3f}{mark}", f"{e.disp_m:.4f}{worse}", f"{e.seconds / baseline_s:.2f}" if e.seconds else "-"]
+        out.append(line)
+    return md_table(header, out)
 
 
 def summary_table(rows: list[PairRow], methods: tuple[str, ...], baseline_s: float) -> str:
-    lines = ["| method | pairs | success (<0.5 deg, <3 cm) | median disp (m) | p90 disp (m) | max disp (m) | "
-             "median rot (deg) | max rot (deg) | worse than start | median time (x) |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
-    for m in methods:
-        es = [r.errs[m] for r in rows]
-        d = np.array([e.disp_m for e in es])
-        a = np.array([e.rot_deg for e in es])
-        ok = sum(e.success for e in es)
-        worse = "-" if m == "coarse" else str(sum(r.worse(m) for r in rows))
-        t = [e.seconds for e in es if e.seconds]
-        tt = f"{np.median(t) / baseline_s:.2f}" if t else "-"
-        lines.append(f"| {m} | {len(es)} | {ok} ({ok / len(es):.0%}) | {np.median(d):.4f} | {np.quantile(d, 0.9):.4f} | "
-                     f"{d.max():.4f} | {np.median(a):.3f} | {a.max():.3f} | {worse} | {tt} |")
-    return "\n".join(lines)
+    out = [summary_row(m, [r.errs[m] for r in rows], MAX_ROT_DEG, MAX_DISP_M, baseline_s,
+                       None if m == "coarse" else sum(r.worse(m) for r in rows)) for m in methods]
+    return md_table(SUMMARY_HEADER, out)
 
 
 def failures(rows: list[PairRow], method: str) -> str:
-    bad = [r for r in rows if not r.errs[method].success or r.worse(method)]
+    bad = [r for r in rows if not r.errs[method].within(MAX_ROT_DEG, MAX_DISP_M) or r.worse(method)]
     if not bad:
         return f"No failures of {method}, and no pair ended worse than it started."
     return "\n".join(
@@ -174,124 +149,97 @@ def failures(rows: list[PairRow], method: str) -> str:
 
 
 def table2(trees: list[tuple[str, SimulatedCase]]) -> str:
-    """The paper's Table 2: branch-centre error d (m) of coarse, fine and ICP, both presets."""
-    lines = ["| tree, pair | preset | coarse d (m) | fine d (m) | ICP d (m) | branches | "
-             "coarse rot / disp | fine rot / disp | ICP rot / disp |", "|---|---|---|---|---|---|---|---|---|"]
+    """The paper's Table 2: branch-centre error d (m) of coarse, fine and ICP, both presets, each
+    preset's own pipeline from its own coarse stage to the evaluation."""
+    out = []
     for name, case in trees:
-        for k in range(1, len(case.scans)):
-            T_true = case.T_ref_scan[k]
-            for preset in ("robust", "paper"):
-                p = PRESETS[preset]
-                c = register_coarse(case.scans[0], case.scans[k], p, n_scans=len(case.scans))
-                prep = prepared(case.scans, p)
-                f = register_fine(prep[0], prep[k], c.T_ref_target, p)
-                i = icp(prep[0].points, prep[k].points, c.T_ref_target, p.icp)
-                cells, errs, nb = [], [], 0
-                for T in (c.T_ref_target, f.T_ref_tgt, i.T):
-                    ev = evaluate_pair(prep[0], prep[k], T, p.evaluation, T_true)
-                    cells.append(f"{ev.mean_distance_m:.3f}" if ev.ok else "n/a")
-                    nb = max(nb, len(ev.branches))
-                    errs.append(f"{rotation_error_deg(T, T_true):.2f}° / {mean_displacement(T, T_true, case.scans[k].points):.3f} m")
-                lines.append(f"| {name} {k + 1}-1 | {preset} | {' | '.join(cells)} | {nb} | {' | '.join(errs)} |")
-    return "\n".join(lines)
+        for preset in ("robust", "paper"):
+            run = run_case(case, PRESETS[preset], "evaluation")
+            for k in range(1, len(case.scans)):
+                ev = run.item("evaluation", k)
+                if not ev.ok:
+                    out.append([f"{name} {k + 1}-1", preset, "n/a", "n/a", "n/a", 0, ev.message[:60], "", ""])
+                    continue
+                evs = ev.by_method()
+                cells = [f"{e.mean_distance_m:.3f}" if e.ok else "n/a" for e in evs.values()]
+                errs = [f"{e.rotation_error_deg:.2f}° / {e.mean_displacement_m:.3f} m" for e in evs.values()]
+                out.append([f"{name} {k + 1}-1", preset, *cells, max(len(e.branches) for e in evs.values()), *errs])
+    return md_table(["tree, pair", "preset", "coarse d (m)", "fine d (m)", "ICP d (m)", "branches", "coarse rot / disp",
+                     "fine rot / disp", "ICP rot / disp"], out)
 
 
-def paper_metric_summary(rows: list[tuple[str, dict[str, float]]]) -> str:
+def paper_metric_summary(rows: list[dict[str, float]]) -> str:
     """Median of the paper's branch-centre error per method over the set."""
-    lines = ["| method | pairs evaluated | median d (m) | mean d (m) |", "|---|---|---|---|"]
-    for m in METHODS:
-        v = np.array([d[m] for _, d in rows if m in d and np.isfinite(d[m])])
+    out = []
+    for m in ("coarse", "fine", "ICP"):
+        v = np.array([d[m] for d in rows if m in d and np.isfinite(d[m])])
         if len(v):
-            lines.append(f"| {m} | {len(v)} | {np.median(v):.4f} | {v.mean():.4f} |")
-    return "\n".join(lines)
+            out.append([m, len(v), f"{np.median(v):.4f}", f"{v.mean():.4f}"])
+    return md_table(["method", "pairs evaluated", "median d (m)", "mean d (m)"], out)
 
 
 #: One setting of the robust fine changed at a time: (label, section, field, value).
 ABLATIONS: tuple[tuple[str, str, str, object], ...] = (
     ("tie points + RANSAC (paper estimator, robust rest)", "fine", "method", "ties"),
-    ("no influence check of pairs", "fine", "influence_factor", None),
+    ("no influence check of pairs", "joint", "influence_factor", None),
     ("3 slices at the quartiles", "slicing", "quantiles", (0.25, 0.5, 0.75)),
     ("one iteration", "fine", "max_iterations", 1),
-    ("no surface refinement of weak directions", "fine", "surface_refine", False),
-    ("soft-L1 loss throughout", "fine", "refine_loss", "soft_l1"),
+    ("no surface refinement of weak directions", "surface", "refine", False),
+    ("soft-L1 loss throughout", "joint", "refine_loss", "soft_l1"),
     ("no adaptive gate", "fine", "gate_factor", None),
     ("no radius-ratio gate", "fitting", "max_radius_ratio", None),
     ("no range-jump split of arcs", "arcs", "max_range_jump_m", None),
     ("slices 0.2 m thick", "slicing", "thickness_m", 0.2),
-    ("no acceptance test", "fine", "accept_test", False),
-    ("surfaces polish all six directions", "fine", "surface_polish", True),
+    ("no acceptance test", "acceptance", "test", False),
+    ("surfaces polish all six directions", "surface", "polish", True),
     ("surfaces only (no sections: fallback forced)", "fine", "min_pairs", 1000),
 )
 
 
 def ablation(starts: list[tuple[SimulatedCase, int, np.ndarray]]) -> str:
-    lines = ["| variant | pairs | success | median disp (m) | p90 disp (m) | max rot (deg) | worse than start | "
-             "median seconds |", "|---|---|---|---|---|---|---|---|"]
+    """The fine stage alone from the perturbed-truth starts, one setting changed at a time."""
+    out = []
     base = PRESETS["robust"]
     for label, section, name, value in (("robust default", "", "", None),) + ABLATIONS:
         params = base if not section else base.with_value(section, name, value)
         res = []
         for case, k, start in starts:
-            prep = prepared(case.scans, base)
-            t0 = time.perf_counter()
-            r = register_fine(prep[0], prep[k], start, params)
-            dt = time.perf_counter() - t0
-            T_true, raw = case.T_ref_scan[k], case.scans[k].points
-            rot, disp = rotation_error_deg(r.T_ref_tgt, T_true), mean_displacement(r.T_ref_tgt, T_true, raw)
-            worse = disp > mean_displacement(start, T_true, raw) + 5e-4 or rot > rotation_error_deg(start, T_true) + 0.01
-            res.append((rot < MAX_ROT_DEG and disp < MAX_DISP_M, disp, rot, worse, dt))
+            e, dt = fine_alone(case, k, start, params)
+            s0 = error_of(start, case, k)
+            worse = e.disp_m > s0.disp_m + 5e-4 or e.rot_deg > s0.rot_deg + 0.01
+            res.append((e.within(MAX_ROT_DEG, MAX_DISP_M), e.disp_m, e.rot_deg, worse, dt))
         a = np.array(res, dtype=float)
-        lines.append(f"| {label} | {len(a)} | {int(a[:, 0].sum())} | {np.median(a[:, 1]):.4f} | "
-                     f"{np.quantile(a[:, 1], 0.9):.4f} | {a[:, 2].max():.3f} | {int(a[:, 3].sum())} | {np.median(a[:, 4]):.2f} |")
+        out.append([label, len(a), int(a[:, 0].sum()), f"{np.median(a[:, 1]):.4f}", f"{np.quantile(a[:, 1], 0.9):.4f}",
+                    f"{a[:, 2].max():.3f}", int(a[:, 3].sum()), f"{np.median(a[:, 4]):.2f}"])
         print(f"  ablation {label} done", file=sys.stderr, flush=True)
-    return "\n".join(lines)
+    return md_table(["variant", "pairs", "success", "median disp (m)", "p90 disp (m)", "max rot (deg)",
+                     "worse than start", "median seconds"], out)
 
 
 def timing(seed: int, target_points: int = 300_000) -> str:
-    """Coarse, fine, ICP and evaluation on 3 scans of ~`target_points` points; fine's peak memory."""
-    spec = CaseSpec(seed=seed, height_m=13.0, angular_step_deg=(0.03, 0.03))
-    n0 = np.mean([s.n_points for s in spec.build(None).scans])
+    """`treereg register`'s stages on 3 scans of ~`target_points` points, and the fine stage's peak memory."""
+    case = CaseSpec(seed=seed, height_m=13.0, angular_step_deg=(0.03, 0.03)).build(None)
+    n0 = np.mean([s.n_points for s in case.scans])
     step = round(0.03 * float(np.sqrt(n0 / target_points)), 4)
     case = CaseSpec(seed=seed, height_m=13.0, angular_step_deg=(step, step)).build(None)
-    p = PRESETS["robust"]
-    n = len(case.scans)
-    t = {"prepare x3": 0.0, "coarse 2->1, 3->1 (incl. its own prepare)": 0.0, "fine 2->1, 3->1": 0.0,
-         "ICP 2->1, 3->1": 0.0, "evaluation (paper model) 2->1, 3->1": 0.0}
-    t0 = time.perf_counter()
-    prep = prepared(case.scans, p)
-    t["prepare x3"] = time.perf_counter() - t0
-    coarse, fine_T, errs = [], [], []
-    for k in range(1, n):
-        t0 = time.perf_counter()
-        coarse.append(register_coarse(case.scans[0], case.scans[k], p, n_scans=n).T_ref_target)
-        t["coarse 2->1, 3->1 (incl. its own prepare)"] += time.perf_counter() - t0
-    for k in range(1, n):
-        t0 = time.perf_counter()
-        f = register_fine(prep[0], prep[k], coarse[k - 1], p)
-        t["fine 2->1, 3->1"] += time.perf_counter() - t0
-        fine_T.append(f.T_ref_tgt)
-        errs.append(mean_displacement(f.T_ref_tgt, case.T_ref_scan[k], case.scans[k].points))
-    for k in range(1, n):
-        t0 = time.perf_counter()
-        icp(prep[0].points, prep[k].points, coarse[k - 1], p.icp)
-        t["ICP 2->1, 3->1"] += time.perf_counter() - t0
-    for k in range(1, n):
-        t0 = time.perf_counter()
-        evaluate_pair(prep[0], prep[k], fine_T[k - 1], p.evaluation)
-        t["evaluation (paper model) 2->1, 3->1"] += time.perf_counter() - t0
+    run = run_case(case, PRESETS["robust"], "evaluation", truth=False)
+    pipe = run.pipeline
+    pipe.invalidate("fine")
     tracemalloc.start()
     tracemalloc.reset_peak()
-    register_fine(prep[0], prep[1], coarse[0], p)
+    pipe.run("fine")
     _, peak = tracemalloc.get_traced_memory()
     tracemalloc.stop()
+    register = ("prepare", "projection", "matching", "coarse", "slices", "arcs", "sections", "fine")
+    rows = [[s, f"{run.seconds[s]:.2f}"] for s in run.seconds if s != "wall"]
+    rows.append(["**treereg register (coarse + fine)**", f"**{run.total(register):.2f}**"])
+    errs = [error_of(run.item("fine", k).T_ref_target, case, k).disp_m for k in range(1, len(case.scans))]
     pts = ", ".join(str(s.n_points) for s in case.scans)
-    lines = [f"3 scans of {pts} points (13 m tree, step {step} deg); wall time on this 2-core machine, "
-             "shared with other jobs.", "", "| stage | seconds |", "|---|---|"]
-    lines += [f"| {k} | {v:.2f} |" for k, v in t.items()]
-    lines += [f"| **coarse + fine (register)** | **{t['prepare x3'] + t['coarse 2->1, 3->1 (incl. its own prepare)'] + t['fine 2->1, 3->1']:.2f}** |",
-              "", f"Peak memory allocated during one fine registration (tracemalloc): {peak / 2**20:.0f} MiB.",
-              f"Fine result: mean displacement {', '.join(f'{e * 1000:.1f} mm' for e in errs)}."]
-    return "\n".join(lines)
+    return "\n".join([
+        f"3 scans of {pts} points (13 m tree, step {step} deg); wall time per stage on this 2-core machine, "
+        "shared with other jobs.", "", md_table(["stage", "seconds"], rows), "",
+        f"Peak memory allocated while the fine stage ran for both pairs (tracemalloc): {peak / 2**20:.0f} MiB.",
+        f"Fine result: mean displacement {', '.join(f'{e * 1000:.1f} mm' for e in errs)}."])
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -308,7 +256,7 @@ def main(argv: list[str] | None = None) -> int:
                                 angular_step_deg=(0.035, 0.035)))]
         say("## Table 2 layout: branch-centre error d (paper eq. 8) on two simulated trees like the paper's A and B")
         say()
-        say("Coarse is each preset's own coarse stage; fine and ICP start from it. d is the paper's model "
+        say("Each preset's own pipeline: coarse is its coarse stage; fine and ICP start from it. d is the paper's model "
             "(branches found in the reference, three layers each; target points picked under the truth). "
             "Rotation error / mean displacement against the truth beside it. Paper: fine 0.023-0.030 m.")
         say()
@@ -317,26 +265,22 @@ def main(argv: list[str] | None = None) -> int:
 
     rows: list[PairRow] = []
     truth_rows: list[PairRow] = []
-    metric_rows: list[tuple[str, dict[str, float]]] = []
+    metric_rows: list[dict[str, float]] = []
     starts: list[tuple[SimulatedCase, int, np.ndarray]] = []
+    robust = PRESETS["robust"]
     for i, spec in enumerate(benchmark_cases(a.n, a.seed, small=a.small)):
         case = spec.build(None)
+        name = f"c{i:02d}"
+        case_rows_, d = case_rows(name, features_of(spec), case)
+        rows += case_rows_
+        metric_rows += d
         rng = np.random.default_rng(1000 + i)
         for k in range(1, len(case.scans)):
-            name, pts = f"c{i:02d}", case.scans[k].n_points
-            errs, Ts = run_pair(case, k, None, METHODS[1:])
-            rows.append(PairRow(name, features_of(spec), pts, f"{k + 1}->1", errs))
-            p = PRESETS["robust"]
-            prep = prepared(case.scans, p)
-            d = {}
-            for m in ("coarse", "fine", "ICP"):
-                ev = evaluate_pair(prep[0], prep[k], Ts[m], p.evaluation, case.T_ref_scan[k])
-                d[m] = ev.mean_distance_m if ev.ok else float("nan")
-            metric_rows.append((name, d))
             start = coarse_like_error(case.T_ref_scan[k], case.scans[k].points, rng)
             starts.append((case, k, start))
-            errs_t, _ = run_pair(case, k, start, ("fine", "ICP"))
-            truth_rows.append(PairRow(name, features_of(spec), pts, f"{k + 1}->1", errs_t))
+            truth_rows.append(PairRow(name, features_of(spec), case.scans[k].n_points, f"{k + 1}->1", {
+                "coarse": error_of(start, case, k), "fine": fine_alone(case, k, start, robust)[0],
+                "ICP": icp_alone(case, k, start, robust)}))
         print(f"  case {i + 1}/{a.n} done", file=sys.stderr, flush=True)
     baseline = float(np.median([r.errs["coarse"].seconds for r in rows]))
     say()
@@ -347,7 +291,8 @@ def main(argv: list[str] | None = None) -> int:
     say()
     say(pair_table(rows, METHODS, baseline))
     say()
-    say(f"Summary (time 1.0 = median coarse pair, {baseline:.2f} s, incl. preparing both scans):")
+    say(f"Summary (time 1.0 = the median coarse time per pair, {baseline:.2f} s: prepare, projection, matching "
+        "and coarse of a case, divided by its pairs):")
     say()
     say(summary_table(rows, METHODS, baseline))
     say()
@@ -358,6 +303,8 @@ def main(argv: list[str] | None = None) -> int:
     say(paper_metric_summary(metric_rows))
     say()
     say("## Fine from a perturbed truth (2-8 cm, 0.3-1 deg yaw, up to 0.2 deg tilt), same cases")
+    say()
+    say("The fine stage's own function from a seeded start (not `treereg register`'s path: the start replaces coarse).")
     say()
     say(summary_table(truth_rows, ("coarse", "fine", "ICP"), baseline).replace("| coarse |", "| start |"))
     say()
@@ -371,9 +318,7 @@ def main(argv: list[str] | None = None) -> int:
     if a.real_seeds > 0:
         real: list[PairRow] = []
         for label, case in real_tree_cases(a.real_seeds, a.real_step):
-            for k in range(1, len(case.scans)):
-                errs, _ = run_pair(case, k, None, METHODS[1:])
-                real.append(PairRow(label, "real tree", case.scans[k].n_points, f"{k + 1}->1", errs))
+            real += case_rows(label, "real tree", case)[0]
         say()
         say(f"## Stations simulated from real trees (step {a.real_step} deg, {a.real_seeds} station sets each)")
         say()

@@ -62,6 +62,11 @@ class Pipeline:
             self._out.pop(s, None)
         return dropped
 
+    @property
+    def outputs(self) -> dict[str, StageOutput]:
+        """Every cached output, by stage name (a copy: the pipeline's own stays private)."""
+        return dict(self._out)
+
     def output(self, name: str) -> StageOutput | None:
         """The cached output of stage `name`, or None if it has not run since its inputs changed."""
         return self._out.get(name)

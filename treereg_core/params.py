@@ -87,7 +87,28 @@ class CoarseParams:
     iterations: int = _f(2000, "", "RANSAC iterations", lo=10, hi=100000)
     min_ties: int = _f(4, "pairs", "fewest tie pairs (or inliers) accepted for a transform (paper: > 4)", lo=3, hi=1000)
     seed: int = _f(0, "", "random seed of RANSAC")
+    modes: int = _f(4, "", "RANSAC keeps this many distinct solutions (other headings, other trunk positions) for the hypotheses stage", lo=1, hi=20)
+    chance_shuffles: int = _f(3, "", "RANSAC is also run on this many random re-pairings of the ties: what chance reaches (0 = not measured)", lo=0, hi=50)
     max_tilt_deg: float | None = _f(30.0, "deg", "reject a transform that tilts the scan more than this (scanners stand nearly level); None = no check", lo=0.0, hi=180.0)
+
+
+@dataclass(frozen=True)
+class HypothesesParams:
+    """Competing pose hypotheses: RANSAC's distinct modes and quarter turns, polished and scored by the surfaces."""
+
+    enabled: bool = _f(True, "", "score competing hypotheses and start the fine stage from the one the surfaces prefer (off: RANSAC's transform, as the paper)")
+    turns: bool = _f(True, "", "also try the coarse transform turned about the tree by 90, 180 and 270 deg (a round crown looks alike from several headings)")
+    min_mode_support: int = _f(6, "ties", "a distinct RANSAC mode is a candidate when this many ties agree with it", lo=3, hi=100000)
+    polish_gate_m: float = _f(0.02, "m", "each candidate is aligned by the surfaces down to this pairing distance", lo=0.001, hi=1.0)
+    polish_iterations: int = _f(5, "", "iterations of that alignment at each pairing distance (10 cm, 5 cm, final)", lo=1, hi=200)
+    polish_points: int = _f(4000, "points", "points of the target's surface used by that alignment", lo=100, hi=1_000_000)
+    tolerance_m: float = _f(0.02, "m", "free-space test: a target point agrees with the reference's view within this range difference (plus the cell's depth)", lo=0.001, hi=1.0)
+    cell_steps: float = _f(2.0, "steps", "free-space test: the reference's range image has cells of this many angular steps", lo=1.0, hi=20.0)
+    loss_scale_m: float = _f(0.005, "m", "residual scale of the robust loss of the alignment", lo=0.0001, hi=0.5)
+    violation_weight: float = _f(4.0, "", "a hypothesis keeps its polished pose when that scores better: points seen alike minus this many times the points in the reference's free space", lo=0.0, hi=1000.0)
+    min_overlap_share: float = _f(0.25, "", "a hypothesis competes only if both stations see at least this share of what the most overlapping one shows", lo=0.0, hi=1.0)
+    distinct_deg: float = _f(15.0, "deg", "hypotheses differing by at least this rotation are distinct", lo=0.1, hi=180.0)
+    distinct_m: float = _f(0.3, "m", "...or by at least this displacement of the tree", lo=0.001, hi=100.0)
 
 
 @dataclass(frozen=True)
@@ -182,6 +203,29 @@ class AcceptanceParams:
 
 
 @dataclass(frozen=True)
+class VerifyParams:
+    """The evidence a registration must show to be called verified (thresholds chosen by measurement, see RESULTS.md)."""
+
+    min_consistency: float = _f(0.95, "", "free-space test at the final pose: fraction of the points both stations see that agree", lo=0.0, hi=1.0)
+    min_seen: int = _f(200, "points", "at least this many target points must be seen by both stations to judge", lo=1, hi=10_000_000)
+    min_margin: float = _f(0.03, "", "the best distinct competing hypothesis must be at least this much less consistent", lo=0.0, hi=1.0)
+    chance_factor: float = _f(2.0, "", "coarse support: inliers at least this many times what RANSAC reaches on randomly re-paired ties", lo=1.0, hi=100.0)
+    max_residual_factor: float = _f(3.0, "", "the trimmed surface residual at most this many times the scans' noise floor", lo=1.0, hi=100.0)
+    max_tilt_deg: float = _f(5.0, "deg", "plausibility: the transform tilts the target's scanner at most this much (scanners stand nearly level)", lo=0.0, hi=180.0)
+    max_height_difference_m: float = _f(1.0, "m", "plausibility: both scanners' heights above the ground differ at most this much (when both see ground)", lo=0.0, hi=100.0)
+    max_loop_m: float = _f(0.02, "m", "with 3 or more scans: loops of pairwise transforms close within this (mean displacement of the tree)", lo=0.0, hi=10.0)
+
+
+@dataclass(frozen=True)
+class GraphParams:
+    """Many stations: which pairs are registered, and how all scans are placed together."""
+
+    extra_pairs: int = _f(1, "pairs", "besides a spanning tree of the most alike scans, register each scan with this many more partners (loops to check)", lo=0, hi=10)
+    loss_scale_m: float = _f(0.005, "m", "joint solve of all poses: residual scale of the robust loss", lo=0.0001, hi=1.0)
+    sample_points: int = _f(300, "points", "points per scan by which an edge's disagreement is measured", lo=10, hi=100_000)
+
+
+@dataclass(frozen=True)
 class IcpParams:
     """Baseline: trimmed ICP from the coarse result."""
 
@@ -217,6 +261,7 @@ class Params:
     projection: ProjectionParams = field(default_factory=ProjectionParams)
     matching: MatchingParams = field(default_factory=MatchingParams)
     coarse: CoarseParams = field(default_factory=CoarseParams)
+    hypotheses: HypothesesParams = field(default_factory=HypothesesParams)
     slicing: SlicingParams = field(default_factory=SlicingParams)
     arcs: ArcParams = field(default_factory=ArcParams)
     fitting: FitParams = field(default_factory=FitParams)
@@ -224,6 +269,8 @@ class Params:
     joint: JointParams = field(default_factory=JointParams)
     surface: SurfaceParams = field(default_factory=SurfaceParams)
     acceptance: AcceptanceParams = field(default_factory=AcceptanceParams)
+    verify: VerifyParams = field(default_factory=VerifyParams)
+    graph: GraphParams = field(default_factory=GraphParams)
     icp: IcpParams = field(default_factory=IcpParams)
     evaluation: EvaluationParams = field(default_factory=EvaluationParams)
 
@@ -274,6 +321,7 @@ def _paper() -> Params:
                         taper_check=True, taper_tolerance=0.0, min_arc_deg=0.0, max_rms_m=1.0),
         fine=replace(p.fine, method="ties", estimator="svd", max_iterations=1, gate_factor=None),
         acceptance=replace(p.acceptance, test=False),
+        hypotheses=replace(p.hypotheses, enabled=False),
         icp=replace(p.icp, method="point_to_point"),
     )
 

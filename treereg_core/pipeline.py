@@ -18,8 +18,10 @@ import numpy as np
 from .params import Params
 from .results import Progress, no_progress
 from .scan import Scan
+from .coarse.similarity import scan_similarity
 from .stage import Pair, Skipped, StageContext, StageOutput
 from .stages import STAGE_NAMES, STAGES, downstream, stage
+from .verify.graph import select_pairs
 
 
 @dataclass
@@ -32,12 +34,30 @@ class Pipeline:
     _out: dict[str, StageOutput] = field(default_factory=dict, repr=False)
     #: How often each stage has run (what a parameter change cost; tests read it).
     runs: Counter = field(default_factory=Counter, repr=False)
+    _pairs_key: tuple | None = field(default=None, repr=False)
+    _pairs_cache: tuple = field(default=(), repr=False)
 
     # ---- state -------------------------------------------------------------------------
     @property
     def pairs(self) -> tuple[Pair, ...]:
-        """The pairs registered: every other scan onto the reference (scan 0)."""
-        return tuple(Pair(0, k) for k in range(1, len(self.scans)))
+        """The pairs registered: the reference with every other scan (2->1, 3->1, ...) and, with four
+        or more scans, the pairs the projection sequences show alike (`verify.graph.select_pairs`;
+        with three, all three). The reference's pairs come first, in scan order."""
+        n = len(self.scans)
+        star = [(0, k) for k in range(1, n)]
+        if n == 3:
+            star.append((1, 2))
+        elif n > 3:
+            proj = self._out.get("projection")
+            if proj is not None and proj.ok:
+                key = (id(proj), self.params.matching.similarity, self.params.graph.extra_pairs)
+                if self._pairs_key != key:
+                    sim = scan_similarity(list(proj.items), self.params.matching.similarity)
+                    chosen = select_pairs(sim, self.params.graph.extra_pairs)
+                    self._pairs_cache = tuple(star + [e for e in chosen if e[0] != 0])
+                    self._pairs_key = key
+                star = list(self._pairs_cache)
+        return tuple(Pair(i, j) for i, j in star)
 
     def set_params(self, params: Params) -> list[str]:
         """Adopt `params`; drop the cached outputs of every stage that reads a changed section and of
@@ -80,7 +100,9 @@ class Pipeline:
 
     @property
     def target_names(self) -> list[str]:
-        return [self.scans[p.tgt].name for p in self.pairs]
+        """A label per pair: the target's name for the reference's pairs, "b -> a" for the others."""
+        return [self.scans[p.tgt].name if p.ref == 0 else f"{self.scans[p.tgt].name} -> {self.scans[p.ref].name}"
+                for p in self.pairs]
 
     # ---- running -----------------------------------------------------------------------
     def run(self, until: str = STAGE_NAMES[-1], progress: Progress | None = None) -> StageOutput | None:
@@ -145,10 +167,16 @@ class Pipeline:
 
     # ---- results -------------------------------------------------------------------------
     def transforms(self) -> dict[str, np.ndarray]:
-        """The best available T_ref_scan per scan name: fine if it succeeded for that pair, else
-        coarse; the reference maps to the identity. Scans with neither are left out."""
+        """The best available T_ref_scan per scan name (verified or not: `verdicts` says which): the
+        joint placement when the graph stage ran, else the fine or coarse result of the scan's pair
+        with the reference. The reference maps to the identity; scans with nothing are left out."""
+        graph = self._out.get("graph")
+        if graph is not None:
+            return {s.name: it.T_ref_scan for s, it in zip(self.scans, graph.items) if it.T_ref_scan is not None}
         out = {self.scans[0].name: np.eye(4)}
         for k, p in enumerate(self.pairs):
+            if p.ref != 0:
+                continue
             for name in ("fine", "coarse"):
                 o = self._out.get(name)
                 if o is not None and o.items[k].ok:
@@ -156,9 +184,36 @@ class Pipeline:
                     break
         return out
 
+    def verdicts(self) -> dict[str, tuple[str, tuple[str, ...], str]]:
+        """Per scan name: (verdict, reasons, what to try). Before the graph stage has run nothing is
+        verified: the reasons say at which stage the registration stopped."""
+        graph = self._out.get("graph")
+        if graph is not None:
+            return {s.name: (it.verdict, it.reasons, it.hint) for s, it in zip(self.scans, graph.items)}
+        T = self.transforms()
+        last = next((s for s in reversed(STAGE_NAMES) if s in self._out), "none")
+        out = {self.scans[0].name: ("verified", (), "")}
+        for s in self.scans[1:]:
+            if s.name in T:
+                out[s.name] = ("unverified", (f"the registration stopped at the {last} stage, before verification",),
+                               "run the fine stage (treereg register without --until coarse)")
+            else:
+                out[s.name] = ("failed", (self._why_failed(s.name),), "see the stage messages above")
+        return out
+
+    def _why_failed(self, name: str) -> str:
+        for st in STAGES:
+            out = self._out.get(st.name)
+            if out is None or st.per != "pair":
+                continue
+            for p, it in zip(self.pairs, out.items):
+                if self.scans[p.tgt].name == name and p.ref == 0 and not it.ok:
+                    return f"{st.name}: {it.message}"
+        return "not registered"
+
     def final_stage(self) -> str | None:
-        """Which stage the transforms come from ('fine', 'coarse'), None before coarse has run."""
-        return next((s for s in ("fine", "coarse") if s in self._out), None)
+        """Which stage the transforms come from ('graph', 'fine', 'coarse'), None before coarse has run."""
+        return next((s for s in ("graph", "fine", "coarse") if s in self._out), None)
 
     def pair_metrics(self) -> dict[str, list[dict[str, Any]]]:
         """Per target scan, the metric rows of every per-pair stage that ran (transform files, tables)."""

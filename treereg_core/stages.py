@@ -8,6 +8,7 @@ module (a function returning a frozen result with `ok`, `message`, `metrics`) an
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -22,10 +23,16 @@ from .fine.arcs import SliceArcs, separate_scan_slices, separate_slices
 from .fine.pose import FINE_SECTIONS, FineResult, FineStart, register_fine
 from .fine.sections import SectionsResult, fit_scan_sections, fit_sections
 from .fine.slicing import SliceResult, slice_scans
-from .geometry.rigid import invert
+from .geometry.rigid import invert, mean_displacement, rotation_error_deg
+from .results import Metric
 from .prepare.ground import PreparedScan, prepare_scan
+from .fine.surface import scan_surface
 from .scan import Scan
 from .stage import Stage, StageContext
+from .verify.evidence import PairVerification, gather_evidence, judge, verification
+from .verify.graph import Edge, Placement, place_scans
+from .verify.hypotheses import HypothesesResult, pass_through, score_hypotheses
+from .verify.visibility import scan_range_image
 
 
 def _scan(ctx: StageContext, i: int) -> Scan:
@@ -60,11 +67,35 @@ def _run_coarse(ctx: StageContext) -> list[Any]:
     return ctx.each(lambda k: estimate_coarse(ctx.item("matching", k), coarse=ctx.params.coarse), lambda k: _label(ctx, k))
 
 
+def _surface(ctx: StageContext, i: int, max_points: int | None = None) -> Any:
+    """Scan i's (prepared) surface at the voxel size of the surfaces section, shared by every stage."""
+    scan = _scan(ctx, i)
+    return scan_surface(scan, scan.points, ctx.params.surface.voxel_m, max_points)
+
+
+def _run_hypotheses(ctx: StageContext) -> list[Any]:
+    hp = ctx.params.hypotheses
+
+    def one(k: int) -> HypothesesResult:
+        p, c = ctx.pairs[k], ctx.item("coarse", k)
+        if not hp.enabled:
+            return pass_through(c.T_ref_target)
+        tgt = _scan(ctx, p.tgt)
+        return score_hypotheses(scan_range_image(ctx.scans[p.ref], hp.cell_steps), _surface(ctx, p.ref),
+                                _surface(ctx, p.tgt, hp.polish_points), tgt.points, c.T_ref_target, list(c.modes),
+                                hypotheses=hp)
+    return ctx.each(one, lambda k: _label(ctx, k))
+
+
+def _start(ctx: StageContext, k: int) -> Any:
+    """Where fine registration starts for pair k: the hypothesis the surfaces preferred."""
+    return ctx.item("hypotheses", k).T_ref_target
+
+
 def _run_slices(ctx: StageContext) -> list[Any]:
     def one(k: int) -> SliceResult:
         p = ctx.pairs[k]
-        return slice_scans(_scan(ctx, p.ref), _scan(ctx, p.tgt), ctx.item("coarse", k).T_ref_target,
-                           slicing=ctx.params.slicing)
+        return slice_scans(_scan(ctx, p.ref), _scan(ctx, p.tgt), _start(ctx, k), slicing=ctx.params.slicing)
     return ctx.each(one, lambda k: _label(ctx, k))
 
 
@@ -89,7 +120,7 @@ def _run_sections(ctx: StageContext) -> list[Any]:
         ref = _scan(ctx, p.ref)
         if p.ref not in shared:
             shared[p.ref] = fit_scan_sections(ref, ar.ref, sl.heights_m, np.eye(4), ctx.params.fitting)
-        return fit_sections(ref, _scan(ctx, p.tgt), ar.ref, ar.tgt, sl.heights_m, ctx.item("coarse", k).T_ref_target,
+        return fit_sections(ref, _scan(ctx, p.tgt), ar.ref, ar.tgt, sl.heights_m, _start(ctx, k),
                             fitting=ctx.params.fitting, ref_sections=shared[p.ref])
     return ctx.each(one, lambda k: _label(ctx, k))
 
@@ -99,9 +130,53 @@ def _run_fine(ctx: StageContext) -> list[Any]:
         p = ctx.pairs[k]
         sl = ctx.outputs["slices"].items[k]
         start = FineStart(sl, ctx.ok_item("arcs", k), ctx.ok_item("sections", k)) if isinstance(sl, SliceResult) else None
-        return register_fine(_scan(ctx, p.ref), _scan(ctx, p.tgt), ctx.item("coarse", k).T_ref_target, start=start,
+        return register_fine(_scan(ctx, p.ref), _scan(ctx, p.tgt), _start(ctx, k), start=start,
                              **ctx.params.pick(*FINE_SECTIONS))
     return ctx.each(one, lambda k: _label(ctx, k))
+
+
+def _run_verify(ctx: StageContext) -> list[Any]:
+    hp = ctx.params.hypotheses
+
+    def one(k: int) -> PairVerification:
+        p, f = ctx.pairs[k], ctx.item("fine", k)
+        tgt = _scan(ctx, p.tgt)
+        e = gather_evidence(scan_range_image(ctx.scans[p.ref], hp.cell_steps), _surface(ctx, p.ref),
+                            _surface(ctx, p.tgt, SURFACE_SAMPLE), tgt.points, f.T_ref_target, ctx.item("coarse", k),
+                            ctx.item("hypotheses", k), ctx.item("prepare", p.ref).plane, ctx.item("prepare", p.tgt).plane,
+                            hypotheses=hp, acceptance=ctx.params.acceptance)
+        return verification(f.T_ref_target, e, *judge(e, verify=ctx.params.verify, coarse=ctx.params.coarse))
+    return ctx.each(one, lambda k: _label(ctx, k))
+
+
+def _run_graph(ctx: StageContext) -> list[Any]:
+    """Every scan placed onto the reference from the verified pairs, jointly (one run for all scans)."""
+    ver = ctx.outputs.get("verify")
+    edges = []
+    for k, p in enumerate(ctx.pairs):
+        it = ver.items[k] if ver is not None else None
+        if isinstance(it, PairVerification):
+            edges.append(Edge(p.ref, p.tgt, it.T_ref_target, it.verdict, it.reasons))
+        else:  # the pair failed before verification: no transform
+            edges.append(Edge(p.ref, p.tgt, np.eye(4), "failed", (getattr(it, "message", "") or "not registered",)))
+    rng = np.random.default_rng(0)
+    samples = {}
+    for i in range(len(ctx.scans)):
+        pts = _scan(ctx, i).points
+        samples[i] = pts[rng.choice(len(pts), min(ctx.params.graph.sample_points, len(pts)), replace=False)]
+    placed = place_scans(len(ctx.scans), edges, samples, graph=ctx.params.graph, max_loop_m=ctx.params.verify.max_loop_m)
+    return [_with_truth(ctx, i, pl) for i, pl in enumerate(placed)]
+
+
+def _with_truth(ctx: StageContext, i: int, pl: Placement) -> Placement:
+    """A placement with its error against the truth among its metrics, when the truth is known."""
+    ref, scan = ctx.scans[0], ctx.scans[i]
+    if not ctx.truth or pl.T_ref_scan is None or scan.name not in ctx.truth or ref.name not in ctx.truth:
+        return pl
+    T_true = invert(ctx.truth[ref.name]) @ ctx.truth[scan.name]
+    rows = (Metric("rotation error against truth", "deg", rotation_error_deg(pl.T_ref_scan, T_true)),
+            Metric("mean displacement against truth", "m", mean_displacement(pl.T_ref_scan, T_true, scan.points)))
+    return replace(pl, metrics=pl.metrics + rows)
 
 
 def _run_icp(ctx: StageContext) -> list[Any]:
@@ -146,19 +221,28 @@ STAGES: tuple[Stage, ...] = (
           "pair", ("matching",), ("projection",), MatchResult, _run_matching),
     Stage("coarse", "Coarse", "The rigid transform that maps the target's tie points onto the reference's (2.1.4).",
           "pair", ("coarse",), ("matching",), CoarseResult, _run_coarse),
+    Stage("hypotheses", "Hypotheses", "Competing poses (other headings, other RANSAC modes) polished and scored by the surfaces.",
+          "pair", ("hypotheses",), ("coarse",), HypothesesResult, _run_hypotheses),
     Stage("slices", "Slices", "Both scans cut into thin horizontal slices at the coarse pose (2.2.1).",
-          "pair", ("slicing",), ("coarse",), SliceResult, _run_slices),
+          "pair", ("slicing",), ("hypotheses",), SliceResult, _run_slices),
     Stage("arcs", "Arcs", "Each slice separated into arcs by angular connectivity (2.2.2).",
           "pair", ("arcs",), ("slices",), SliceArcs, _run_arcs),
     Stage("sections", "Fits", "Circles and cylinders fitted to the arcs, and corresponding sections paired (2.2.3, 4.2).",
           "pair", ("fitting",), ("arcs",), SectionsResult, _run_sections),
     Stage("fine", "Fine", "The fine transform from the corresponding sections, iterated and checked against the surfaces.",
-          "pair", FINE_SECTIONS, ("coarse",), FineResult, _run_fine, uses=("slices", "arcs", "sections")),
+          "pair", FINE_SECTIONS, ("hypotheses",), FineResult, _run_fine, uses=("slices", "arcs", "sections")),
+    Stage("verify", "Verify", "The evidence that each registration is right: support, free space, residual, ambiguity, plausibility.",
+          "pair", ("verify", "hypotheses", "acceptance"), ("fine",), PairVerification, _run_verify),
+    Stage("graph", "Placement", "Every scan placed onto the reference from the verified pairs, loops closed, all poses solved together.",
+          "scan", ("graph", "verify"), (), Placement, _run_graph, uses=("verify",)),
     Stage("icp", "ICP", "The ICP baseline, started from the coarse transform (3.3).",
           "pair", ("icp",), ("coarse",), IcpResult, _run_icp),
     Stage("evaluation", "Result", "The paper's branch-centre error (eq. 8) of coarse, fine and ICP, and errors against truth.",
           "pair", ("evaluation",), ("coarse", "fine"), PairReport, _run_evaluation, uses=("icp",)),
 )
+
+#: Target surface points the verify stage uses (its residual is a trimmed mean: more change nothing).
+SURFACE_SAMPLE = 20_000
 
 #: Stage names in run order.
 STAGE_NAMES: tuple[str, ...] = tuple(s.name for s in STAGES)

@@ -30,6 +30,10 @@ class CoarseResult:
     n_ties, n_inliers : counts.
     match : the MatchResult the transform came from.
     seconds : wall time of the estimate.
+    modes : (T, inliers) of RANSAC's distinct solutions, best first (the first is `T_ref_target`);
+        empty for plain SVD. Competing headings of a round crown show up here.
+    chance_inliers : the most ties RANSAC makes agree when the pairing is shuffled (what chance
+        reaches on these ties; -1 when not measured).
     """
 
     ok: bool
@@ -42,6 +46,8 @@ class CoarseResult:
     n_inliers: int
     match: MatchResult | None = None
     seconds: float = 0.0
+    modes: tuple[tuple[np.ndarray, int], ...] = ()
+    chance_inliers: int = -1
 
 
 def _coarse_fail(message: str, match: MatchResult, metrics: tuple[Metric, ...], t0: float) -> CoarseResult:
@@ -68,6 +74,8 @@ def estimate_coarse(match: MatchResult, *, coarse: CoarseParams) -> CoarseResult
         return _coarse_fail(
             f"only {n} tie points, at least {p.min_ties} are needed; use more image pairs or matches "
             "per pair, or a smaller theta (e.g. 5 deg)", match, (Metric("tie points", "", n),), t0)
+    modes: tuple[tuple[np.ndarray, int], ...] = ()
+    chance = -1
     if p.estimator == "svd":
         if robust.is_degenerate(src, p.dof):
             return _coarse_fail(f"the {n} tie points lie on one line: the transform is undetermined; "
@@ -77,8 +85,9 @@ def estimate_coarse(match: MatchResult, *, coarse: CoarseParams) -> CoarseResult
         inl = res < p.inlier_m
         how = f"SVD over all ties ({p.dof} DOF)"
     else:
-        fit = robust.ransac(src, dst, p.dof, p.inlier_m, p.iterations, p.seed,
-                            final_inlier_m=p.final_inlier_m, min_inliers=p.min_ties)
+        found = robust.ransac_modes(src, dst, p.dof, p.inlier_m, p.iterations, p.seed,
+                                    final_inlier_m=p.final_inlier_m, min_inliers=p.min_ties, max_modes=p.modes)
+        fit = found[0] if found else None
         if fit is None:
             return _coarse_fail(f"no usable sample among {n} tie points (all too close together); "
                                 "use more image pairs or matches per pair", match,
@@ -95,6 +104,9 @@ def estimate_coarse(match: MatchResult, *, coarse: CoarseParams) -> CoarseResult
             T = robust.fit(src[inl], dst[inl], 6)
             how += " + 6-DOF refit"
         res = robust.residuals(T, src, dst)
+        modes = ((T, int(inl.sum())),) + tuple((m.T, m.n_inliers) for m in found[1:])
+        chance = robust.chance_inliers(src, dst, p.dof, p.inlier_m, p.iterations, p.final_inlier_m,
+                                       shuffles=p.chance_shuffles, seed=p.seed) if p.chance_shuffles else -1
     R = T[:3, :3]
     tilt = float(np.degrees(np.arccos(np.clip(R[2, 2], -1.0, 1.0))))
     yaw = float(np.degrees(np.arctan2(R[1, 0], R[0, 0])))
@@ -108,10 +120,12 @@ def estimate_coarse(match: MatchResult, *, coarse: CoarseParams) -> CoarseResult
         Metric("yaw", "deg", yaw),
         Metric("tilt", "deg", tilt),
         Metric("rotation angle", "deg", rotation_angle_deg(R)),
-    )
+    ) + ((Metric("inliers by chance (ties re-paired at random)", "", chance),) if chance >= 0 else ()) + (
+        (Metric("distinct RANSAC modes", "", len(modes)),) if modes else ())
     problem = _implausible(n_in, n, tilt, p)
     # A failed check keeps its transform, so the app can show how wrong it is.
-    return CoarseResult(not problem, problem, metrics, T, inl, res, n, n_in, match, time.perf_counter() - t0)
+    return CoarseResult(not problem, problem, metrics, T, inl, res, n, n_in, match, time.perf_counter() - t0,
+                        modes, chance)
 
 
 def _implausible(n_inliers: int, n_ties: int, tilt_deg: float, p: CoarseParams) -> str:

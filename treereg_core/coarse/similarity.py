@@ -107,3 +107,13 @@ def implied_yaw_deg(seq_ref: ImageSequence, seq_tgt: ImageSequence, i: int, j: i
     az_r = np.degrees(np.arctan2(seq_ref.centre_xy[1], seq_ref.centre_xy[0]))
     az_t = np.degrees(np.arctan2(seq_tgt.centre_xy[1], seq_tgt.centre_xy[0]))
     return float(wrap_deg(az_r - az_t + seq_tgt.angles_deg[j] - seq_ref.angles_deg[i]))
+
+
+def scan_similarity(seqs: list[ImageSequence], measure: str) -> np.ndarray:
+    """(n, n) how alike every two scans look: the best similarity of any image pair of their sequences."""
+    n = len(seqs)
+    out = np.full((n, n), -np.inf)
+    for i in range(n):
+        for j in range(i + 1, n):
+            out[i, j] = out[j, i] = float(similarity_matrix(seqs[i], seqs[j], measure).max())
+    return out

@@ -59,7 +59,9 @@ from .correspondence import Correspondences
 from .joint import JointFit, adjust_joint
 from .sections import ScanSections, SectionsResult, fit_sections, match_scan_sections, sections_at, tie_points
 from .slicing import SliceResult, slice_scans
-from .surface import Surface, mean_move, pose_update, refine_along, surface_fitness, surface_of, trimmed_residuals
+from .surface import (
+    Surface, align_narrowing, mean_move, pose_update, refine_along, surface_fitness, surface_of, trimmed_residuals,
+)
 
 #: The parameter sections `register_fine` reads (the pipeline passes exactly these).
 FINE_SECTIONS: tuple[str, ...] = ("fine", "joint", "surface", "acceptance", "slicing", "arcs", "fitting")
@@ -72,11 +74,6 @@ _TRIM_FACTOR = 2.5
 _REDRAW_M = 0.005
 #: Joint adjustment: rounds of dropping bad pairs and adjusting again.
 _TRIM_ROUNDS = 6
-#: Surface refinement: pairing gates (m), widest first, each run for `_GATE_ITERATIONS`, then the
-#: final narrow gate (`SurfaceParams.gate_m`) for `SurfaceParams.iterations`. Directions the
-#: sections leave weak still carry the coarse error, centimetres: a narrow gate alone would never see it.
-_GATES_M = (0.1, 0.05, 0.03)
-_GATE_ITERATIONS = 10
 
 
 @dataclass(frozen=True)
@@ -296,12 +293,7 @@ def _iterate(ref: Scan, tgt: Scan, T0: np.ndarray, start: FineStart, sample: np.
 def _from_surfaces(ref_surf: Surface, tgt_surf: Surface, T: np.ndarray, centre: np.ndarray, B: np.ndarray,
                    sp: SurfaceParams, loss_scale_m: float) -> np.ndarray:
     """`T` refined point-to-plane along the pose directions `B` only, the pairing gate narrowing."""
-    for gate in _GATES_M + (sp.gate_m,):
-        final = gate == sp.gate_m
-        y = refine_along(ref_surf, tgt_surf, T, centre, B, max(gate, sp.gate_m),
-                         max(loss_scale_m, gate / 4), sp.iterations if final else _GATE_ITERATIONS)
-        T = pose_update(B @ y, centre) @ T
-    return T
+    return align_narrowing(ref_surf, tgt_surf, T, centre, B, sp.gate_m, sp.iterations, loss_scale_m)
 
 
 def _weak_from_surfaces(ref_surf: Surface, tgt_surf: Surface, T: np.ndarray, joint: JointFit,

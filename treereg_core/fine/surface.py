@@ -12,6 +12,8 @@ point-to-plane refinement restricted to the pose directions the sections leave w
 
 from __future__ import annotations
 
+import threading
+import weakref
 from dataclasses import dataclass
 
 import numpy as np
@@ -61,6 +63,38 @@ def surface_of(points: np.ndarray, voxel_m: float, max_points: int | None = None
         pts = cloud[np.sort(np.random.default_rng(seed).choice(len(cloud), max_points, replace=False))]
         tree = cKDTree(pts)
     return Surface(pts, tree, cloud, cloud_tree, np.full((len(pts), 3), np.nan))
+
+
+_cache: "weakref.WeakKeyDictionary[object, dict]" = weakref.WeakKeyDictionary()
+_cache_lock = threading.Lock()
+
+
+def scan_surface(scan: object, points: np.ndarray, voxel_m: float, max_points: int | None = None) -> Surface:
+    """`surface_of(points, ...)` of a scan, made once per (scan, voxel, size) and shared: the
+    hypotheses, fine and verify stages of every pair with this scan use the same surface (and the
+    normals it has computed so far). `scan` is the immutable object the points belong to."""
+    key = (float(voxel_m), max_points)
+    with _cache_lock:
+        found = _cache.get(scan, {}).get(key)
+    if found is None:
+        found = surface_of(points, voxel_m, max_points)
+        with _cache_lock:
+            _cache.setdefault(scan, {})[key] = found
+    return found
+
+
+def noise_floor(surf: Surface, samples: int = 2000) -> float:
+    """The surface's own roughness: median distance of its points to the plane through their
+    neighbours (what a perfect registration's residual cannot go below), metres."""
+    cloud = surf.cloud
+    if len(cloud) < NORMAL_K + 1:
+        return float("nan")
+    at = cloud[np.linspace(0, len(cloud) - 1, min(samples, len(cloud))).astype(np.int64)]
+    _, nb = surf.cloud_tree.query(at, k=NORMAL_K)
+    q = cloud[nb]
+    mean = q.mean(axis=1)
+    n = pca_normals(cloud, surf.cloud_tree, at, NORMAL_K)
+    return float(np.median(np.abs(np.einsum("ij,ij->i", at - mean, n))))
 
 
 def surface_pairs(ref: Surface, tgt: Surface, T: np.ndarray, gate_m: float
@@ -147,6 +181,26 @@ def refine_along(ref: Surface, tgt: Surface, T: np.ndarray, centre: np.ndarray, 
         if mean_move(pose_update(B @ y, centre), q) < tol_m:
             break
     return y_total
+
+
+#: Narrowing alignment: pairing gates (m), widest first, each run for `GATE_ITERATIONS`, then the final
+#: narrow gate. Directions still carrying a coarse error (centimetres) would never be seen by a narrow
+#: gate alone.
+GATES_M = (0.1, 0.05, 0.03)
+GATE_ITERATIONS = 10
+
+
+def align_narrowing(ref: Surface, tgt: Surface, T: np.ndarray, centre: np.ndarray, basis: np.ndarray,
+                    final_gate_m: float, final_iterations: int, loss_scale_m: float,
+                    gates_m: tuple[float, ...] = GATES_M, gate_iterations: int = GATE_ITERATIONS) -> np.ndarray:
+    """`T` refined point-to-plane along the pose directions `basis`, the pairing gate narrowing from
+    `gates_m` (each for `gate_iterations`) down to `final_gate_m` (for `final_iterations`)."""
+    for gate in gates_m + (final_gate_m,):
+        final = gate == final_gate_m
+        y = refine_along(ref, tgt, T, centre, basis, max(gate, final_gate_m), max(loss_scale_m, gate / 4),
+                         final_iterations if final else gate_iterations)
+        T = pose_update(basis @ y, centre) @ T
+    return T
 
 
 def pose_update(x: np.ndarray, centre: np.ndarray) -> np.ndarray:

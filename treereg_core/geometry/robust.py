@@ -17,6 +17,8 @@ from .rigid import kabsch, kabsch_yaw
 
 #: Hypotheses scored per numpy chunk (memory: chunk x n_ties x 3 floats).
 _CHUNK = 512
+#: Hypotheses refined at most while looking for distinct modes.
+_MAX_EXAMINED = 40
 
 
 @dataclass(frozen=True)
@@ -138,12 +140,38 @@ def ransac(
     -------
     RobustFit, or None when there are too few pairs or no non-degenerate sample.
     """
+    modes = ransac_modes(src, dst, dof, inlier_m, iterations, seed, refine_steps, final_inlier_m, min_inliers, 1)
+    return modes[0] if modes else None
+
+
+def ransac_modes(
+    src: np.ndarray,
+    dst: np.ndarray,
+    dof: int = 4,
+    inlier_m: float = 0.4,
+    iterations: int = 2000,
+    seed: int = 0,
+    refine_steps: int = 5,
+    final_inlier_m: float | None = None,
+    min_inliers: int = 6,
+    max_modes: int = 4,
+    distinct_deg: float = 15.0,
+    distinct_m: float = 1.0,
+) -> list[RobustFit]:
+    """The best RANSAC transform and up to `max_modes - 1` distinct runners-up, best first.
+
+    A tree can look alike from two headings (a nearly round crown): the ties then split between two
+    transforms, and the best may be the wrong one. Hypotheses are ranked by their MSAC cost; a mode
+    is the best hypothesis not within `distinct_deg` of yaw and `distinct_m` (where the ties'
+    centroid lands) of a mode already taken. Each mode is refined like the best one. The first mode
+    is exactly what `ransac` returns.
+    """
     src = np.asarray(src, dtype=float)
     dst = np.asarray(dst, dtype=float)
     k = 2 if dof == 4 else 3
     n = len(src)
     if n < k:
-        return None
+        return []
     rng = np.random.default_rng(seed)
     idx = _samples(n, k, int(iterations), rng)
     # A rigid motion keeps distances: a sample whose pair distances disagree by more than twice the
@@ -158,31 +186,64 @@ def ransac(
         good &= area > inlier_m ** 2
     idx = idx[good]
     if len(idx) == 0:
-        return None
+        return []
     th2 = inlier_m ** 2
-    best_cost, best_T = np.inf, None
+    costs, Ts = [], []
     for s in range(0, len(idx), _CHUNK):
         chunk = idx[s: s + _CHUNK]
-        Ts = _hypotheses_4dof(src, dst, chunk) if dof == 4 else _hypotheses_6dof(src, dst, chunk)
-        pred = np.matmul(src[None], Ts[:, :, :3].transpose(0, 2, 1)) + Ts[:, None, :, 3]
+        Th = _hypotheses_4dof(src, dst, chunk) if dof == 4 else _hypotheses_6dof(src, dst, chunk)
+        pred = np.matmul(src[None], Th[:, :, :3].transpose(0, 2, 1)) + Th[:, None, :, 3]
         r2 = ((pred - dst[None]) ** 2).sum(axis=2)
-        cost = np.minimum(r2, th2).sum(axis=1)
-        h = int(np.argmin(cost))
-        if cost[h] < best_cost:
-            best_cost = float(cost[h])
-            best_T = np.vstack([Ts[h], [0.0, 0.0, 0.0, 1.0]])
-    T = _refine(best_T, src, dst, dof, inlier_m, refine_steps, k)
-    used = inlier_m
-    if final_inlier_m is not None:
-        th = inlier_m
-        while th > final_inlier_m * 1.0001:
-            th = max(th / 2.0, final_inlier_m)
-            if (residuals(T, src, dst) < th).sum() < max(min_inliers, k):
-                break
-            T = _refine(T, src, dst, dof, th, refine_steps, k)
-            used = th
-    res = residuals(T, src, dst)
-    return RobustFit(T=T, inliers=res < used, residuals_m=res, hypotheses=int(len(idx)), inlier_m=used)
+        costs.append(np.minimum(r2, th2).sum(axis=1))
+        Ts.append(Th)
+    cost, hyp = np.concatenate(costs), np.concatenate(Ts)
+    # The mode test compares where the hypotheses put the ties' centroid, and their yaw.
+    centre = src.mean(axis=0)
+    landed = np.einsum("hij,j->hi", hyp[:, :, :3], centre) + hyp[:, :, 3]
+    yaw = np.degrees(np.arctan2(hyp[:, 1, 0], hyp[:, 0, 0]))
+    modes: list[RobustFit] = []
+    seen: list[int] = []  # hypotheses examined (refined): a near copy of one converges the same way
+
+    def near(T1: np.ndarray, T2: np.ndarray) -> bool:
+        d_yaw = np.degrees(np.arctan2(T1[1, 0], T1[0, 0]) - np.arctan2(T2[1, 0], T2[0, 0]))
+        d_pos = (T1[:3, :3] - T2[:3, :3]) @ centre + T1[:3, 3] - T2[:3, 3]
+        return abs((d_yaw + 180.0) % 360.0 - 180.0) < distinct_deg and float(np.linalg.norm(d_pos)) < distinct_m
+
+    for h in np.argsort(cost, kind="stable"):
+        if len(modes) == max_modes or len(seen) == _MAX_EXAMINED:
+            break
+        if any(abs((yaw[h] - yaw[t] + 180.0) % 360.0 - 180.0) < distinct_deg
+               and np.linalg.norm(landed[h] - landed[t]) < distinct_m for t in seen):
+            continue
+        seen.append(int(h))
+        T = _refine(np.vstack([hyp[h], [0.0, 0.0, 0.0, 1.0]]), src, dst, dof, inlier_m, refine_steps, k)
+        used = inlier_m
+        if final_inlier_m is not None:
+            th = inlier_m
+            while th > final_inlier_m * 1.0001:
+                th = max(th / 2.0, final_inlier_m)
+                if (residuals(T, src, dst) < th).sum() < max(min_inliers, k):
+                    break
+                T = _refine(T, src, dst, dof, th, refine_steps, k)
+                used = th
+        if any(near(T, m.T) for m in modes):  # refined onto a mode already found
+            continue
+        res = residuals(T, src, dst)
+        modes.append(RobustFit(T=T, inliers=res < used, residuals_m=res, hypotheses=int(len(idx)), inlier_m=used))
+    return modes
+
+
+def chance_inliers(src: np.ndarray, dst: np.ndarray, dof: int, inlier_m: float, iterations: int,
+                   final_inlier_m: float | None, shuffles: int = 3, seed: int = 0) -> int:
+    """How many ties RANSAC makes agree when the pairing carries no information: the most inliers
+    found over `shuffles` random re-pairings of the same ties (the level chance reaches on this data)."""
+    rng = np.random.default_rng(seed + 1)
+    best = 0
+    for s in range(shuffles):
+        fit = ransac(src, dst[rng.permutation(len(dst))], dof, inlier_m, iterations, seed + s,
+                     final_inlier_m=final_inlier_m)
+        best = max(best, fit.n_inliers if fit is not None else 0)
+    return best
 
 
 def _refine(T: np.ndarray, src: np.ndarray, dst: np.ndarray, dof: int, th: float, steps: int, k: int) -> np.ndarray:

@@ -1,0 +1,1 @@
+"""Verification: evidence that a registration is right (or not), and the verdict for each scan."""

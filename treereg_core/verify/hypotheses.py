@@ -1,0 +1,163 @@
+"""Competing pose hypotheses: which heading (and trunk position) do the scans' surfaces prefer?
+
+A nearly round crown looks alike from several headings: the coarse stage's ties then split between
+transforms, and RANSAC's winner can be the wrong one. So the candidates are RANSAC's distinct modes
+(other headings, other trunk positions) and, whatever RANSAC found, the best transform turned about
+the tree's vertical axis by quarter turns: the question "would another heading explain the scans
+as well?" is always asked. Each candidate goes through a cheap fine step (a point-to-plane
+alignment of the target's surface to the reference's, the pairing gate narrowing from 10 cm) and
+is scored by the free-space test (`visibility`): points both stations see in the same place count
+for it, points placed where the reference saw through count against it. The best candidate is
+kept; the margin to the best *distinct* runner-up is the ambiguity evidence.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..fine.surface import Surface, align_narrowing
+from ..geometry.rigid import apply_transform, make_transform, rotation_angle_deg, rotation_z
+from ..params import HypothesesParams
+from ..results import Metric
+from .visibility import RangeImage, Visibility, visibility
+
+#: Quarter turns about the tree tried against the coarse transform, whatever RANSAC found.
+TURNS_DEG = (90.0, 180.0, 270.0)
+#: Points of the target scored per candidate (a seeded subset: the score needs no more).
+SCORE_POINTS = 20_000
+#: The cheap fine step's pairing gates before its final one (the full fine stage uses more).
+POLISH_GATES_M = (0.1, 0.05)
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One pose hypothesis, polished by the surfaces, and how the reference's view judges it."""
+
+    label: str
+    T_start: np.ndarray
+    T_ref_target: np.ndarray
+    support: int
+    visibility: Visibility
+    start_visibility: Visibility | None = None
+
+    def score(self, violation_weight: float) -> float:
+        """Points seen alike by both stations, minus the weighted points in the reference's free space."""
+        return self.visibility.consistent - violation_weight * self.visibility.violations
+
+
+@dataclass(frozen=True)
+class HypothesesResult:
+    """The hypotheses stage's result for one pair.
+
+    Attributes
+    ----------
+    ok, message, metrics
+        As every stage result; ok whenever candidates could be scored.
+    candidates
+        Every candidate, best first.
+    T_ref_target
+        The transform the fine stage starts from: RANSAC's own when it won (unchanged), else the
+        winner's polished pose.
+    chosen
+        The winning candidate's label ("coarse" = RANSAC's best mode).
+    margin
+        Consistency of the winner minus that of the best distinct runner-up (1 when none scored).
+    runner_up
+        The best distinct runner-up's label ("" when none).
+    """
+
+    ok: bool
+    message: str
+    metrics: tuple[Metric, ...]
+    candidates: tuple[Candidate, ...]
+    T_ref_target: np.ndarray
+    chosen: str
+    margin: float
+    runner_up: str
+
+
+def _score(v: Visibility, p: HypothesesParams) -> float:
+    return v.consistent - p.violation_weight * v.violations
+
+
+def _distinct(a: np.ndarray, b: np.ndarray, centre: np.ndarray, deg: float, m: float) -> bool:
+    """Two poses of the target are different hypotheses (another heading or another position)."""
+    d_pos = float(np.linalg.norm(apply_transform(a, centre[None])[0] - apply_transform(b, centre[None])[0]))
+    return rotation_angle_deg(a[:3, :3] @ b[:3, :3].T) >= deg or d_pos >= m
+
+
+def candidate_starts(T_best: np.ndarray, modes: list[tuple[np.ndarray, int]], tgt_points: np.ndarray,
+                     p: HypothesesParams) -> list[tuple[str, np.ndarray, int]]:
+    """(label, start transform, tie support) of every hypothesis: RANSAC's best, its distinct
+    runners-up with enough support, and the best turned by quarter turns about the tree's vertical
+    axis (through the target's centroid, where the tree stands)."""
+    out = [("coarse", np.asarray(T_best, dtype=float), modes[0][1] if modes else 0)]
+    for k, (T, n) in enumerate(modes[1:], start=2):
+        if n >= p.min_mode_support:
+            out.append((f"RANSAC mode {k}", np.asarray(T, dtype=float), n))
+    c = apply_transform(T_best, tgt_points).mean(axis=0)
+    for deg in TURNS_DEG if p.turns else ():
+        R = rotation_z(deg)
+        out.append((f"turned {deg:.0f}°", make_transform(R, c - R @ c) @ T_best, 0))
+    return out
+
+
+def score_hypotheses(ref_image: RangeImage, ref_surf: Surface, tgt_surf: Surface, tgt_points: np.ndarray,
+                     T_best: np.ndarray, modes: list[tuple[np.ndarray, int]], *,
+                     hypotheses: HypothesesParams) -> HypothesesResult:
+    """Polish every candidate with the surfaces and score it against the reference's view.
+
+    A candidate keeps the better of its start and its polished pose: the cheap alignment can drift
+    by a few centimetres on a pose that was right already, and must not cost it the comparison.
+    """
+    p = hypotheses
+    rng = np.random.default_rng(0)
+    pts = tgt_points if len(tgt_points) <= SCORE_POINTS else tgt_points[rng.choice(len(tgt_points), SCORE_POINTS, replace=False)]
+    centre = pts.mean(axis=0)
+    cands = []
+    for label, T0, n in candidate_starts(T_best, modes, pts, p):
+        c = apply_transform(T0, tgt_surf.points).mean(axis=0)
+        T = align_narrowing(ref_surf, tgt_surf, T0, c, np.eye(6), p.polish_gate_m, p.polish_iterations, p.loss_scale_m,
+                            gates_m=POLISH_GATES_M, gate_iterations=p.polish_iterations)
+        v0 = visibility(ref_image, pts, T0, p.tolerance_m)
+        v1 = visibility(ref_image, pts, T, p.tolerance_m) if np.isfinite(T).all() else v0
+        if _score(v0, p) >= _score(v1, p):
+            T, v1 = T0, v0
+        cands.append(Candidate(label, T0, T, n, v1, v0))
+    # The most consistent hypothesis among those that overlap the reference's view about as much as
+    # any: a pose that puts the target where the reference saw nothing (a small overlap) proves nothing.
+    most_seen = max(c.visibility.seen_by_both for c in cands)
+    eligible = [c for c in cands if c.visibility.seen_by_both >= max(p.min_overlap_share * most_seen, 1)]
+    rank = sorted(eligible, key=lambda c: -c.visibility.consistency) + [c for c in cands if c not in eligible]
+    cands = rank
+    best = cands[0]
+    rivals = [c for c in rank[1:len(eligible)]
+              if _distinct(c.T_ref_target, best.T_ref_target, centre, p.distinct_deg, p.distinct_m)]
+    runner = rivals[0] if rivals else None
+    cons = best.visibility.consistency
+    margin = cons - runner.visibility.consistency if runner is not None else 1.0
+    margin = float(margin) if np.isfinite(margin) else 0.0
+    # RANSAC's own transform goes on unchanged when it wins (the paper's path); another winner
+    # starts the fine stage from its polished pose.
+    T_start = best.T_start if best.label == "coarse" else best.T_ref_target
+    metrics = (
+        Metric("hypotheses scored", "", len(cands)),
+        Metric("chosen hypothesis", "", best.label),
+        Metric("consistency of the chosen", "", float(cons)),
+        Metric("best distinct rival", "", runner.label if runner else "none"),
+        Metric("consistency of the rival", "", float(runner.visibility.consistency) if runner else float("nan")),
+        Metric("ambiguity margin", "", margin),
+    )
+    message = "" if best.label == "coarse" else (
+        f"the surfaces prefer {best.label} to RANSAC's transform (consistency {cons:.3f} against "
+        f"{next(c for c in cands if c.label == 'coarse').visibility.consistency:.3f})")
+    return HypothesesResult(True, message, metrics, tuple(cands), T_start, best.label, margin,
+                            runner.label if runner else "")
+
+
+def pass_through(T_coarse: np.ndarray) -> HypothesesResult:
+    """Hypotheses switched off (the paper): RANSAC's (or SVD's) transform goes on, no margin measured."""
+    return HypothesesResult(True, "competing hypotheses are not scored (hypotheses.enabled is off)", (),
+                            (), np.asarray(T_coarse, dtype=float), "coarse", float("nan"), "")

@@ -1,0 +1,143 @@
+"""Free-space consistency: does the target, placed by a transform, agree with what the reference
+scanner saw?
+
+A TLS station measures, along each ray, the first surface; space in front of it is empty. So a
+target point mapped into the reference frame can be checked against the reference's own range
+image: at its direction from the reference scanner, the reference saw
+
+* a surface at the same range: the two stations agree there (consistent);
+* a surface farther away: the point sits in space the reference saw through — a contradiction
+  (a free-space violation, the telltale of a wrong registration or a different tree);
+* a surface nearer: the point is hidden from the reference (occluded; says nothing);
+* nothing at all: no evidence either way (outside its view, sky, dropouts).
+
+Counting only where both stations could see the same place ("where both stations face it")
+makes the measure independent of how much the two views overlap, unlike a nearest-neighbour
+fitness. Edges are the weak spot: a ray grazing a stem's edge may return from behind it. The
+nearest surface over a 3 x 3 neighbourhood of cells is used, so a point next to an edge finds the
+near side and is not called a violation.
+"""
+
+from __future__ import annotations
+
+import threading
+import weakref
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..geometry.rigid import apply_transform
+
+#: Cells with a return within this neighbourhood (cells each way) count for a point.
+_REACH = 1
+
+
+@dataclass(frozen=True, eq=False)
+class RangeImage:
+    """The nearest range per (azimuth, elevation) cell of one station, sparse.
+
+    `keys` are the sorted flat cell indices that hold a return, `ranges_m` their nearest range.
+    """
+
+    cell_deg: tuple[float, float]
+    alpha0_deg: float
+    beta0_deg: float
+    n_cols: int
+    keys: np.ndarray
+    ranges_m: np.ndarray
+
+    def cells(self, alpha_deg: np.ndarray, beta_deg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        col = np.floor((np.mod(alpha_deg - self.alpha0_deg, 360.0)) / self.cell_deg[0]).astype(np.int64)
+        row = np.floor((beta_deg - self.beta0_deg) / self.cell_deg[1]).astype(np.int64)
+        return col, row
+
+    def nearest(self, col: np.ndarray, row: np.ndarray) -> np.ndarray:
+        """Nearest range among the cells within `_REACH` of (col, row); inf where none has a return."""
+        out = np.full(len(col), np.inf)
+        for dc in range(-_REACH, _REACH + 1):
+            for dr in range(-_REACH, _REACH + 1):
+                c = np.mod(col + dc, self.n_cols)
+                key = (row + dr) * self.n_cols + c
+                i = np.searchsorted(self.keys, key)
+                i = np.minimum(i, len(self.keys) - 1)
+                hit = (self.keys[i] == key) & (row + dr >= 0)
+                out = np.where(hit, np.minimum(out, self.ranges_m[i]), out)
+        return out
+
+
+def _angles(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    x, y, z = points[:, 0], points[:, 1], points[:, 2]
+    h = np.hypot(x, y)
+    return np.degrees(np.arctan2(y, x)), np.degrees(np.arctan2(z, h)), np.sqrt(h * h + z * z)
+
+
+def range_image(points: np.ndarray, cell_deg: tuple[float, float]) -> RangeImage:
+    """The range image of a station's points (in its own frame, scanner at the origin)."""
+    alpha, beta, r = _angles(np.asarray(points, dtype=float))
+    beta0 = float(beta.min()) - cell_deg[1]
+    n_cols = int(np.ceil(360.0 / cell_deg[0])) + 1
+    img = RangeImage(cell_deg, -180.0, beta0, n_cols, np.empty(0, np.int64), np.empty(0))
+    col, row = img.cells(alpha, beta)
+    key = row * n_cols + col
+    order = np.lexsort((r, key))
+    key, r = key[order], r[order]
+    first = np.r_[True, key[1:] != key[:-1]]
+    return RangeImage(cell_deg, -180.0, beta0, n_cols, key[first], r[first])
+
+
+@dataclass(frozen=True)
+class Visibility:
+    """How the target's points, placed in the reference frame, fare against the reference's view.
+
+    Counts of consistent, violating (in the reference's free space), occluded and unseen points;
+    `consistency` = consistent / (consistent + violations): 1 when the two views agree wherever both
+    could see, low when the target sits in space the reference saw through.
+    """
+
+    consistent: int
+    violations: int
+    occluded: int
+    unseen: int
+
+    @property
+    def seen_by_both(self) -> int:
+        return self.consistent + self.violations
+
+    @property
+    def consistency(self) -> float:
+        return self.consistent / self.seen_by_both if self.seen_by_both else float("nan")
+
+
+def visibility(ref_image: RangeImage, target_points: np.ndarray, T_ref_target: np.ndarray,
+               tolerance_m: float) -> Visibility:
+    """Check every target point (its own frame), mapped by `T_ref_target`, against the reference's view.
+
+    The tolerance grows with range as a cell does (a surface oblique to the ray spans a range of
+    depths within one cell): `tolerance_m + r * cell size`.
+    """
+    p = apply_transform(np.asarray(T_ref_target, dtype=float), np.asarray(target_points, dtype=float))
+    alpha, beta, r = _angles(p)
+    col, row = ref_image.cells(alpha, beta)
+    near = ref_image.nearest(col, row)
+    tol = tolerance_m + r * np.radians(max(ref_image.cell_deg)) * 2.0
+    seen = np.isfinite(near)
+    consistent = seen & (np.abs(r - near) <= tol)
+    violation = seen & (r < near - tol)
+    occluded = seen & (r > near + tol)
+    return Visibility(int(consistent.sum()), int(violation.sum()), int(occluded.sum()), int((~seen).sum()))
+
+
+_images: "weakref.WeakKeyDictionary[object, dict]" = weakref.WeakKeyDictionary()
+_images_lock = threading.Lock()
+
+
+def scan_range_image(scan: object, cell_steps: float) -> RangeImage:
+    """The range image of a scan (all its points as measured, ground included: the ground, too, is
+    where rays stopped), cells of `cell_steps` angular steps; made once per scan and shared."""
+    with _images_lock:
+        found = _images.get(scan, {}).get(cell_steps)
+    if found is None:
+        found = range_image(scan.points, tuple(cell_steps * s for s in scan.angular_step_deg))
+        with _images_lock:
+            _images.setdefault(scan, {})[cell_steps] = found
+    return found

@@ -107,7 +107,7 @@ def test_every_stage_is_registered_once_with_its_sections_and_upstream():
     # Each parameter section is read by at least one stage (no orphan settings).
     read = {sec for s in STAGES for sec in s.sections}
     assert read == set(SECTIONS)
-    assert downstream("arcs") == ("arcs", "sections", "fine", "verify", "evaluation")
+    assert downstream("arcs") == ("arcs", "sections", "fine", "verify", "graph", "evaluation")
     assert "slices" not in downstream("arcs") and "icp" not in downstream("fine")
 
 

@@ -97,7 +97,7 @@ def _open(browser, url, scene=True):
     context.route("**/*", guard)
     page = context.new_page()
     page.goto(url)
-    playwright_api.expect(page.get_by_role("button", name="Run", exact=True)).to_be_visible(timeout=30_000)
+    playwright_api.expect(page.get_by_role("button", name="Run", exact=True)).to_be_visible(timeout=60_000)
     if scene:
         page.wait_for_function(
             "() => !!window.__viserMutable?.nodeRefFromName['/scans/s2/points'] && "
@@ -159,7 +159,7 @@ def _colour_pixels(img: np.ndarray, rgb: tuple[int, int, int], tol: int = 60) ->
 
 def _wait_all_done(page, timeout_ms=120_000):
     page.wait_for_function(
-        "() => [...document.querySelectorAll('p, div')].some(e => /✓ 10 Result/.test(e.textContent) && "
+        "() => [...document.querySelectorAll('p, div')].some(e => /✓ 13 Result/.test(e.textContent) && "
         "!/[○…✗]/.test(e.textContent) && /1 Scans/.test(e.textContent))", timeout=timeout_ms)
 
 
@@ -184,8 +184,8 @@ def test_walk_through_the_demo(served, browser):
           f"every stage done after {ready_seconds:.1f} s")
 
     # Step through every stage with Next; each shows its own panel.
-    titles = ["1 Scans", "2 Projection", "3 Matching", "4 Coarse", "5 Slices", "6 Arcs", "7 Fits", "8 Fine", "9 ICP",
-              "10 Result"]
+    titles = ["1 Scans", "2 Projection", "3 Matching", "4 Coarse", "5 Hypotheses", "6 Slices", "7 Arcs", "8 Fits",
+              "9 Fine", "10 Verify", "11 Placement", "12 ICP", "13 Result"]
     expect(page.get_by_role("heading", name=titles[0])).to_be_visible()
     for k in range(1, len(titles)):
         page.get_by_role("button", name="Next", exact=True).click()
@@ -196,27 +196,29 @@ def test_walk_through_the_demo(served, browser):
                 assert _colour_pixels(panel, scan_color(i), tol=40) > 300, f"projection of scan {i + 1} missing"
         if k == 2:
             expect(page.get_by_text("Similarity", exact=False).first).to_be_visible()
-        if k == 7:
-            _screenshot(page, "stage8_fine")
+        if k == 8:
+            _screenshot(page, "stage9_fine")
+        if k == 10:
+            _screenshot(page, "stage11_placement")
     lap("stepped through every stage")
-    result = _screenshot(page, "stage7_result")
+    result = _screenshot(page, "stage13_result")
     scene = result[:, 580:1300]  # between the docked panel (560 px) and the control panel
     counts = [_colour_pixels(scene, scan_color(i)) for i in range(3)]
     assert all(c > 200 for c in counts), f"scan colours in the final overlay: {counts}"
     lap("screenshots checked")
 
     # Change a fine-stage parameter and re-run: only fine and evaluation run again.
-    _go(page, "8 Fine")
-    expect(page.get_by_role("heading", name=re.compile("^8 Fine"))).to_be_visible()
+    _go(page, "9 Fine")
+    expect(page.get_by_role("heading", name=re.compile("^9 Fine"))).to_be_visible()
     box = page.get_by_label("max iterations", exact=True)
     box.fill("2")
     box.press("Enter")
-    expect(page.get_by_text(re.compile("Parameters changed: 8 Fine, 10 Result must re-run"))).to_be_visible(timeout=10_000)
+    expect(page.get_by_text(re.compile("Parameters changed: 9 Fine, 10 Verify, 11 Placement, 13 Result must re-run"))).to_be_visible(timeout=10_000)
     t0 = time.perf_counter()
     page.get_by_role("button", name="Run", exact=True).click()
-    expect(page.get_by_text(re.compile(r"Ran 8 Fine, 10 Result in [\d.]+ s"))).to_be_visible(timeout=60_000)
+    expect(page.get_by_text(re.compile(r"Ran 9 Fine, 10 Verify, 11 Placement, 13 Result in [\d.]+ s"))).to_be_visible(timeout=60_000)
     print(f"fine + evaluation re-run seen in the browser after {time.perf_counter() - t0:.1f} s: "
-          f"{page.get_by_text(re.compile('Ran 8 Fine')).first.inner_text()}")
+          f"{page.get_by_text(re.compile('Ran 9 Fine')).first.inner_text()}")
     lap("parameter changed and re-run")
 
     # A bad upload: a message, nothing else changes.
@@ -268,7 +270,7 @@ def test_two_tabs_see_one_state(served, browser):
     lap("tab 1 dropdown open")
     page1.get_by_role("option", name="4 Coarse", exact=True).click()  # one tab steps; the other follows
     lap("tab 1 stepped")
-    expect(page2.get_by_role("heading", name=re.compile("^4 Coarse"))).to_be_visible(timeout=10_000)
+    expect(page2.get_by_role("heading", name=re.compile("^4 Coarse"))).to_be_visible(timeout=30_000)
     expect(page2.get_by_label("Stage", exact=True)).to_have_value("4 Coarse")
     ctx1.close()
     ctx2.close()

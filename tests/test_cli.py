@@ -45,15 +45,19 @@ def test_register_until_coarse_and_paper_preset(case_dir, tmp_path):
     d, case = case_dir
     out = tmp_path / "coarse.json"
     code = main(["register", str(d / "scan1.ply"), str(d / "scan2.ply"), "--until", "coarse", "--out", str(out)])
-    assert code == 0
-    assert read_transforms(out).extra["stage"] == "coarse"
-    # The paper's literal settings: on this case its SVD over 15 ties is kept (enough agree).
+    # Stopped before verification: the coarse transform is a best guess, not a result to trust.
+    assert code == 1
+    tf = read_transforms(out)
+    assert tf.extra["stage"] == "coarse" and list(tf.transforms) == ["scan1.ply"]
+    assert "scan2.ply" in tf.extra["unverified"] and "before verification" in tf.extra["unverified"]["scan2.ply"]["why"][0]
+    # The paper's literal settings: on this case its SVD over 15 ties is kept (enough agree), as a best guess.
     paper_out = tmp_path / "paper.json"
     code = main(["register", str(d / "scan1.ply"), str(d / "scan2.ply"), "--preset", "paper", "--until", "coarse",
-                 "--out", str(paper_out)])
-    assert code == 0
+                 "--out", str(paper_out), "--keep-unverified"])
+    assert code == 1
     tf = read_transforms(paper_out)
     assert tf.params["matching"]["n_pairs"] == 3 and tf.params["coarse"]["estimator"] == "svd"
+    assert "scan2.ply" in tf.transforms and tf.extra["kept_unverified"] == ["scan2.ply"]
 
 
 def test_a_registration_that_fails_exits_1_and_writes_nothing(case_dir, tmp_path, capsys):

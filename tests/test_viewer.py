@@ -139,8 +139,11 @@ def test_next_steps_through_every_stage_and_draws_its_layer(env, case):
         if name == "matching":
             assert app.panel.plots[0].visible  # similarity matrix
             assert app.panel.images[0].visible  # ORB matches side by side
-        if name in ("coarse", "slices", "arcs", "sections"):  # targets at their coarse pose
+        if name == "coarse":  # targets at their coarse pose
             T = snap.output("coarse").items[0].T_ref_target
+            assert np.allclose(app.drawer._scan_frames[1].position, T[:3, 3], atol=1e-6)
+        if name in ("hypotheses", "slices", "arcs", "sections"):  # at the hypothesis the fine stage starts from
+            T = snap.output("hypotheses").items[0].T_ref_target
             assert np.allclose(app.drawer._scan_frames[1].position, T[:3, 3], atol=1e-6)
         if name == "coarse":
             # The residual histogram's dashed line is the distance that split inliers from outliers.
@@ -154,9 +157,16 @@ def test_next_steps_through_every_stage_and_draws_its_layer(env, case):
             handles = [h for n, h in server.scene._handle_from_node_name.items() if n.startswith("/arcs/ref")]
             colours = np.unique(np.concatenate([np.asarray(h.colors).reshape(-1, 3) for h in handles]), axis=0)
             assert len(colours) >= 3
-        if name in ("fine", "evaluation"):  # final pose: fine
+        if name in ("fine", "verify"):  # the pair's fine pose
             T = snap.output("fine").items[0].T_ref_target
             assert np.allclose(app.drawer._scan_frames[1].position, T[:3, 3], atol=1e-6)
+        if name in ("graph", "evaluation"):  # the joint placement
+            T = snap.output("graph").items[1].T_ref_scan
+            assert np.allclose(app.drawer._scan_frames[1].position, T[:3, 3], atol=1e-6)
+        if name == "graph":  # every scan's verdict, the station graph
+            assert "3 of 3 scans verified" in app.panel._text.content and app.panel.plots[0].visible
+        if name == "hypotheses":  # the rivals drawn grey, their scores in the table
+            assert "/hypotheses/candidate1" in _nodes(server) and "consistency" in app.panel.table
         if name == "icp":
             T = snap.output("icp").items[0].T_ref_target
             assert np.allclose(app.drawer._scan_frames[1].position, T[:3, 3], atol=1e-6)
@@ -180,20 +190,20 @@ def test_parameter_change_reruns_only_that_stage_and_later(env, case):
     _idle(app)
     snap = ctl.snapshot
     assert snap.params.fine.max_iterations == 3
-    assert [snap.status(s) for s in STAGE_NAMES] == ["done"] * 7 + ["stale", "done", "stale"]
+    assert [snap.status(s) for s in STAGE_NAMES] == [
+        "stale" if s in ("fine", "verify", "graph", "evaluation") else "done" for s in STAGE_NAMES]
     app.stages.run_button.value = True  # press Run
     _idle(app)
     snap = ctl.snapshot
     assert [snap.status(s) for s in STAGE_NAMES] == ["done"] * len(STAGE_NAMES)
-    for s in ("prepare", "projection", "matching", "coarse", "slices", "arcs", "sections", "icp"):
-        assert snap.output(s) is before[s]  # cached, not re-run
-    for s in ("fine", "evaluation"):
-        assert snap.output(s) is not before[s]
+    again = ("fine", "verify", "graph", "evaluation")
+    for s in STAGE_NAMES:
+        assert (snap.output(s) is before[s]) == (s not in again), s  # the others cached, not re-run
     assert {s: snap.runs[s] - runs_before[s] for s in STAGE_NAMES if snap.runs[s] != runs_before[s]} == \
-        {"fine": 1, "evaluation": 1}
+        {s: 1 for s in again}
     assert any(busy and disabled for busy, disabled in seen), "Run was not disabled while busy"
     assert seen[-1] == (False, False)
-    assert snap.message.startswith("Ran 8 Fine, 10 Result in")
+    assert snap.message.startswith("Ran 9 Fine, 10 Verify, 11 Placement, 13 Result in")
     T = snap.transforms[case.scans[1].name]
     assert rotation_error_deg(T, case.truth()[case.scans[1].name]) < ROT_TOL_DEG
     # Nothing stale from the Result stage on: Run re-runs that stage only.
@@ -236,10 +246,9 @@ def test_an_arcs_parameter_reruns_arcs_and_what_follows_never_slicing(small_app)
     _idle(app)
     snap = ctl.snapshot
     assert snap.params.arcs.min_points == 20
-    assert {s: snap.runs[s] - runs[s] for s in STAGE_NAMES} == {
-        "prepare": 0, "projection": 0, "matching": 0, "coarse": 0, "slices": 0,
-        "arcs": 1, "sections": 1, "fine": 1, "icp": 0, "evaluation": 1}
-    assert "Ran 6 Arcs, 7 Fits, 8 Fine, 10 Result in" in snap.message
+    again = ("arcs", "sections", "fine", "verify", "graph", "evaluation")
+    assert {s: snap.runs[s] - runs[s] for s in STAGE_NAMES} == {s: int(s in again) for s in STAGE_NAMES}
+    assert "Ran 7 Arcs, 8 Fits, 9 Fine, 10 Verify, 11 Placement, 13 Result in" in snap.message
 
 
 def test_bad_upload_shows_a_message_and_changes_nothing(env, case):
@@ -273,7 +282,7 @@ def test_export_files_match_truth(env, case, tmp_path):
     server, app = env
     snap = app.controller.snapshot
     bundle = export_bundle(snap, cloud_format="ply")
-    assert bundle.stage == "fine"
+    assert bundle.stage == "fine" and set(bundle.transforms) == {s.name for s in case.scans}  # all verified
     app.out_dir = tmp_path  # as `treereg view --out DIR`
     sent: list[tuple[str, bytes]] = []
     app.send_file = lambda client, name, data: sent.append((name, data))
@@ -300,7 +309,8 @@ def test_export_files_match_truth(env, case, tmp_path):
         assert mean_displacement(tf.matrix(scan.name), truth[scan.name], scan.points) < DISP_TOL_M
     merged = read_points(tmp_path / "merged.ply")
     assert len(merged) == sum(s.n_points for s in case.scans)
-    assert "Exported the fine transforms of 3 scans" in app.files.export_md.content
+    assert "Exported the transforms of 3 scans." in app.files.export_md.content
+    assert json.loads((tmp_path / "transforms.json").read_text())["quality"]["scans"]["scan3.ply"]["verdict"] == "verified"
 
 
 def test_failed_stage_shows_its_message_and_later_stages_stay_stale(small_app):
@@ -313,12 +323,12 @@ def test_failed_stage_shows_its_message_and_later_stages_stay_stale(small_app):
     assert snap.status("coarse") == "failed"
     assert snap.status("fine") == "stale" and snap.status("evaluation") == "stale"
     assert "4 Coarse failed" in app.stages.message_md.content
-    assert app.stages.progress.value == pytest.approx(30.0)  # 3 of 10 stages up to date, not a full bar
+    assert app.stages.progress.value == pytest.approx(300.0 / len(STAGE_NAMES))  # 3 stages up to date, not a full bar
     assert "Failed" in app.panel._text.content
     assert "Traceback" not in app.stages.message_md.content + app.panel._text.content
     app.select_stage("slices")  # a failure upstream: stepping on does not run anything
     _idle(app)
-    assert ctl.snapshot.status("slices") == "stale"
+    assert ctl.snapshot.status("slices") == "stale" and ctl.snapshot.status("hypotheses") == "stale"
     assert "4 Coarse failed" in app.panel._text.content
 
 
@@ -385,8 +395,9 @@ def test_good_upload_adds_a_scan_in_the_next_colour(small_app, case):
 
 def test_paper_preset_runs_and_its_failure_is_explained(small_app, case):
     """The paper's literal settings: the app says what they change and why they fail; on the demo
-    the paper's plain SVD turns scan 3 over, which the coarse stage rejects with advice, and no
-    transform is offered for export as if it were a result."""
+    the paper's plain SVD turns scan 3 over, which the coarse stage rejects with advice; scan 2's
+    pair goes on but its result is not verified (its points lie in space the reference saw
+    through), and neither is offered for export as a result."""
     app = small_app
     ctl = app.controller
     app.files.preset.value = "paper"
@@ -403,14 +414,14 @@ def test_paper_preset_runs_and_its_failure_is_explained(small_app, case):
     assert "scan3.ply" in message and "estimator = ransac" in message
     assert "✗ 4 Coarse" in app.stages.status_md.content
     assert "scan3.ply" not in snap.transforms  # no transform claimed for the failed pair
-    # scan 2's pair went on to the end; if the paper's settings put it far from the truth, the app
-    # names it (judged against the demo's truth), and only then.
-    truth = case.truth()
-    s2 = case.scans[1]
-    assert snap.output("evaluation") is not None and snap.output("evaluation").items[0].ok  # scan 2's pair went on
-    far = (rotation_error_deg(snap.transforms[s2.name], truth[s2.name]) > 1.0
-           or mean_displacement(snap.transforms[s2.name], truth[s2.name], s2.points) > 0.05)
-    assert (f"{s2.name} → {case.scans[0].name}: the final transform is" in app.stages.message_md.content) == far
+    assert snap.verdicts["scan3.ply"][0] == "failed"
+    # scan 2's pair went on to the end, unverified: the reason is on screen, with a mark in the header.
+    assert snap.verdicts["scan2.ply"][0] == "unverified"
+    assert "lie in space the reference saw through" in " ".join(snap.verdicts["scan2.ply"][1])
+    assert "⚠ 2 scan2.ply" in app.stages.status_md.content and "✗ 3 scan3.ply" in app.stages.status_md.content
+    assert "scan2.ply is unverified" in app.stages.message_md.content
+    bundle = export_bundle(snap)
+    assert set(bundle.transforms) == {"scan1.ply"}  # nothing but the reference is exported as a result
     for name in STAGE_NAMES:  # every stage draws with one pair failed, no drawing error
         app.select_stage(name)
         _idle(app)
@@ -418,17 +429,19 @@ def test_paper_preset_runs_and_its_failure_is_explained(small_app, case):
 
 
 def test_a_final_transform_far_from_truth_is_flagged(env, case):
-    """A registration can finish and still be wrong: with a truth.json the app names the pair."""
+    """A registration can finish and still be wrong: with a truth.json the app names the scan."""
     from dataclasses import replace
 
+    from treereg_core.results import Metric
     from treereg_viewer.checks import stage_warnings, truth_warnings
 
     server, app = env
     snap = app.controller.snapshot
     assert truth_warnings(snap) == []
-    ev = snap.output("evaluation")
-    off = replace(ev.items[0], fine=replace(ev.items[0].fine, rotation_error_deg=2.5, mean_displacement_m=0.2))
-    bad = replace(snap, outputs={**snap.outputs, "evaluation": replace(ev, items=(off, *ev.items[1:]))})
+    graph = snap.output("graph")
+    far = (Metric("rotation error against truth", "deg", 2.5), Metric("mean displacement against truth", "m", 0.2))
+    off = replace(graph.items[1], metrics=tuple(m for m in graph.items[1].metrics if "truth" not in m.description) + far)
+    bad = replace(snap, outputs={**snap.outputs, "graph": replace(graph, items=(graph.items[0], off, *graph.items[2:]))})
     warnings = truth_warnings(bad)
     assert len(warnings) == 1 and warnings[0].startswith(f"{case.scans[1].name} → {case.scans[0].name}")
     assert "2.5° and 0.2 m from the truth" in warnings[0]

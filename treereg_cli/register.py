@@ -1,4 +1,8 @@
-"""`treereg register`: register scans onto the first and write the transform file."""
+"""`treereg register`: register scans onto the first, verify every scan, write the transform file.
+
+Exit status: 0 when every scan is verified, 1 when any is not (the others are written; stderr gives
+one line per scan that is not, with the reason and what to try), 2 for input to fix.
+"""
 
 from __future__ import annotations
 
@@ -10,21 +14,30 @@ from pathlib import Path
 from treereg_core.errors import ConfigError
 from treereg_core.io.transforms import registration_file, write_exports, write_transforms
 from treereg_core.pipeline import register
+from treereg_core.verify.report import quality_report, verdict_lines
 
 from .common import add_param_args, load_params, read_scans
 from .progress import ProgressBar
+
+#: `--until` choice -> the last stage run ("fine" includes the verification and the joint placement).
+UNTIL = {"coarse": "coarse", "fine": "graph"}
 
 
 def add(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "register",
-        help="register scans onto the first one (coarse, then fine) and write transforms.json",
+        help="register scans onto the first one (coarse, fine, verification) and write transforms.json",
         description="Register every scan onto the first (the reference): rotating-projection coarse "
-        "registration, then fine registration from fitted stem and branch sections.",
+        "registration, fine registration from fitted stem and branch sections, then the evidence that "
+        "each scan is placed right. Only verified scans go into \"transforms\"; best guesses are listed "
+        "under \"unverified\" with the reasons.",
     )
     p.add_argument("scans", nargs="+", metavar="SCAN", help="scan files (first = reference): PLY, LAS/LAZ, XYZ/TXT/CSV, NPY/NPZ")
     p.add_argument("--out", default="transforms.json", help="transform file to write (default: transforms.json)")
-    p.add_argument("--until", choices=("coarse", "fine"), default="fine", help="last stage to run (default: fine)")
+    p.add_argument("--until", choices=tuple(UNTIL), default="fine",
+                   help="last stage to run (default: fine, with verification; coarse leaves every scan unverified)")
+    p.add_argument("--keep-unverified", action="store_true",
+                   help="also write the best guesses of unverified scans into \"transforms\" (marked in \"quality\")")
     add_param_args(p)
     p.add_argument("--exports", action="store_true", help="also write CloudCompare and PDAL matrix files beside --out")
     p.set_defaults(func=run)
@@ -36,26 +49,30 @@ def run(args: argparse.Namespace) -> int:
     params = load_params(args)
     scans = read_scans(args.scans, params)
     t0 = time.perf_counter()
-    reg = register(scans, params, until=args.until, progress=ProgressBar("register"))
+    reg = register(scans, params, until=UNTIL[args.until], progress=ProgressBar("register"))
     seconds = time.perf_counter() - t0
-    missing = [s.name for s in scans[1:] if s.name not in reg.transforms]
-    if len(missing) == len(scans) - 1:
+    pipe = reg.pipeline
+    if len(reg.transforms) < 2:
         print(f"treereg: registration failed: {reg.message}", file=sys.stderr)
         return 1
-    metrics = reg.pipeline.pair_metrics()
-    tf = registration_file(scans, reg.transforms, params, stage=args.until, metrics=metrics,
+    verdicts = pipe.verdicts()
+    metrics = pipe.pair_metrics()
+    tf = registration_file(scans, reg.transforms, params, stage=args.until, metrics=metrics, verdicts=verdicts,
+                           quality=quality_report(scans, pipe.pairs, pipe.outputs), keep_unverified=args.keep_unverified,
                            sources={s.name: str(Path(f).resolve()) for s, f in zip(scans, args.scans)}, seconds=seconds)
     out = Path(args.out)
     written = write_exports(out.parent, tf, name=out.name) if args.exports else [write_transforms(out, tf)]
     for name, rows in metrics.items():
-        print(f"\n{name} -> {scans[0].name}")
+        print(f"\n{name}" if " -> " in name else f"\n{name} -> {scans[0].name}")
         for r in rows:
             v = r["value"]
             text = f"{v:.4g}" if isinstance(v, float) else str(v)
             print(f"  {r['stage']:<10} {r['metric']:<40} {text} {r['unit']}")
+    print()
+    for name, (verdict, _, _) in verdicts.items():
+        print(f"  {name:<30} {verdict}")
     print(f"\nwrote {', '.join(str(w) for w in written)} in {seconds:.1f} s")
-    if missing:
-        # The other pairs are written; say plainly which scans have no transform and why.
-        print(f"treereg: not registered: {', '.join(missing)} ({reg.message})", file=sys.stderr)
-        return 1
-    return 0
+    lines = verdict_lines(verdicts)
+    for line in lines:
+        print(f"treereg: {line}", file=sys.stderr)
+    return 1 if lines else 0

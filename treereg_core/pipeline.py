@@ -34,6 +34,8 @@ class Pipeline:
     _out: dict[str, StageOutput] = field(default_factory=dict, repr=False)
     #: How often each stage has run (what a parameter change cost; tests read it).
     runs: Counter = field(default_factory=Counter, repr=False)
+    #: Hypotheses picked by hand (the app): pair label "b -> a" -> candidate label.
+    choices: dict[str, str] = field(default_factory=dict)
     _pairs_key: tuple | None = field(default=None, repr=False)
     _pairs_cache: tuple = field(default=(), repr=False)
 
@@ -69,9 +71,23 @@ class Pipeline:
             dropped += [d for d in self.invalidate(name) if d not in dropped]
         return [s for s in STAGE_NAMES if s in dropped]
 
+    def choose(self, pair_label: str, candidate: str | None) -> list[str]:
+        """Pick a pose hypothesis of a pair by hand (None: let the surfaces choose again); the
+        hypotheses stage and what depends on it become stale. Returns the stages dropped."""
+        if candidate is None:
+            if self.choices.pop(pair_label, None) is None:
+                return []
+        elif self.choices.get(pair_label) == candidate:
+            return []
+        else:
+            self.choices[pair_label] = candidate
+        return self.invalidate("hypotheses")
+
     def set_scans(self, scans: Sequence[Scan], truth: dict[str, np.ndarray] | None = None) -> None:
         self.scans = list(scans)
         self.truth = truth
+        names = {s.name for s in self.scans}
+        self.choices = {k: v for k, v in self.choices.items() if all(n in names for n in k.split(" -> "))}
         self.invalidate(STAGE_NAMES[0])
 
     def invalidate(self, name: str) -> list[str]:
@@ -127,7 +143,7 @@ class Pipeline:
             last = out
             # A scan that cannot be prepared or projected is an input to fix: stop. A pair that
             # fails later is skipped by the later stages while the other pairs go on.
-            if (st.per == "scan" and not out.ok) or not any(it.ok for it in out.items):
+            if (st.stop_on_failure and not out.ok) or not any(it.ok for it in out.items):
                 break
         progress(1.0, "done")
         return last
@@ -136,7 +152,7 @@ class Pipeline:
         n = len(self.scans) if st.per == "scan" else len(self.pairs)
         why = [self._blocked(st, k) for k in range(n)]
         ctx = StageContext(tuple(self.scans), self.pairs, self.params, self.truth, dict(self._out),
-                           tuple(w is None for w in why), progress)
+                           tuple(w is None for w in why), progress, dict(self.choices))
         t0 = time.perf_counter()
         raw = st.run(ctx)
         items = tuple(Skipped(False, w) if w is not None else it for it, w in zip(raw, why))

@@ -62,6 +62,8 @@ class StageContext:
     outputs: Mapping[str, StageOutput]
     live: tuple[bool, ...]
     progress: Progress
+    #: Hypotheses picked by hand: pair label ("scan2.ply -> scan1.ply") -> candidate label.
+    choices: Mapping[str, str] = field(default_factory=dict)
 
     def items(self, stage: str) -> tuple[Any, ...]:
         return self.outputs[stage].items
@@ -111,6 +113,8 @@ class Stage:
         The type of its items (besides `Skipped`).
     run
         `run(context) -> list` with one item per scan or pair (None where not live).
+    stop_on_failure
+        A failed item stops the whole run (a scan that cannot be prepared is an input to fix).
     """
 
     name: str
@@ -122,6 +126,7 @@ class Stage:
     result: type
     run: Callable[[StageContext], list[Any]] = field(repr=False)
     uses: tuple[str, ...] = ()
+    stop_on_failure: bool = False
 
     @property
     def upstream(self) -> tuple[str, ...]:

@@ -83,7 +83,7 @@ def _run_hypotheses(ctx: StageContext) -> list[Any]:
         tgt = _scan(ctx, p.tgt)
         return score_hypotheses(scan_range_image(ctx.scans[p.ref], hp.cell_steps), _surface(ctx, p.ref),
                                 _surface(ctx, p.tgt, hp.polish_points), tgt.points, c.T_ref_target, list(c.modes),
-                                hypotheses=hp)
+                                hypotheses=hp, choose=ctx.choices.get(_label(ctx, k)))
     return ctx.each(one, lambda k: _label(ctx, k))
 
 
@@ -214,9 +214,9 @@ def _icp_result(ctx: StageContext, k: int) -> IcpResult | None:
 
 STAGES: tuple[Stage, ...] = (
     Stage("prepare", "Scans", "Each station as measured; the ground removed and the scan cropped to the tree.",
-          "scan", ("prepare",), (), PreparedScan, _run_prepare),
+          "scan", ("prepare",), (), PreparedScan, _run_prepare, stop_on_failure=True),
     Stage("projection", "Projection", "Spherical binary images of each scan, rotated in steps about the tree (2.1.1-2.1.2).",
-          "scan", ("projection",), ("prepare",), ImageSequence, _run_projection),
+          "scan", ("projection",), ("prepare",), ImageSequence, _run_projection, stop_on_failure=True),
     Stage("matching", "Matching", "The most similar image pairs, ORB matches and 3-D tie points (2.1.3-2.1.4, 4.1).",
           "pair", ("matching",), ("projection",), MatchResult, _run_matching),
     Stage("coarse", "Coarse", "The rigid transform that maps the target's tie points onto the reference's (2.1.4).",

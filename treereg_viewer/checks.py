@@ -16,7 +16,8 @@ TRUTH_DISP_M = 0.05
 
 
 def _pair(snap: Snapshot, k: int) -> str:
-    return f"{snap.scans[k + 1].name} → {snap.scans[0].name}" if k + 1 < len(snap.scans) else f"target {k + 1}"
+    i, j = snap.pairs[k].ref, snap.pairs[k].tgt
+    return f"{snap.scans[j].name} → {snap.scans[i].name}"
 
 
 def truth_rows(snap: Snapshot, names_only: bool = False) -> list[tuple[str, str, float, float, bool]]:
@@ -35,17 +36,38 @@ def truth_rows(snap: Snapshot, names_only: bool = False) -> list[tuple[str, str,
             if ev.rotation_error_deg is None or ev.mean_displacement_m is None:
                 continue
             rot, disp = float(ev.rotation_error_deg), float(ev.mean_displacement_m)
-            who = snap.scans[k + 1].name if names_only else _pair(snap, k)
+            p = snap.pairs[k]
+            who = snap.scans[p.tgt].name if names_only and p.ref == 0 else _pair(snap, k)
             rows.append((who, label, rot, disp, rot <= TRUTH_ROT_DEG and disp <= TRUTH_DISP_M))
+    graph = snap.output("graph")
+    for i, pl in enumerate(graph.items if graph is not None else ()):
+        m = {x.description: x.value for x in pl.metrics}
+        if i == 0 or "rotation error against truth" not in m:
+            continue
+        rot, disp = float(m["rotation error against truth"]), float(m["mean displacement against truth"])
+        who = snap.scans[i].name if names_only else f"{snap.scans[i].name} → {snap.scans[0].name}"
+        rows.append((who, "placed (joint)", rot, disp, rot <= TRUTH_ROT_DEG and disp <= TRUTH_DISP_M))
     return rows
 
 
 def truth_warnings(snap: Snapshot) -> list[str]:
-    """One sentence per target whose final (fine) transform is far from the known truth."""
+    """One sentence per scan whose final transform (its joint placement, else its pair's fine one) is
+    far from the known truth."""
+    rows = truth_rows(snap)
+    final = "placed (joint)" if any(label == "placed (joint)" for _, label, *_ in rows) else "fine"
     return [
         f"{pair}: the final transform is {rot:.3g}° and {disp:.3g} m from the truth — the registration failed."
-        for pair, label, rot, disp, good in truth_rows(snap) if label == "fine" and not good
+        for pair, label, rot, disp, good in rows if label == final and not good
     ]
+
+
+def verdict_warnings(snap: Snapshot) -> list[str]:
+    """One sentence per scan that is not verified: its verdict and the reasons (no truth needed)."""
+    graph = snap.output("graph")
+    if graph is None:
+        return []
+    return [f"{snap.scans[i].name} is {pl.verdict}: {'; '.join(pl.reasons)}" + (f" (try: {pl.hint})" if pl.hint else "")
+            for i, pl in enumerate(graph.items) if pl.verdict != "verified"]
 
 
 def stage_warnings(snap: Snapshot) -> dict[str, list[str]]:
@@ -53,4 +75,6 @@ def stage_warnings(snap: Snapshot) -> dict[str, list[str]]:
     found = {}
     if snap.output("evaluation") is not None and (w := truth_warnings(snap)):
         found["evaluation"] = w
+    if w := verdict_warnings(snap):
+        found["graph"] = w
     return found

@@ -25,7 +25,7 @@ from treereg_core.io.scans import read_scan
 from treereg_core.params import Params
 from treereg_core.pipeline import Pipeline
 from treereg_core.scan import Scan
-from treereg_core.stage import StageOutput
+from treereg_core.stage import Pair, StageOutput
 from treereg_core.stages import STAGE_NAMES as STAGES
 
 from .stages import label
@@ -50,6 +50,9 @@ class Snapshot:
     error: bool = False
     crashed: Mapping[str, str] = field(default_factory=dict)  # stage -> error, when it raised
     runs: Mapping[str, int] = field(default_factory=dict)  # stage -> how often it has run (what a change cost)
+    pairs: tuple[Pair, ...] = ()  # the registered pairs (the reference's first, in scan order)
+    verdicts: Mapping[str, tuple[str, tuple[str, ...], str]] = field(default_factory=dict)  # scan -> (verdict, reasons, hint)
+    choices: Mapping[str, str] = field(default_factory=dict)  # hypotheses picked by hand: pair label -> candidate
 
     def status(self, stage: str) -> str:
         """'done', 'failed', 'running' or 'stale' for a pipeline stage."""
@@ -87,10 +90,11 @@ class _Requests:
     scans: list[Scan] | None = None
     truth: dict[str, np.ndarray] | None = None
     notes: list[tuple[str, bool]] = field(default_factory=list)
+    choices: list[tuple[str, str | None]] = field(default_factory=list)
 
     def pending(self) -> bool:
         return bool(self.params_changed or self.run_until or self.uploads or self.removals or self.scans is not None
-                    or self.notes)
+                    or self.notes or self.choices)
 
 
 def parse_scan_upload(filename: str, data: bytes) -> tuple[Scan, list[str]]:
@@ -229,6 +233,12 @@ class Controller:
             self._req.truth = dict(truth) if truth else None
             self._notify()
 
+    def choose(self, pair_label: str, candidate: str | None) -> None:
+        """Record a hypothesis picked by hand for a pair (None: automatic again); it re-runs from there."""
+        with self._wake:
+            self._req.choices.append((pair_label, candidate))
+            self._notify()
+
     def note(self, message: str, error: bool = False) -> None:
         """Publish a message for the user (e.g. a rejected parameter), in order with other changes."""
         with self._wake:
@@ -310,6 +320,10 @@ class Controller:
                               "press Run to register it."), False
             if notes:  # repaired rows and the like: the user should know what was not read
                 message += " Note: " + "; ".join(notes) + "."
+        for pair_label, candidate in req.choices:
+            if pipe.choose(pair_label, candidate):
+                message, error = ((f"{candidate} chosen by hand for {pair_label}; press Run." if candidate else
+                                   f"{pair_label}: the surfaces choose the hypothesis again; press Run."), False)
         if req.scans is not None or req.uploads or req.removals or req.params_changed or req.run_until:
             self._crashed.clear()  # new inputs or an explicit run: try again
         if req.params_changed or desired != pipe.params:
@@ -382,6 +396,9 @@ class Controller:
             error=error,
             crashed=dict(self._crashed),
             runs=dict(pipe.runs),
+            pairs=_safe(lambda: pipe.pairs, ()),
+            verdicts=_safe(pipe.verdicts, {}),
+            choices=dict(pipe.choices),
         )
 
     def _publish(self, busy: bool = False, running: str | None = None, message: str = "", error: bool = False) -> None:

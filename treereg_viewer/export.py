@@ -21,6 +21,7 @@ from treereg_core.geometry.rigid import apply_transform
 from treereg_core.io.atomic import write_bytes_atomic
 from treereg_core.io.scans import write_scan
 from treereg_core.io.transforms import TransformFile, registration_file, write_exports
+from treereg_core.verify.report import quality_report
 
 from .controller import Snapshot
 
@@ -38,18 +39,21 @@ class ExportBundle:
     files: dict[str, bytes]
 
 
-def transform_file(snap: Snapshot) -> tuple[TransformFile, str]:
-    """The TransformFile of the snapshot's best transforms (fine if it ran, else coarse)."""
+def transform_file(snap: Snapshot, keep_unverified: bool = False) -> tuple[TransformFile, str]:
+    """The TransformFile of the snapshot's transforms, as `treereg register` writes it: the verified
+    scans in "transforms", best guesses under "unverified" (or in "transforms" too with
+    `keep_unverified`), the evidence under "quality"."""
     if len(snap.scans) < 2:
         raise ExportError("Nothing to export: registration needs at least two scans.")
-    stage = "fine" if snap.output("fine") is not None else "coarse" if snap.output("coarse") is not None else None
+    stage = "fine" if snap.output("graph") is not None else "coarse" if snap.output("coarse") is not None else None
     if stage is None or len(snap.transforms) < 2:
         raise ExportError("Nothing to export yet: no scan has been registered (run the pipeline up to the "
                           "coarse stage at least; a failed pair has no transform).")
     transforms = {name: np.asarray(T, dtype=np.float64) for name, T in snap.transforms.items()}
     sources = {s.name: str(s.source.resolve()) for s in snap.scans if s.source is not None and s.source.is_absolute()}
     tf = registration_file(snap.scans, transforms, snap.params, stage=stage, metrics=dict(snap.pair_metrics),
-                           sources=sources or None)
+                           verdicts=dict(snap.verdicts), quality=quality_report(snap.scans, snap.pairs, snap.outputs),
+                           keep_unverified=keep_unverified, sources=sources or None)
     return tf, stage
 
 
@@ -59,12 +63,12 @@ def merged_points(snap: Snapshot, transforms: dict[str, np.ndarray]) -> np.ndarr
     return np.concatenate(parts, axis=0)
 
 
-def export_bundle(snap: Snapshot, cloud_format: str = "ply") -> ExportBundle:
+def export_bundle(snap: Snapshot, cloud_format: str = "ply", keep_unverified: bool = False) -> ExportBundle:
     """transforms.json (with the parameters used and per-pair metrics), CloudCompare and PDAL
     matrices per scan, params.json, and the merged registered cloud (`merged.<ply|las>`)."""
     if cloud_format not in ("ply", "las", "laz"):
         raise ExportError(f"merged cloud format must be ply, las or laz, not {cloud_format!r}")
-    tf, stage = transform_file(snap)
+    tf, stage = transform_file(snap, keep_unverified)
     files: dict[str, bytes] = {}
     with tempfile.TemporaryDirectory(prefix="treereg-export-") as tmp:
         for path in write_exports(tmp, tf):

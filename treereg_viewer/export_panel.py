@@ -30,6 +30,10 @@ class ExportPanel:
                 f"registered cloud.{where}"
             )
             self.cloud_format = gui.add_dropdown("Merged cloud format", ("ply", "las"), initial_value="ply")
+            self.keep_unverified = gui.add_checkbox(
+                "Include unverified best guesses", False,
+                hint="Unverified scans are left out of transforms.json's \"transforms\" (listed under \"unverified\" with "
+                     "the reasons); tick this to export their best guesses too, marked as such.")
             self.download_transforms = gui.add_button("Download transforms.json", icon=viser.Icon.DOWNLOAD)
             self.download_all = gui.add_button("Download all exports (zip)", icon=viser.Icon.FILE_ZIP)
             self.export_md = gui.add_markdown("")
@@ -58,7 +62,8 @@ class ExportPanel:
     def _download(self, client: Any, only: str | None) -> None:
         snap = self.app.controller.snapshot
         try:
-            bundle = export.export_bundle(snap, cloud_format=self.cloud_format.value)
+            bundle = export.export_bundle(snap, cloud_format=self.cloud_format.value,
+                                          keep_unverified=bool(self.keep_unverified.value))
             written = ""
             if self.app.out_dir is not None:
                 paths = export.write_bundle(bundle, self.app.out_dir)
@@ -78,7 +83,14 @@ class ExportPanel:
         warned = stage_warnings(snap)
         caution = (" **⚠ These transforms carry warnings (see the message at the top): check them before use.**"
                    if warned else "")
-        self.export_md.content = f"Exported the {bundle.stage} transforms of {len(bundle.transforms)} scans.{written}{caution}"
+        left_out = [n for n, (v, _, _) in snap.verdicts.items() if v != "verified" and n not in bundle.transforms]
+        kept = [n for n, (v, _, _) in snap.verdicts.items() if v != "verified" and n in bundle.transforms]
+        what = (f"Exported the transforms of {len(bundle.transforms)} scans"
+                + (f", {len(kept)} of them unverified best guesses ({', '.join(kept)})" if kept else "") + ".")
+        if left_out:
+            what += (f" **Not exported: {', '.join(left_out)}** (not verified; see the Placement stage) — tick "
+                     "\"Include unverified best guesses\" to export them anyway.")
+        self.export_md.content = f"{what}{written}{caution}"
 
     def _load_params(self, uploaded: Any) -> None:
         try:

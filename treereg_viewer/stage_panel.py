@@ -82,6 +82,10 @@ class StagePanel:
         if "match_pair" in wanted:
             c["match_pair"] = gui.add_slider("Image pair", 0, 1, 1, 0, hint="Which chosen image pair's ORB matches to show.")
             c["match_pair"].on_update(lambda _: app.set_view(match_pair=int(c["match_pair"].value)))
+        if "hypothesis" in wanted:
+            c["hypothesis"] = gui.add_dropdown("Use hypothesis", ("automatic",),
+                                               hint="Pick a competing pose by hand (it is then marked as chosen by hand).")
+            c["hypothesis"].on_update(lambda _: self._choose())
         if "show_icp" in wanted:
             c["show_icp"] = gui.add_checkbox("Show ICP pose instead of fine", False)
             c["show_icp"].on_update(lambda _: app.set_view(show_icp=bool(c["show_icp"].value)))
@@ -103,7 +107,7 @@ class StagePanel:
             mark = "⚠" if name in warned else _STATUS_ICON[snap.status(name)]
             text = f"**{label(name)}**" if name == current else label(name)
             parts.append(f"{mark} {text}")
-        self.status_md.content = " · ".join(parts)
+        self.status_md.content = " · ".join(parts) + self._verdict_line(snap)
         self.run_button.disabled = snap.busy
         lines = []
         if snap.message:
@@ -134,6 +138,18 @@ class StagePanel:
         for key, h in self.view_controls.items():
             if key.startswith("target") and tuple(h.options) != tuple(pairs):
                 h.options = pairs
+        hyp = snap.output("hypotheses")
+        if hyp is not None and hyp.items and "hypothesis" in self.view_controls and snap.pairs:
+            t = min(self.app.view.target, len(hyp.items) - 1)
+            labels = tuple(c.label for c in getattr(hyp.items[t], "candidates", ()))
+            h = self.view_controls["hypothesis"]
+            options = ("automatic",) + labels
+            if tuple(h.options) != options:
+                h.options = options
+            p = snap.pairs[t]
+            current = snap.choices.get(f"{snap.scans[p.tgt].name} -> {snap.scans[p.ref].name}", "automatic")
+            if h.value != current and current in options:
+                h.value = current
         match = snap.output("matching")
         if match is not None and match.items:
             t = min(self.app.view.target, len(match.items) - 1)
@@ -142,6 +158,29 @@ class StagePanel:
             if n > 1 and sl.max != n - 1:
                 sl.max = n - 1
             sl.disabled = n <= 1
+
+    def _choose(self) -> None:
+        snap = self.app.controller.snapshot
+        h = snap.output("hypotheses")
+        if h is None or not h.items or not snap.pairs:
+            return
+        t = min(self.app.view.target, len(h.items) - 1)
+        p = snap.pairs[t]
+        pair = f"{snap.scans[p.tgt].name} -> {snap.scans[p.ref].name}"
+        value = self.view_controls["hypothesis"].value
+        wanted = None if value == "automatic" else value
+        if snap.choices.get(pair) != wanted:
+            self.app.controller.choose(pair, wanted)
+
+    @staticmethod
+    def _verdict_line(snap: Snapshot) -> str:
+        """Every scan's verdict, shown above every stage (✓ verified, ⚠ unverified, ✗ failed)."""
+        graph = snap.output("graph")
+        if graph is None or len(graph.items) != len(snap.scans):
+            return ""
+        marks = {"verified": "✓", "unverified": "⚠", "failed": "✗"}
+        return "\n\n**Scans:** " + " · ".join(f"{marks.get(pl.verdict, '?')} {i + 1} {s.name}"
+                                               for i, (s, pl) in enumerate(zip(snap.scans, graph.items)))
 
     def show_progress(self, fraction: float, text: str) -> None:
         self.progress.value = float(min(max(fraction, 0.0), 1.0) * 100.0)

@@ -20,7 +20,7 @@ class StageView:
     ----------
     pose
         Which transform places the target scans on this stage: None (each in its own scanner frame,
-        before registration), "coarse", "fine" or "icp".
+        before registration), "coarse", "hypothesis", "fine", "icp" or "final" (the joint placement).
     scans
         How the scan layer is drawn: "full", "faded" (the stage's own drawing is the subject) or
         "hidden" (points would hide fitted surfaces).
@@ -71,20 +71,29 @@ VIEWS: dict[str, StageView] = {
         "translation for levelled scanners. Projection loses detail, so trunks and branches are close but "
         "not yet aligned (paper Fig. 9). ⚠ marks a transform that cannot be right.",
     ),
+    "hypotheses": StageView(
+        "hypothesis", controls=("target", "hypothesis"),
+        explanation="A nearly round crown looks alike from several headings: RANSAC's winner can be the wrong one. "
+        "So every distinct RANSAC solution and the coarse transform turned about the tree by quarter turns are "
+        "each aligned cheaply by the surfaces and judged by what the reference scanner saw: a target point lying "
+        "where the reference's laser passed through empty space speaks against the pose (grey: the rivals). The "
+        "most consistent pose goes on to the fine stage; the margin to the best distinct rival says how sure "
+        "that is. You can pick another hypothesis here.",
+    ),
     "slices": StageView(
-        "coarse", scans="faded",
+        "hypothesis", scans="faded",
         explanation="Fine registration starts from the coarse pose. Both scans are cut into thin horizontal slices at "
         "quantiles of tree height (paper: the three quartiles, 10 cm thick, 2.2.1; treereg takes more): low "
         "slices hold the trunk, high ones branches, whose centres become the fine tie points.",
     ),
     "arcs": StageView(
-        "coarse", scans="faded",
+        "hypothesis", scans="faded",
         explanation="Each slice holds several arcs (trunk and branch sections). Because the scanner samples a fixed "
         "angular grid, two points are neighbours when their angles differ by at most c·φ and c·ϕ "
         "(paper: c = 3, 2.2.2); connected components give the arcs, coloured one per component.",
     ),
     "sections": StageView(
-        "coarse", scans="hidden",
+        "hypothesis", scans="hidden",
         explanation="The trunk in the lowest slice is fitted with a Taubin circle, the other sections with least-squares "
         "cylinders (2.2.3); the circle centre, and on each cylinder axis its start and the point one unit "
         "further up, are the tie points, joined here to their partners in the other scan (at the coarse "
@@ -99,6 +108,21 @@ VIEWS: dict[str, StageView] = {
         "scans' surfaces, and the update is kept only when it measurably improves the alignment. "
         "Shown: the sections at the final pose.",
     ),
+    "verify": StageView(
+        "fine",
+        explanation="A registration must show its evidence before it is trusted: enough coarse tie points agree "
+        "compared with what chance gives on the same ties; the target's points lie where the reference scanner "
+        "saw a surface, not in space it saw through (where both stations could see); the surfaces fit within "
+        "their own noise; no other heading explains the scans almost as well; the scanner stays level and at "
+        "its height above the ground. A pair failing any of these is unverified, with the reason.",
+    ),
+    "graph": StageView(
+        "final", controls=(),
+        explanation="With three or more scans every verified pair is an edge of a graph of stations. Around a loop "
+        "the transforms must compose to nothing; a pair that keeps a loop open is dropped. All poses are then "
+        "solved together, so a station opposite the reference is placed through its neighbours. Each scan ends "
+        "verified (with the evidence), unverified (the best guess and why) or failed.",
+    ),
     "icp": StageView(
         "icp",
         explanation="The paper compares its fine stage with ICP (iterative closest point) started from the coarse "
@@ -107,7 +131,7 @@ VIEWS: dict[str, StageView] = {
         "branch, so the nearest point is often the wrong one.",
     ),
     "evaluation": StageView(
-        "fine", controls=("target", "show_icp"),
+        "final", controls=("target", "show_icp"),
         explanation="The final overlay. The paper judges a registration by its branches: in three layers of each "
         "corresponding branch, cylinder axes are fitted in both scans and the distances between centre "
         "points at equal height averaged, d̄ (eq. 8, 3.3). ICP from the coarse result is shown beside it, "

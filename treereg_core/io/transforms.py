@@ -287,15 +287,34 @@ def write_exports(out_dir: str | Path, tf: TransformFile, name: str = DEFAULT_NA
 
 
 def registration_file(scans: Sequence[Scan], transforms: dict[str, np.ndarray], params: Params, *, stage: str,
-                      metrics: dict[str, Any], sources: dict[str, str] | None = None,
-                      seconds: float | None = None) -> TransformFile:
+                      metrics: dict[str, Any], verdicts: dict[str, tuple[str, tuple[str, ...], str]] | None = None,
+                      quality: dict[str, Any] | None = None, keep_unverified: bool = False,
+                      sources: dict[str, str] | None = None, seconds: float | None = None) -> TransformFile:
     """The TransformFile of a registration (what `treereg register` writes and the app exports).
 
-    `transforms` holds the registered scans (reference included); a target missing from it is
-    listed under "unregistered". Besides the matrices it records the parameters used, the stage
-    the transforms come from, every scan's angular steps, the per-pair metrics and, when known,
-    the source files and the time taken.
+    "transforms" holds the reference and the verified scans (and, with `keep_unverified`, the best
+    guesses too, marked as such in "quality"); "unverified" the best guesses with the reasons
+    ({"matrix": 4x4, "why": [...]}); "unregistered" the scans without any transform and why;
+    "quality" the verdict and evidence per scan and the numbers of every registered pair. It also
+    records the parameters, the stage the transforms come from, every scan's angular steps, the
+    per-pair metrics and, when known, the source files and the time taken. Without `verdicts`
+    every transform given counts as verified (a caller that has no verification).
     """
+    verdicts = verdicts or {name: ("verified", (), "") for name in transforms}
+    kept: dict[str, np.ndarray] = {}
+    unverified: dict[str, Any] = {}
+    unregistered: dict[str, str] = {}
+    for s in scans:
+        verdict, reasons, _ = verdicts.get(s.name, ("failed", ("not registered",), ""))
+        T = transforms.get(s.name)
+        if T is None:
+            if s is not scans[0]:
+                unregistered[s.name] = "; ".join(reasons) or "not registered"
+            continue
+        if verdict == "verified" or s is scans[0] or keep_unverified:
+            kept[s.name] = T
+        if verdict != "verified" and s is not scans[0]:
+            unverified[s.name] = {"matrix": np.asarray(T, dtype=float), "why": list(reasons)}
     extra: dict[str, Any] = {"stage": stage}
     if seconds is not None:
         extra["seconds"] = round(float(seconds), 3)
@@ -303,7 +322,12 @@ def registration_file(scans: Sequence[Scan], transforms: dict[str, np.ndarray], 
     if sources:
         extra["sources"] = dict(sources)
     extra["metrics"] = metrics
-    missing = [s.name for s in scans[1:] if s.name not in transforms]
-    if missing:
-        extra["unregistered"] = missing
-    return TransformFile(reference=scans[0].name, transforms=dict(transforms), params=to_dict(params), extra=extra)
+    if unverified:
+        extra["unverified"] = unverified
+    if unregistered:
+        extra["unregistered"] = unregistered
+    if quality is not None:
+        extra["quality"] = quality
+    if keep_unverified and unverified:
+        extra["kept_unverified"] = sorted(unverified)
+    return TransformFile(reference=scans[0].name, transforms=kept, params=to_dict(params), extra=extra)

@@ -49,6 +49,7 @@ class Evidence:
     margin: float
     tilt_deg: float
     height_difference_m: float | None
+    chosen_by_hand: bool = False
 
     def as_dict(self) -> dict[str, float | int | str | None]:
         return dict(self.__dict__)
@@ -102,6 +103,7 @@ def gather_evidence(ref_image: RangeImage, ref_surf: Surface, tgt_surf: Surface,
         seen_by_both=vis.seen_by_both, violations=vis.violations, residual_m=residual, noise_m=noise,
         chosen=hyp.chosen if hyp is not None else "coarse", rival=hyp.runner_up if hyp is not None else "",
         margin=float(hyp.margin) if hyp is not None else float("nan"), tilt_deg=tilt, height_difference_m=dh,
+        chosen_by_hand=bool(hyp is not None and hyp.chosen_by_hand),
     )
 
 
@@ -122,7 +124,8 @@ def judge(e: Evidence, *, verify: VerifyParams, coarse: CoarseParams) -> tuple[s
         reasons.append(f"{1 - e.consistency:.1%} of the points both stations see lie in space the reference saw "
                        f"through (consistency {e.consistency:.3f} < verify.min_consistency = {p.min_consistency:g})")
         hints.append("check that both scans show the same tree, or pick another hypothesis in the app")
-    if np.isfinite(e.margin) and e.margin < p.min_margin:
+    # A hypothesis picked by hand settles the ambiguity: the person looked at both.
+    if np.isfinite(e.margin) and e.margin < p.min_margin and not e.chosen_by_hand:
         reasons.append(f"another hypothesis ({e.rival}) explains the scans almost as well (consistency margin "
                        f"{e.margin:.3f} < verify.min_margin = {p.min_margin:g}): the heading is ambiguous")
         hints.append("compare the competing poses in the app (treereg view) and pick one, or add a station")

@@ -202,7 +202,9 @@ def place_scans(n: int, edges: list[Edge], samples: dict[int, np.ndarray], *, gr
             break
         dropped_here = [f"the pair with scan {(e.i if e.j == k else e.j) + 1} keeps a loop open by {r * 1000:.1f} mm "
                         f"(verify.max_loop_m = {max_loop_m:g})" for e, r in dropped if k in (e.i, e.j)]
-        reasons = tuple(dropped_here + why) or ("no registered pair links it to the reference",)
+        failed_here = [f"its pair with scan {(e.i if e.j == k else e.j) + 1} failed: {'; '.join(e.reasons)}"
+                       for e in mine if e.verdict == FAILED] if guess is None else []
+        reasons = tuple(dropped_here + why + failed_here) or ("no registered pair links it to the reference",)
         verdict = UNVERIFIED if guess is not None else FAILED
         hint = "add a station between it and its neighbours, or check that it shows the same tree"
         out.append(Placement(guess is not None, "; ".join(reasons), (Metric("verdict", "", verdict),), guess, verdict,

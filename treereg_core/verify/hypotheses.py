@@ -62,6 +62,8 @@ class HypothesesResult:
         winner's polished pose.
     chosen
         The winning candidate's label ("coarse" = RANSAC's best mode).
+    chosen_by_hand
+        The user picked `chosen` (in the app), whatever the scores say.
     margin
         Consistency of the winner minus that of the best distinct runner-up (1 when none scored).
     runner_up
@@ -76,6 +78,7 @@ class HypothesesResult:
     chosen: str
     margin: float
     runner_up: str
+    chosen_by_hand: bool = False
 
 
 def _score(v: Visibility, p: HypothesesParams) -> float:
@@ -106,8 +109,9 @@ def candidate_starts(T_best: np.ndarray, modes: list[tuple[np.ndarray, int]], tg
 
 def score_hypotheses(ref_image: RangeImage, ref_surf: Surface, tgt_surf: Surface, tgt_points: np.ndarray,
                      T_best: np.ndarray, modes: list[tuple[np.ndarray, int]], *,
-                     hypotheses: HypothesesParams) -> HypothesesResult:
-    """Polish every candidate with the surfaces and score it against the reference's view.
+                     hypotheses: HypothesesParams, choose: str | None = None) -> HypothesesResult:
+    """Polish every candidate with the surfaces and score it against the reference's view. `choose`
+    names a candidate the user picked: it wins whatever the scores (and says so).
 
     A candidate keeps the better of its start and its polished pose: the cheap alignment can drift
     by a few centimetres on a pose that was right already, and must not cost it the comparison.
@@ -131,6 +135,10 @@ def score_hypotheses(ref_image: RangeImage, ref_surf: Surface, tgt_surf: Surface
     most_seen = max(c.visibility.seen_by_both for c in cands)
     eligible = [c for c in cands if c.visibility.seen_by_both >= max(p.min_overlap_share * most_seen, 1)]
     rank = sorted(eligible, key=lambda c: -c.visibility.consistency) + [c for c in cands if c not in eligible]
+    picked = next((c for c in rank if c.label == choose), None)
+    if picked is not None:
+        rank = [picked] + [c for c in rank if c is not picked]
+        eligible = [picked] + [c for c in eligible if c is not picked]
     cands = rank
     best = cands[0]
     rivals = [c for c in rank[1:len(eligible)]
@@ -150,11 +158,15 @@ def score_hypotheses(ref_image: RangeImage, ref_surf: Surface, tgt_surf: Surface
         Metric("consistency of the rival", "", float(runner.visibility.consistency) if runner else float("nan")),
         Metric("ambiguity margin", "", margin),
     )
-    message = "" if best.label == "coarse" else (
-        f"the surfaces prefer {best.label} to RANSAC's transform (consistency {cons:.3f} against "
-        f"{next(c for c in cands if c.label == 'coarse').visibility.consistency:.3f})")
+    coarse_cons = next(c for c in cands if c.label == "coarse").visibility.consistency
+    if picked is not None:
+        message = f"{best.label} was chosen by hand (consistency {cons:.3f}; RANSAC's transform {coarse_cons:.3f})"
+        metrics += (Metric("chosen by hand", "", "yes"),)
+    else:
+        message = "" if best.label == "coarse" else (
+            f"the surfaces prefer {best.label} to RANSAC's transform (consistency {cons:.3f} against {coarse_cons:.3f})")
     return HypothesesResult(True, message, metrics, tuple(cands), T_start, best.label, margin,
-                            runner.label if runner else "")
+                            runner.label if runner else "", picked is not None)
 
 
 def pass_through(T_coarse: np.ndarray) -> HypothesesResult:

@@ -13,7 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, Callable
 
-from . import coarse, fine, icp, matching, projection, result, scans
+from . import coarse, fine, icp, matching, projection, result, scans, verify
 
 
 @dataclass(frozen=True)
@@ -30,10 +30,13 @@ RENDERERS: dict[str, Renderer] = {
     "projection": Renderer(projection.render, projection.VIEW_FIELDS),
     "matching": Renderer(matching.render, matching.VIEW_FIELDS),
     "coarse": Renderer(coarse.render, coarse.VIEW_FIELDS),
+    "hypotheses": Renderer(verify.render_hypotheses, verify.HYPOTHESES_VIEW_FIELDS),
     "slices": Renderer(fine.render_slices, fine.SLICES_VIEW_FIELDS),
     "arcs": Renderer(fine.render_arcs, fine.ARCS_VIEW_FIELDS),
     "sections": Renderer(fine.render_sections, fine.SECTIONS_VIEW_FIELDS),
     "fine": Renderer(fine.render_fine, fine.FINE_VIEW_FIELDS),
+    "verify": Renderer(verify.render_verify, verify.VERIFY_VIEW_FIELDS),
+    "graph": Renderer(verify.render_graph, verify.GRAPH_VIEW_FIELDS),
     "icp": Renderer(icp.render, icp.VIEW_FIELDS),
     "evaluation": Renderer(result.render, result.VIEW_FIELDS),
 }

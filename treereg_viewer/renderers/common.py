@@ -71,9 +71,18 @@ def title(name: str, snap: Snapshot | None = None, t: int | None = None) -> str:
     return head if snap is None or t is None else f"{head}: {pair_label(snap, t)}"
 
 
-def pair_label(snap: Snapshot, target_index: int) -> str:
-    """'scan2 → scan1' for target number `target_index` (0 = second scan)."""
-    return f"{snap.scans[target_index + 1].name} → {snap.scans[0].name}"
+def pair_scans(snap: Snapshot, k: int) -> tuple[int, int]:
+    """(reference, target) scan indices of pair k: the pipeline's pairs, the reference's first
+    (pair k < n - 1 is scan k + 1 onto scan 1)."""
+    if k < len(snap.pairs):
+        return snap.pairs[k].ref, snap.pairs[k].tgt
+    return 0, k + 1
+
+
+def pair_label(snap: Snapshot, k: int) -> str:
+    """'scan2 → scan1' for pair k."""
+    i, j = pair_scans(snap, k)
+    return f"{snap.scans[j].name} → {snap.scans[i].name}"
 
 
 def not_ready_text(snap: Snapshot, name: str) -> str:

@@ -64,7 +64,7 @@ def render_slices(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewSt
     t = target_index(snap, "slices", view)
     sl: SliceResult = snap.output("slices").items[t]
     ref, tgt = _scans(snap, t)
-    T = target_pose(snap, "coarse", t)
+    T = target_pose(snap, "hypothesis", t)
     handles = _slice_points(scene, root, t, sl, T, ref, tgt, 2.0 * view.point_size)
     rows = []
     for k, h in enumerate(sl.heights_m):
@@ -109,7 +109,7 @@ def render_arcs(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewStat
     ar: SliceArcs = snap.output("arcs").items[t]
     sl: SliceResult = snap.output("slices").items[t]
     ref, tgt = _scans(snap, t)
-    handles, counts = _arc_points(scene, root, ar, target_pose(snap, "coarse", t), ref, tgt, 2.0 * view.point_size)
+    handles, counts = _arc_points(scene, root, ar, target_pose(snap, "hypothesis", t), ref, tgt, 2.0 * view.point_size)
     rows = [(k + 1, f"{sl.heights_m[k]:.2f}" if k < len(sl.heights_m) else "", *c) for k, c in enumerate(counts)]
     text = ("Each colour is one arc (connected component in the scan's own angular grid, "
             f"c = {snap.params.arcs.connectivity:g}); grey points belong to arcs smaller than "

@@ -16,7 +16,7 @@ from treereg_core.geometry.rigid import apply_transform, rotation_error_deg
 from ..controller import Snapshot
 from ..view_panel import PanelContent
 from ..view_state import ViewState
-from .common import md_table, metrics_table, pair_label, target_index, title
+from .common import md_table, metrics_table, pair_label, pair_scans, target_index, title
 from .scans import target_pose
 
 
@@ -35,7 +35,9 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
         fine = target_pose(snap, "fine", k)
         if not (it.ok and getattr(it, "ran", False)) or fine is None or prep is None:
             continue
-        pts = prep.items[k + 1].scan.points
+        if pair_scans(snap, k)[0] != 0:  # the ICP-vs-fine table is about the reference's pairs
+            continue
+        pts = prep.items[pair_scans(snap, k)[1]].scan.points
         gap = float(np.linalg.norm(apply_transform(it.T_ref_target, pts) - apply_transform(fine, pts), axis=1).mean())
         rows.append((pair_label(snap, k), f"{rotation_error_deg(it.T_ref_target, fine):.3f}", f"{gap * 1000:.1f}"))
     table = md_table(("pair", "ICP vs fine: rotation (°)", "mean point distance (mm)"), rows)

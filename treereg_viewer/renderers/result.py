@@ -77,7 +77,8 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
     report = out.items[t]
     evs = report.by_method()
     pose = "ICP" if view.show_icp and report.icp is not None else "fine"
-    text = f"Targets shown at their **{pose}** pose. "
+    shown_at = "ICP" if pose == "ICP" else "final (joint placement)"
+    text = f"Targets shown at their **{shown_at}** pose. "
     fine = snap.output("fine")
     notes = []
     if fine is not None:

@@ -33,9 +33,16 @@ def station_label_height(i: int) -> float:
 
 
 def target_pose(snap: Snapshot, pose: str | None, k: int) -> np.ndarray | None:
-    """Pair `k`'s transform for a view's `pose` ("coarse", "fine", "icp"), falling back to the
-    best earlier one that succeeded; None before registration or when none did."""
-    order = {"coarse": ("coarse",), "fine": ("fine", "coarse"), "icp": ("icp", "fine", "coarse")}.get(pose or "", ())
+    """Pair `k`'s transform for a view's `pose` ("coarse", "hypothesis", "fine", "icp", "final"),
+    falling back to the best earlier one that succeeded; None before registration or when none did.
+    "final" is the joint placement of scan k + 1 (the graph stage), k being its pair with the reference."""
+    if pose == "final":
+        graph = snap.output("graph")
+        item = graph.items[k + 1] if graph is not None and k + 1 < len(graph.items) else None
+        if item is not None and item.T_ref_scan is not None:
+            return np.asarray(item.T_ref_scan, dtype=np.float64)
+    order = {"coarse": ("coarse",), "hypothesis": ("hypotheses", "coarse"), "fine": ("fine", "hypotheses", "coarse"),
+             "icp": ("icp", "fine", "coarse"), "final": ("fine", "hypotheses", "coarse")}.get(pose or "", ())
     for name in order:
         out = snap.output(name)
         item = out.items[k] if out is not None and k < len(out.items) else None

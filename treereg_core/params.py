@@ -106,7 +106,7 @@ class HypothesesParams:
     cell_steps: float = _f(2.0, "steps", "free-space test: the reference's range image has cells of this many angular steps", lo=1.0, hi=20.0)
     loss_scale_m: float = _f(0.005, "m", "residual scale of the robust loss of the alignment", lo=0.0001, hi=0.5)
     violation_weight: float = _f(4.0, "", "a hypothesis keeps its polished pose when that scores better: points seen alike minus this many times the points in the reference's free space", lo=0.0, hi=1000.0)
-    min_overlap_share: float = _f(0.25, "", "a hypothesis competes only if both stations see at least this share of what the most overlapping one shows", lo=0.0, hi=1.0)
+    min_overlap_share: float = _f(0.25, "", "a hypothesis competes only if at least this share as many points agree with the reference's view as with the best-overlapping one", lo=0.0, hi=1.0)
     distinct_deg: float = _f(15.0, "deg", "hypotheses differing by at least this rotation are distinct", lo=0.1, hi=180.0)
     distinct_m: float = _f(0.3, "m", "...or by at least this displacement of the tree", lo=0.001, hi=100.0)
 
@@ -221,7 +221,8 @@ class GraphParams:
     """Many stations: which pairs are registered, and how all scans are placed together."""
 
     extra_pairs: int = _f(1, "pairs", "besides a spanning tree of the most alike scans, register each scan with this many more partners (loops to check)", lo=0, hi=10)
-    loss_scale_m: float = _f(0.005, "m", "joint solve of all poses: residual scale of the robust loss", lo=0.0001, hi=1.0)
+    loss_scale_m: float = _f(0.005, "m", "joint solve of all poses: residual scale of the soft-L1 loss of its first pass", lo=0.0001, hi=1.0)
+    refine_scale_m: float = _f(0.001, "m", "joint solve, second pass: residual scale of the Cauchy loss (pairs far from the consensus lose their pull)", lo=0.0001, hi=1.0)
     sample_points: int = _f(300, "points", "points per scan by which an edge's disagreement is measured", lo=10, hi=100_000)
 
 

@@ -156,7 +156,8 @@ def _run_graph(ctx: StageContext) -> list[Any]:
     for k, p in enumerate(ctx.pairs):
         it = ver.items[k] if ver is not None else None
         if isinstance(it, PairVerification):
-            edges.append(Edge(p.ref, p.tgt, it.T_ref_target, it.verdict, it.reasons))
+            edges.append(Edge(p.ref, p.tgt, it.T_ref_target, it.verdict, it.reasons,
+                              weight=float(max(it.evidence.seen_by_both, 1))))
         else:  # the pair failed before verification: no transform
             edges.append(Edge(p.ref, p.tgt, np.eye(4), "failed", (getattr(it, "message", "") or "not registered",)))
     rng = np.random.default_rng(0)

@@ -67,6 +67,7 @@ class Edge:
     reasons: tuple[str, ...] = ()
     loop_error_m: float = float("nan")
     used: bool = False
+    weight: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -121,9 +122,15 @@ def _chain(n: int, edges: list[Edge]) -> dict[int, np.ndarray]:
 
 
 def _solve(poses: dict[int, np.ndarray], edges: list[Edge], samples: dict[int, np.ndarray],
-           scale_m: float) -> tuple[dict[int, np.ndarray], np.ndarray]:
+           scale_m: float, refine_scale_m: float) -> tuple[dict[int, np.ndarray], np.ndarray]:
     """Joint poses of every scan in `poses` (scan 0 fixed) minimising, over the edges, how far each
-    edge's measured transform and the poses' relative one put the sample points of scan j apart."""
+    edge's measured transform and the poses' relative one put the sample points of scan j apart.
+
+    An edge counts by its weight (how much of the two scans overlaps: a pair of stations that see
+    the same surfaces is measured better than two opposite ones). Soft-L1 at `scale_m` first (safe
+    from a chained start), then Cauchy at `refine_scale_m`: an edge that disagrees with the others
+    by several times that (a pair the fine stage could not improve) loses its pull.
+    """
     free = sorted(k for k in poses if k != 0)
     if not free:
         return poses, np.zeros(len(edges))
@@ -135,16 +142,19 @@ def _solve(poses: dict[int, np.ndarray], edges: list[Edge], samples: dict[int, n
         v = x[6 * index[k]: 6 * index[k] + 6]
         return make_transform(rotation_from_vector(v[:3]), v[3:]) @ poses[k]
 
+    w = np.sqrt(np.array([e.weight for e in edges]) / max(np.mean([e.weight for e in edges]), 1e-12))
+
     def residuals(x: np.ndarray) -> np.ndarray:
         out = []
-        for e in edges:
+        for wk, e in zip(w, edges):
             rel = invert(pose(x, e.i)) @ pose(x, e.j)
-            out.append((apply_transform(rel, samples[e.j]) - apply_transform(e.T, samples[e.j])).ravel())
+            out.append(wk * (apply_transform(rel, samples[e.j]) - apply_transform(e.T, samples[e.j])).ravel())
         return np.concatenate(out)
 
-    sol = least_squares(residuals, np.zeros(6 * len(free)), loss="soft_l1", f_scale=scale_m, max_nfev=200)
-    solved = {k: pose(sol.x, k) for k in poses}
-    r = residuals(sol.x).reshape(len(edges), -1, 3)
+    x = least_squares(residuals, np.zeros(6 * len(free)), loss="soft_l1", f_scale=scale_m, max_nfev=200).x
+    x = least_squares(residuals, x, loss="cauchy", f_scale=refine_scale_m, max_nfev=200).x
+    solved = {k: pose(x, k) for k in poses}
+    r = residuals(x).reshape(len(edges), -1, 3) / w[:, None, None]
     return solved, np.linalg.norm(r, axis=2).mean(axis=1)
 
 
@@ -163,7 +173,7 @@ def place_scans(n: int, edges: list[Edge], samples: dict[int, np.ndarray], *, gr
     while True:
         poses = _chain(n, good)
         subset = [e for e in good if e.i in poses and e.j in poses]
-        poses, res = _solve(poses, subset, samples, graph.loss_scale_m)
+        poses, res = _solve(poses, subset, samples, graph.loss_scale_m, graph.refine_scale_m)
         if not len(res) or res.max() <= max_loop_m:
             break
         worst = int(np.argmax(res))
@@ -172,7 +182,7 @@ def place_scans(n: int, edges: list[Edge], samples: dict[int, np.ndarray], *, gr
     loop = {(e.i, e.j): float(r) for e, r in zip([e for e in good if e.i in poses and e.j in poses], res)}
     loop.update({(e.i, e.j): r for e, r in dropped})
     all_edges = tuple(Edge(e.i, e.j, e.T, e.verdict, e.reasons, loop.get((e.i, e.j), float("nan")),
-                           any(e is g for g in good)) for e in edges)
+                           any(e is g for g in good), e.weight) for e in edges)
     out = []
     for k in range(n):
         mine = [e for e in all_edges if k in (e.i, e.j)]

@@ -130,10 +130,11 @@ def score_hypotheses(ref_image: RangeImage, ref_surf: Surface, tgt_surf: Surface
         if _score(v0, p) >= _score(v1, p):
             T, v1 = T0, v0
         cands.append(Candidate(label, T0, T, n, v1, v0))
-    # The most consistent hypothesis among those that overlap the reference's view about as much as
-    # any: a pose that puts the target where the reference saw nothing (a small overlap) proves nothing.
-    most_seen = max(c.visibility.seen_by_both for c in cands)
-    eligible = [c for c in cands if c.visibility.seen_by_both >= max(p.min_overlap_share * most_seen, 1)]
+    # The most consistent hypothesis among those that agree with the reference's view in about as many
+    # points as any: a pose that puts the target where the reference saw nothing (a small overlap)
+    # proves nothing. (Points in the reference's free space are no overlap: a wrong pose has many.)
+    most = max(c.visibility.consistent for c in cands)
+    eligible = [c for c in cands if c.visibility.consistent >= max(p.min_overlap_share * most, 1)]
     rank = sorted(eligible, key=lambda c: -c.visibility.consistency) + [c for c in cands if c not in eligible]
     picked = next((c for c in rank if c.label == choose), None)
     if picked is not None:

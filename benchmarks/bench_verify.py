@@ -1,0 +1,351 @@
+"""Verification benchmark: is every scan placed with evidence or refused?
+
+Every case runs `treereg register`'s path (the pipeline, through the verify and placement stages).
+A registration is *right* when it is within 0.5 deg and 3 cm of the truth (rotation error, mean
+displacement of the scan's points); scans of another tree have no right transform.
+
+Prints markdown tables:
+1. the confusion table per family of cases, for scans (their final placement) and for pairs:
+   verified-and-right, verified-but-wrong, refused-but-right, refused-and-wrong (refused =
+   unverified or failed);
+2. the same for other thresholds of the verdict (recomputed from the recorded evidence: the
+   hypotheses and poses do not depend on them), to choose the defaults;
+3. the evidence of every pair that is refused-but-right or verified-but-wrong, and of the leaf-on pairs;
+4. many stations around one tree: every scan's error, joint placement against its pair with scan 1;
+5. the time of `treereg register` on 3 and 6 scans of ~300k points against a baseline revision.
+
+Families: the seeded benchmark set (`simulate.benchmark_cases`, a third awkward); two different
+trees of look-alike height (within 15%); three stations where the third sees another tree; leaf-on
+crowns (the simulator's leaves, and stations from rtls_pc_tree.xyz); six stations around one tree.
+
+    python benchmarks/bench_verify.py                 # full run
+    python benchmarks/bench_verify.py --n 3 --small --real-seeds 1 --no-timing   # quick look
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from common import REAL_TREES, Report, error_of, md_table, parser  # noqa: E402
+
+from treereg_core.geometry.rigid import invert, mean_displacement, rotation_error_deg  # noqa: E402
+from treereg_core.io.scans import write_scan  # noqa: E402
+from treereg_core.params import PRESETS, Params  # noqa: E402
+from treereg_core.pipeline import Pipeline  # noqa: E402
+from treereg_core.scan import Scan  # noqa: E402
+from treereg_core.simulate.cases import CaseSpec, SimulatedCase, benchmark_cases, simulate_case  # noqa: E402
+from treereg_core.verify.evidence import VERIFIED, Evidence, judge  # noqa: E402
+
+MAX_ROT_DEG = 0.5
+MAX_DISP_M = 0.03
+REPO = Path(__file__).resolve().parents[1]
+
+
+@dataclass
+class Outcome:
+    """One scan's placement or one pair's registration, judged against the truth."""
+
+    family: str
+    case: str
+    what: str
+    verdict: str
+    right: bool | None  # None: no right answer exists (another tree)
+    rot_deg: float = float("nan")
+    disp_m: float = float("nan")
+    evidence: Evidence | None = None
+    reasons: tuple[str, ...] = ()
+
+    @property
+    def verified(self) -> bool:
+        return self.verdict == VERIFIED
+
+
+def _rename(scan: Scan, name: str) -> Scan:
+    return Scan(scan.points, name, scan.angular_step_deg, None, scan.step_estimated)
+
+
+def run(family: str, label: str, scans: list[Scan], truth: dict[str, np.ndarray], params: Params) -> tuple[list[Outcome], Pipeline]:
+    """One case through the pipeline to the placement; its scans and pairs judged against `truth`
+    (a scan missing from `truth` has no right transform)."""
+    pipe = Pipeline(scans, params, {k: v for k, v in truth.items()})
+    pipe.run("graph")
+    out: list[Outcome] = []
+    graph, ver = pipe.output("graph"), pipe.output("verify")
+    ref = scans[0].name
+    for i, s in enumerate(scans[1:], start=1):
+        pl = graph.items[i] if graph is not None else None
+        verdict = pl.verdict if pl is not None else "failed"
+        if s.name not in truth:
+            out.append(Outcome(family, label, f"scan {s.name}", verdict, None, reasons=pl.reasons if pl else ()))
+            continue
+        T_true = invert(truth[ref]) @ truth[s.name]
+        if pl is None or pl.T_ref_scan is None:
+            out.append(Outcome(family, label, f"scan {s.name}", verdict, False, reasons=pl.reasons if pl else ()))
+            continue
+        rot, disp = rotation_error_deg(pl.T_ref_scan, T_true), mean_displacement(pl.T_ref_scan, T_true, s.points)
+        out.append(Outcome(family, label, f"scan {s.name}", verdict, rot < MAX_ROT_DEG and disp < MAX_DISP_M, rot, disp,
+                           reasons=pl.reasons))
+    for k, p in enumerate(pipe.pairs):
+        a, b = scans[p.ref], scans[p.tgt]
+        it = ver.items[k] if ver is not None else None
+        ev = getattr(it, "evidence", None)
+        verdict = getattr(it, "verdict", "failed")
+        what = f"pair {b.name}->{a.name}"
+        if a.name not in truth or b.name not in truth:
+            out.append(Outcome(family, label, what, verdict, None, evidence=ev, reasons=getattr(it, "reasons", ())))
+            continue
+        T_true = invert(truth[a.name]) @ truth[b.name]
+        T = getattr(it, "T_ref_target", None)
+        if T is None:
+            out.append(Outcome(family, label, what, verdict, False, evidence=ev))
+            continue
+        rot, disp = rotation_error_deg(T, T_true), mean_displacement(T, T_true, b.points)
+        out.append(Outcome(family, label, what, verdict, rot < MAX_ROT_DEG and disp < MAX_DISP_M, rot, disp, ev,
+                           getattr(it, "reasons", ())))
+    return out, pipe
+
+
+def confusion(rows: list[Outcome]) -> list[str]:
+    """verified-and-right, verified-but-wrong, refused-but-right, refused-and-wrong (+ share of right verified)."""
+    vr = sum(r.verified and r.right is True for r in rows)
+    vw = sum(r.verified and r.right is not True for r in rows)
+    rr = sum(not r.verified and r.right is True for r in rows)
+    rw = sum(not r.verified and r.right is not True for r in rows)
+    share = f"{vr / (vr + rr):.0%}" if vr + rr else "-"
+    return [str(len(rows)), str(vr), f"**{vw}**" if vw else "0", str(rr), str(rw), share]
+
+
+CONFUSION_HEADER = ("family", "what", "count", "verified and right", "verified but wrong", "refused but right",
+                    "refused and wrong", "right ones verified")
+
+
+def confusion_table(rows: list[Outcome]) -> str:
+    families = list(dict.fromkeys(r.family for r in rows))
+    out = []
+    for f in families + ["**all**"]:
+        for kind in ("scan", "pair"):
+            sel = [r for r in rows if (f == "**all**" or r.family == f) and r.what.startswith(kind)]
+            if sel:
+                out.append([f, kind + "s", *confusion(sel)])
+    return md_table(CONFUSION_HEADER, out)
+
+
+#: Other thresholds tried on the recorded evidence of the pairs: (label, changes to VerifyParams).
+SWEEP: tuple[tuple[str, dict], ...] = (
+    ("defaults", {}),
+    ("min_consistency 0.90", {"min_consistency": 0.90}),
+    ("min_consistency 0.98", {"min_consistency": 0.98}),
+    ("min_margin 0.0", {"min_margin": 0.0}),
+    ("min_margin 0.08", {"min_margin": 0.08}),
+    ("chance_factor 1.0", {"chance_factor": 1.0}),
+    ("chance_factor 4.0", {"chance_factor": 4.0}),
+    ("max_residual_factor 1.5", {"max_residual_factor": 1.5}),
+    ("consistency alone (no margin, support, residual)", {"min_margin": 0.0, "chance_factor": 1.0, "max_residual_factor": 100.0}),
+)
+
+
+def sweep_table(rows: list[Outcome], params: Params) -> str:
+    pairs = [r for r in rows if r.what.startswith("pair") and r.evidence is not None]
+    out = []
+    for label, change in SWEEP:
+        vp = replace(params.verify, **change)
+        judged = [replace(r, verdict=judge(r.evidence, verify=vp, coarse=params.coarse)[0]) for r in pairs]
+        out.append([label, *confusion(judged)])
+    return md_table(("thresholds (pairs)", "count", "verified and right", "verified but wrong", "refused but right",
+                     "refused and wrong", "right ones verified"), out)
+
+
+def evidence_table(rows: list[Outcome]) -> str:
+    out = []
+    for r in rows:
+        e = r.evidence
+        if e is None:
+            out.append([r.family, r.case, r.what, r.verdict, "-" if r.right is None else ("yes" if r.right else "no"),
+                        f"{r.rot_deg:.2f} / {r.disp_m * 1000:.1f}" if np.isfinite(r.rot_deg) else "", "", "", "", "", "",
+                        "; ".join(r.reasons)[:120]])
+            continue
+        out.append([r.family, r.case, r.what, r.verdict, "-" if r.right is None else ("yes" if r.right else "no"),
+                    f"{r.rot_deg:.2f} / {r.disp_m * 1000:.1f}" if np.isfinite(r.rot_deg) else "",
+                    f"{e.inliers} / {e.chance_inliers}", f"{e.consistency:.3f} ({e.seen_by_both})",
+                    f"{e.margin:.3f} ({e.rival})", f"{e.residual_m * 1000:.1f} / {e.noise_m * 1000:.1f}",
+                    e.chosen, "; ".join(r.reasons)[:120]])
+    return md_table(("family", "case", "what", "verdict", "right", "rot (deg) / disp (mm)", "inliers / chance",
+                     "consistency (seen)", "margin (rival)", "residual / noise (mm)", "hypothesis", "why not verified"), out)
+
+
+def different_trees(n: int, seed: int) -> list[tuple[str, list[Scan], dict]]:
+    """Pairs of scans of two different trees of look-alike height (within 15%)."""
+    rng = np.random.default_rng(seed + 77)
+    out = []
+    for k in range(n):
+        h = float(rng.uniform(8.0, 13.0))
+        step = round(0.04 * h / 11.0, 4)
+        a = CaseSpec(seed=seed * 1000 + 500 + k, height_m=h, angular_step_deg=(step, step)).build()
+        b = CaseSpec(seed=seed * 1000 + 600 + k, height_m=round(h * float(rng.uniform(0.87, 1.13)), 2),
+                     angular_step_deg=(step, step)).build()
+        scans = [a.scans[0], _rename(b.scans[1], "other_tree.ply")]
+        out.append((f"d{k:02d}", scans, {a.scans[0].name: np.eye(4)}))
+    return out
+
+
+def intruders(n: int, seed: int) -> list[tuple[str, list[Scan], dict]]:
+    """Three stations where the third sees another tree entirely."""
+    out = []
+    for k in range(n):
+        a = CaseSpec(seed=seed * 1000 + 700 + k, height_m=10.0, angular_step_deg=(0.04, 0.04)).build()
+        b = CaseSpec(seed=seed * 1000 + 800 + k, height_m=10.5, angular_step_deg=(0.04, 0.04)).build()
+        scans = [a.scans[0], a.scans[1], _rename(b.scans[2], "intruder.ply")]
+        out.append((f"i{k:02d}", scans, {a.scans[0].name: a.T_ref_scan[0], a.scans[1].name: a.T_ref_scan[1]}))
+    return out
+
+
+def leaf_on(n: int, seed: int, real_step: float) -> list[tuple[str, list[Scan], dict]]:
+    out = []
+    for k in range(n):
+        case = CaseSpec(seed=seed * 1000 + 900 + k, leaves=True, height_m=11.0, angular_step_deg=(0.05, 0.05)).build()
+        out.append((f"leaves s{k}", list(case.scans), case.truth()))
+    path = REAL_TREES / "rtls_pc_tree.xyz"
+    if path.exists():
+        for k in range(n):
+            case = simulate_case(seed=k, from_points=str(path), angular_step_deg=(real_step, real_step))
+            out.append((f"rtls_pc_tree s{k}", list(case.scans), case.truth()))
+    return out
+
+
+def multi_station(n: int, seed: int, stations: int = 6) -> list[tuple[str, SimulatedCase]]:
+    out = []
+    for k in range(n):
+        case = CaseSpec(seed=seed * 1000 + 950 + k, n_stations=stations, height_m=11.0,
+                        angular_step_deg=(0.04, 0.04), station_distance_m=(8.0, 12.0)).build()
+        out.append((f"m{k:02d}", case))
+    return out
+
+
+def multi_table(cases: list[tuple[str, SimulatedCase]], params: Params) -> tuple[str, list[Outcome]]:
+    """Per scan: the joint placement's error and its pair with scan 1 alone (fine), against the truth."""
+    rows, outcomes, joint_all, pair_all = [], [], [], []
+    for label, case in cases:
+        res, pipe = run("six stations", label, list(case.scans), case.truth(), params)
+        outcomes += res
+        graph, fine = pipe.output("graph"), pipe.output("fine")
+        for i in range(1, len(case.scans)):
+            e_joint = error_of(graph.items[i].T_ref_scan, case, i) if graph.items[i].T_ref_scan is not None else None
+            k = next(n for n, p in enumerate(pipe.pairs) if (p.ref, p.tgt) == (0, i))
+            f = fine.items[k] if fine is not None else None
+            e_pair = error_of(f.T_ref_target, case, i) if f is not None and f.ok else None
+            sep = (case.stations[i].azimuth_deg - case.stations[0].azimuth_deg + 180.0) % 360.0 - 180.0
+            rows.append([label, case.scans[i].name, f"{abs(sep):.0f}", graph.items[i].verdict,
+                         f"{e_joint.rot_deg:.3f} / {e_joint.disp_m * 1000:.2f}" if e_joint else "-",
+                         f"{e_pair.rot_deg:.3f} / {e_pair.disp_m * 1000:.2f}" if e_pair else "-",
+                         ", ".join(str(v + 1) for v in graph.items[i].via)])
+            if e_joint:
+                joint_all.append(e_joint.disp_m)
+            if e_pair:
+                pair_all.append(e_pair.disp_m)
+        print(f"  multi-station {label} done", file=sys.stderr, flush=True)
+    table = md_table(("case", "scan", "azimuth from scan 1 (deg)", "verdict", "joint: rot (deg) / disp (mm)",
+                      "pair with scan 1 alone: rot / disp", "placed through"), rows)
+    j, p = np.array(joint_all), np.array(pair_all)
+    table += (f"\n\nJoint placement: median {np.median(j) * 1000:.2f} mm, worst {j.max() * 1000:.2f} mm over "
+              f"{len(j)} scans; each scan's pair with scan 1 alone: median {np.median(p) * 1000:.2f} mm, worst "
+              f"{p.max() * 1000:.2f} mm over {len(p)}.") if len(j) and len(p) else ""
+    return table, outcomes
+
+
+def _register_seconds(python_path: Path, files: list[Path], out: Path) -> float:
+    env = dict(os.environ, PYTHONPATH=str(python_path))
+    t0 = time.perf_counter()
+    subprocess.run([sys.executable, "-m", "treereg_cli", "register", *map(str, files), "--out", str(out)],
+                   cwd=python_path, env=env, capture_output=True, check=False)
+    return time.perf_counter() - t0
+
+
+def timing(baseline_rev: str, seed: int, target_points: int = 300_000, repeats: int = 2) -> str:
+    """`treereg register` on 3 and 6 scans of ~`target_points` points: this checkout against `baseline_rev`."""
+    with tempfile.TemporaryDirectory(prefix="treereg-bench-verify-") as tmp:
+        base = Path(tmp) / "baseline"
+        base.mkdir()
+        archive = subprocess.run(["git", "-C", str(REPO), "archive", baseline_rev], capture_output=True, check=True).stdout
+        subprocess.run(["tar", "-x", "-C", str(base)], input=archive, check=True)
+        rows = []
+        for n in (3, 6):
+            spec = CaseSpec(seed=seed, n_stations=n, height_m=13.0, angular_step_deg=(0.03, 0.03))
+            n0 = np.mean([s.n_points for s in spec.build(None).scans])
+            step = round(0.03 * float(np.sqrt(n0 / target_points)), 4)
+            case = replace(spec, angular_step_deg=(step, step)).build(None)
+            files = []
+            for s in case.scans:
+                files.append(write_scan(Path(tmp) / f"{n}_{s.name}", s.points, dtype="float32"))
+            t_base = min(_register_seconds(base, files, Path(tmp) / "b.json") for _ in range(repeats))
+            t_now = min(_register_seconds(REPO, files, Path(tmp) / "n.json") for _ in range(repeats))
+            pts = ", ".join(f"{s.n_points // 1000}k" for s in case.scans)
+            rows.append([f"{n} scans ({pts})", f"{t_base:.1f}", f"{t_now:.1f}", f"{t_now / t_base:.2f}"])
+        return md_table(("case", f"baseline {baseline_rev} (s)", "now (s)", "ratio"), rows)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = parser(__doc__, real_seeds=4)
+    ap.add_argument("--baseline", default="HEAD~1", help="revision whose `treereg register` times are the baseline")
+    ap.add_argument("--different", type=int, default=8, help="pairs of different trees")
+    ap.add_argument("--multi", type=int, default=3, help="cases of six stations")
+    a = ap.parse_args(argv)
+    report = Report()
+    say = report.say
+    params = PRESETS["robust"]
+    rows: list[Outcome] = []
+    for i, spec in enumerate(benchmark_cases(a.n, a.seed, small=a.small)):
+        case = spec.build(None)
+        rows += run("benchmark set", f"c{i:02d}", list(case.scans), case.truth(), params)[0]
+        print(f"  case {i + 1}/{a.n} done", file=sys.stderr, flush=True)
+    for label, scans, truth in different_trees(a.different, a.seed):
+        rows += run("different trees", label, scans, truth, params)[0]
+    for label, scans, truth in intruders(max(1, a.different // 2), a.seed):
+        rows += run("third station sees another tree", label, scans, truth, params)[0]
+    leaf_rows: list[Outcome] = []
+    for label, scans, truth in leaf_on(a.real_seeds, a.seed, a.real_step):
+        leaf_rows += run("leaf-on crowns", label, scans, truth, params)[0]
+    rows += leaf_rows
+    multi, multi_rows = multi_table(multi_station(a.multi, a.seed), params)
+    rows += multi_rows
+
+    say("## Verification: confusion table (`treereg register`'s path to the placement)")
+    say()
+    say(f"Right = within {MAX_ROT_DEG} deg and {MAX_DISP_M * 100:.0f} cm of the truth; a scan of another tree has no "
+        "right transform. Refused = unverified or failed. Scans: their final (joint) placement; pairs: every "
+        "registered pair's own fine result.")
+    say()
+    say(confusion_table(rows))
+    say()
+    say("## Thresholds: the verdict of the pairs recomputed from their recorded evidence")
+    say()
+    say(sweep_table(rows, params))
+    say()
+    say("## Evidence of the pairs refused though right, verified though wrong, and of every leaf-on pair")
+    say()
+    odd = [r for r in rows if r.what.startswith("pair") and ((r.verified and r.right is not True)
+                                                           or (not r.verified and r.right is True))]
+    say(evidence_table(odd + [r for r in leaf_rows if r.what.startswith("pair") and r not in odd]) if odd or leaf_rows
+        else "None.")
+    say()
+    say("## Six stations around one tree (evenly spread: scan 4 opposite scan 1)")
+    say()
+    say(multi)
+    if not a.no_timing:
+        say()
+        say("## Time of `treereg register` (wall, fresh process, reading the files included)")
+        say()
+        say(timing(a.baseline, a.seed))
+    report.save(a.out)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -12,7 +12,7 @@ from treereg_core.errors import ConfigError
 from treereg_core.evaluate.branches import evaluate_pair, find_branches
 from treereg_core.geometry.rigid import invert
 from treereg_core.io.scans import read_scan
-from treereg_core.io.transforms import TransformFile, read_transforms
+from treereg_core.io.transforms import TransformFile, check_transform, read_transforms
 from treereg_core.prepare.ground import prepare_scan
 from treereg_core.scan import Scan
 
@@ -49,7 +49,12 @@ def run(args: argparse.Namespace) -> int:
     truth = read_transforms(args.truth) if args.truth else None
     params = P.from_dict(tf.params, source=f"{args.transforms}: params") if tf.params else P.Params()
     steps = tf.extra.get("angular_step_deg") or {}
-    names = tf.names
+    # Best guesses listed under "unverified" are evaluated too (their verdict says what they are).
+    unverified = tf.extra.get("unverified") or {}
+    guesses = {n: check_transform(v.get("matrix"), f"{args.transforms}: unverified[{n!r}]")
+               for n, v in unverified.items() if isinstance(v, dict) and n not in tf.transforms}
+    names = tf.names + sorted(guesses)
+    verdicts = {n: (v or {}).get("verdict", "") for n, v in ((tf.extra.get("quality") or {}).get("scans") or {}).items()}
     if truth is not None:
         missing = [n for n in names if n not in truth.names]
         if missing:
@@ -62,8 +67,8 @@ def run(args: argparse.Namespace) -> int:
 
     ref = load(names[0])
     branches = find_branches(ref, evaluation=params.evaluation)
-    header = "| pair | branches | layer pairs | d (m), eq. 8 |"
-    rule = "|---|---|---|---|"
+    header = "| pair | verdict | branches | layer pairs | d (m), eq. 8 |"
+    rule = "|---|---|---|---|---|"
     if truth is not None:
         header += " rotation error (deg) | mean displacement (m) |"
         rule += "---|---|"
@@ -76,9 +81,11 @@ def run(args: argparse.Namespace) -> int:
         if truth is not None:
             # Truth files map onto their own reference; express the truth relative to ours.
             T_true = invert(truth.matrix(names[0])) @ truth.matrix(name)
-        ev = evaluate_pair(ref, tgt, tf.matrix(name), evaluation=params.evaluation, T_true=T_true, branches=branches)
+        T = guesses[name] if name in guesses else tf.matrix(name)
+        ev = evaluate_pair(ref, tgt, T, evaluation=params.evaluation, T_true=T_true, branches=branches)
         d = f"{ev.mean_distance_m:.4f}" if ev.ok else f"n/a ({ev.message})"
-        row = f"| {name} -> {names[0]} | {len(ev.branches)} | {ev.n_pairs} | {d} |"
+        verdict = verdicts.get(name) or ("unverified" if name in guesses else "(not recorded)")
+        row = f"| {name} -> {names[0]} | {verdict} | {len(ev.branches)} | {ev.n_pairs} | {d} |"
         if truth is not None:
             row += f" {ev.rotation_error_deg:.3f} | {ev.mean_displacement_m:.4f} |"
         rows.append(row)

@@ -274,3 +274,38 @@ def test_two_tabs_see_one_state(served, browser):
     expect(page2.get_by_label("Stage", exact=True)).to_have_value("4 Coarse")
     ctx1.close()
     ctx2.close()
+
+
+def test_a_scan_of_another_tree_is_marked_unverified_with_the_reason(served, browser, tmp_path):
+    """Upload a scan of a different tree next to the demo: after Run the header marks it ⚠ and the
+    message says why; the export leaves it out."""
+    from treereg_core.io.scans import write_scan
+    from treereg_core.simulate.cases import CaseSpec
+
+    url = served[0]
+    expect = playwright_api.expect
+    other = CaseSpec(seed=4242, height_m=8.0, angular_step_deg=(0.09, 0.09)).build().scans[1]
+    path = write_scan(tmp_path / "other_tree.ply", other.points, dtype="float32")
+    context, page, _ = _open(browser, url, scene=False)
+    _close_toast(page)
+    _wait_all_done(page, 240_000)  # the demo's own run first
+    page.get_by_role("tab", name="Scans").click()
+    with page.expect_file_chooser() as chooser:
+        page.get_by_role("button", name="Add a scan file").click()
+    chooser.value.set_files(str(path))
+    expect(page.get_by_text(re.compile("Added other_tree.ply"))).to_be_visible(timeout=60_000)
+    page.get_by_role("button", name="Run", exact=True).click()
+    # Every scan's verdict in the header, the other tree marked, the reason in the message.
+    expect(page.get_by_text(re.compile(r"^Ran 1 Scans.* in [\d.]+ s"))).to_be_visible(timeout=300_000)
+    expect(page.get_by_text(re.compile(r"⚠ 4 other_tree\.ply|✗ 4 other_tree\.ply"))).to_be_visible()
+    expect(page.get_by_text(re.compile(r"✓ 2 scan2\.ply"))).to_be_visible()
+    _screenshot(page, "wrong_tree_upload")
+    expect(page.get_by_text(re.compile(r"other_tree\.ply is (unverified|failed): "))).to_be_visible()
+    page.get_by_role("tab", name="Files").click()
+    page.get_by_role("button", name="Download transforms.json").click()
+    with page.expect_download() as dl:
+        page.get_by_role("link", name=re.compile("transforms.json")).first.click()
+    doc = json.loads(Path(dl.value.path()).read_text())
+    assert "other_tree.ply" not in doc["transforms"] and doc["quality"]["scans"]["other_tree.ply"]["verdict"] != "verified"
+    expect(page.get_by_text(re.compile(r"Not exported: other_tree\.ply"))).to_be_visible()
+    context.close()

@@ -8,6 +8,7 @@ import time
 from pathlib import Path
 
 from treereg_core.errors import ConfigError
+from treereg_core.io.e57 import write_registered_e57
 from treereg_core.io.transforms import registration_file, write_exports, write_transforms
 from treereg_core.pipeline import register
 
@@ -22,19 +23,24 @@ def add(sub: argparse._SubParsersAction) -> None:
         description="Register every scan onto the first (the reference): rotating-projection coarse "
         "registration, then fine registration from fitted stem and branch sections.",
     )
-    p.add_argument("scans", nargs="+", metavar="SCAN", help="scan files (first = reference): PLY, LAS/LAZ, XYZ/TXT/CSV, NPY/NPZ")
+    p.add_argument("scans", nargs="+", metavar="SCAN", help="scan files (first scan = reference): PLY, LAS/LAZ, "
+                   "XYZ/TXT/CSV, NPY/NPZ, or E57/PTX files holding one or more scans")
     p.add_argument("--out", default="transforms.json", help="transform file to write (default: transforms.json)")
     p.add_argument("--until", choices=("coarse", "fine"), default="fine", help="last stage to run (default: fine)")
     add_param_args(p)
-    p.add_argument("--exports", action="store_true", help="also write CloudCompare and PDAL matrix files beside --out")
+    p.add_argument("--exports", action="store_true", help="also write CloudCompare and PDAL matrix files and "
+                   "registered.e57 beside --out")
+    p.add_argument("--e57", metavar="FILE", help="also write the registered scans as one multi-scan E57 (each scan "
+                   "with its estimated pose: CloudCompare and other E57 readers open it registered)")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    if len(args.scans) < 2:
-        raise ConfigError("register needs at least two scans (the first is the reference)")
     params = load_params(args)
-    scans = read_scans(args.scans, params)
+    scans = read_scans(args.scans, params, args.scanner_position)
+    if len(scans) < 2:
+        raise ConfigError("register needs at least two scans (the first is the reference); "
+                          f"{', '.join(args.scans)} hold(s) {len(scans)}")
     t0 = time.perf_counter()
     reg = register(scans, params, until=args.until, progress=ProgressBar("register"))
     seconds = time.perf_counter() - t0
@@ -44,9 +50,13 @@ def run(args: argparse.Namespace) -> int:
         return 1
     metrics = reg.pipeline.pair_metrics()
     tf = registration_file(scans, reg.transforms, params, stage=args.until, metrics=metrics,
-                           sources={s.name: str(Path(f).resolve()) for s, f in zip(scans, args.scans)}, seconds=seconds)
+                           sources={s.name: str(s.source.resolve()) if s.source.exists() else str(s.source) for s in scans},
+                           seconds=seconds)
     out = Path(args.out)
     written = write_exports(out.parent, tf, name=out.name) if args.exports else [write_transforms(out, tf)]
+    e57 = Path(args.e57) if args.e57 else (out.parent / "registered.e57" if args.exports else None)
+    if e57 is not None:
+        written.append(write_registered_e57(e57, scans, tf))
     for name, rows in metrics.items():
         print(f"\n{name} -> {scans[0].name}")
         for r in rows:

@@ -41,6 +41,19 @@ class PrepareParams:
     crop_radius_m: float | None = _f(None, "m", "keep points within this horizontal radius of the stem (None = keep all)", lo=0.1)
     crop_z_min_m: float | None = _f(None, "m", "keep points above this height in the scanner frame (None = no limit)")
     crop_z_max_m: float | None = _f(None, "m", "keep points below this height in the scanner frame (None = no limit)")
+    returns: str = _f("first", "", "several returns per pulse: keep the first of each pulse, or all (applies when a file is read; files without return numbers keep every point)",
+                      choices=("first", "all"))
+
+
+@dataclass(frozen=True)
+class TargetParams:
+    """which tree of a plot is registered: the target stem, and the crop around it."""
+
+    select: str = _f("auto", "", "auto: when a station holds several stems, register the target tree and its surroundings; off: use every point",
+                     choices=("auto", "off"))
+    tree_at: tuple[float, float] | None = _f(None, "m", "the target stem's x y in the reference scan's frame; None = the stem the stations surround")
+    radius_m: float = _f(6.0, "m", "keep points within this horizontal distance of the target stem", lo=0.5, hi=100.0)
+    min_stems: int = _f(3, "stems", "auto selects a target only when a station holds at least this many stems (a scan cut to one tree is left as it is)", lo=2, hi=100)
 
 
 @dataclass(frozen=True)
@@ -214,6 +227,7 @@ class Params:
     """Everything treereg's pipeline needs, one section per stage."""
 
     prepare: PrepareParams = field(default_factory=PrepareParams)
+    target: TargetParams = field(default_factory=TargetParams)
     projection: ProjectionParams = field(default_factory=ProjectionParams)
     matching: MatchingParams = field(default_factory=MatchingParams)
     coarse: CoarseParams = field(default_factory=CoarseParams)

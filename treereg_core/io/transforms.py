@@ -25,6 +25,7 @@ import numpy as np
 
 from .._version import __version__
 from ..errors import ConfigError
+from ..geometry.rigid import invert
 from ..params import Params, to_dict
 from ..scan import Scan
 from .atomic import write_text_atomic
@@ -291,15 +292,23 @@ def registration_file(scans: Sequence[Scan], transforms: dict[str, np.ndarray], 
                       seconds: float | None = None) -> TransformFile:
     """The TransformFile of a registration (what `treereg register` writes and the app exports).
 
-    `transforms` holds the registered scans (reference included); a target missing from it is
-    listed under "unregistered". Besides the matrices it records the parameters used, the stage
-    the transforms come from, every scan's angular steps, the per-pair metrics and, when known,
-    the source files and the time taken.
+    `transforms` holds the registered scans (reference included) in their scanner frames, as the
+    pipeline gives them; a target missing from it is listed under "unregistered". A scan with a
+    pose (`Scan.pose`, T_user_scan: an E57/PTX pose or a scanner position the user gave) is mapped
+    back, so each matrix maps the scan's points *as its file gives them* onto the reference's
+    points as its file gives them: T = pose_ref @ T_ref_scan @ inv(pose_scan). The poses are
+    recorded under "poses" (only when one is not the identity). Besides the matrices it records
+    the parameters used, the stage the transforms come from, every scan's angular steps (and how
+    they were found), the per-pair metrics and, when known, the source files and the time taken.
     """
+    transforms = user_frame_transforms(scans, transforms)
     extra: dict[str, Any] = {"stage": stage}
     if seconds is not None:
         extra["seconds"] = round(float(seconds), 3)
     extra["angular_step_deg"] = {s.name: list(s.angular_step_deg) for s in scans}
+    extra["angular_step_source"] = {s.name: s.step.describe() for s in scans}
+    if any(not np.allclose(s.pose, np.eye(4)) for s in scans):
+        extra["poses"] = {s.name: s.pose for s in scans}
     if sources:
         extra["sources"] = dict(sources)
     extra["metrics"] = metrics
@@ -307,3 +316,15 @@ def registration_file(scans: Sequence[Scan], transforms: dict[str, np.ndarray], 
     if missing:
         extra["unregistered"] = missing
     return TransformFile(reference=scans[0].name, transforms=dict(transforms), params=to_dict(params), extra=extra)
+
+
+def user_frame_transforms(scans: Sequence[Scan], transforms: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Transforms between scanner frames mapped into the frames the users' files give the scans:
+    pose_ref @ T_ref_scan @ inv(pose_scan) (unchanged when every pose is the identity)."""
+    ref = scans[0]
+    poses = {s.name: s.pose for s in scans}
+    out = {}
+    for name, T in transforms.items():
+        P = poses.get(name, np.eye(4))
+        out[name] = ref.pose @ np.asarray(T) @ invert(P)
+    return out

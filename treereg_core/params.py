@@ -61,6 +61,7 @@ class ProjectionParams:
     """spherical projection images (paper eq. 2-3) and rotation sequences (2.1.2)."""
 
     pixel_factor: int = _f(2, "steps", "a pixel covers k*phi x k*varphi (paper: k = 2)", lo=1, hi=10)
+    square_pixels: bool = _f(True, "", "steps differing by more than 1.5x (e.g. 0.622 x 0.048 deg) get square pixels of k times the finer step, the gaps between scan lines closed (paper: k*phi x k*varphi)")
     border_px: tuple[int, int] = _f((10, 10), "px", "image borders r1, r2 (paper eq. 2)")
     relative_azimuth: bool = _f(True, "", "measure azimuth from the scan centroid's azimuth, so a tree never straddles +-180 deg")
     theta_deg: float = _f(10.0, "deg", "rotation step of the image sequence (paper: 10)", lo=0.5, hi=90.0)
@@ -279,7 +280,7 @@ def _paper() -> Params:
     return replace(
         p,
         prepare=replace(p.prepare, remove_ground=False),
-        projection=replace(p.projection, relative_azimuth=False, max_image_px=None, min_span_deg=0.0),
+        projection=replace(p.projection, relative_azimuth=False, max_image_px=None, min_span_deg=0.0, square_pixels=False),
         matching=replace(p.matching, n_pairs=3, matches_per_pair=5, beta_check=True, image_mode="binary", snap_px=0),
         coarse=replace(p.coarse, estimator="svd", dof=6, refit_6dof=False, final_inlier_m=None),
         slicing=replace(p.slicing, quantiles=(0.25, 0.5, 0.75), thickness_m=0.1),

@@ -93,3 +93,34 @@ def test_plot_registers_with_the_default_target(plot):
         T, T_true = reg.transforms[scan.name], plot.T_ref_scan[k]
         assert rotation_error_deg(T, T_true) < 0.5
         assert mean_displacement(T, T_true, prepared[k].scan.points) < 0.03
+
+
+def test_the_app_marks_the_target_and_takes_another_tree(plot):
+    import viser
+
+    from treereg_viewer.app import TreeregApp
+    from treereg_viewer.controller import Controller
+
+    server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    app = TreeregApp(server, Controller(list(plot.scans)), autorun=False)
+    try:
+        app.select_stage("prepare")
+        app.controller.request_run("prepare")
+        assert app.controller.wait_idle(120) and app.drawer.wait_idle(30)
+        nodes = set(server.scene._handle_from_node_name)
+        assert {"/prepare/s0/target", "/prepare/s1/target", "/prepare/s2/target", "/prepare/s0/stems"} <= nodes
+        text = app.panel._text.content
+        assert "Target tree:" in text and "surround" in text
+        x, y = target_in_scan(plot, 0)
+        assert f"{x:.2f}, {y:.2f}" in app.panel.table  # the table names the target's stem
+        # Another tree: its stem's x, y typed into "tree at", then Run.
+        other = _trunks_in_scan(plot, 0)[1, :2]
+        assert app.on_param_change("target", "tree_at", f"{other[0]:.2f}, {other[1]:.2f}") is None
+        app.controller.request_run("prepare")
+        assert app.controller.wait_idle(120) and app.drawer.wait_idle(30)
+        got = app.controller.snapshot.output("prepare").items[0].stem_xy
+        assert np.hypot(*(np.asarray(got) - other)) < 0.1
+        assert "--tree-at" in app.panel._text.content
+    finally:
+        app.close()
+        server.stop()

@@ -52,7 +52,7 @@ class TargetParams:
     select: str = _f("auto", "", "auto: when a station holds several stems, register the target tree and its surroundings; off: use every point",
                      choices=("auto", "off"))
     tree_at: tuple[float, float] | None = _f(None, "m", "the target stem's x y in the reference scan's frame; None = the stem the stations surround")
-    radius_m: float = _f(6.0, "m", "keep points within this horizontal distance of the target stem", lo=0.5, hi=100.0)
+    radius_m: float = _f(5.0, "m", "keep points within this horizontal distance of the target stem (neighbours farther away swamp the coarse stage; nearer ones help it)", lo=0.5, hi=100.0)
     min_stems: int = _f(3, "stems", "auto selects a target only when a station holds at least this many stems (a scan cut to one tree is left as it is)", lo=2, hi=100)
 
 

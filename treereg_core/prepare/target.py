@@ -13,9 +13,10 @@ neighbours swamp it. So before projection each station is cut to a disc around t
    such a transform; the one under which most stems land on a stem of similar radius wins (RANSAC
    over stem pairs). It places every station in the reference's frame, roughly (centimetres).
 3. **The target.** Given by the user (`tree_at`, x y in the reference's frame: the nearest stem),
-   or by default the stem the stations surround: the one seen from the stations over the widest
-   spread of directions (smallest largest gap between their azimuths), the nearest on average
-   when several tie. Each station is then cut to `radius_m` around its own view of that stem.
+   or by default the stem the stations surround: among the stems no gap between the stations'
+   directions wider than a half turn leaves open, the one whose farthest station is nearest
+   (stations stand round the target at similar distances). Each station is then cut to
+   `radius_m` around its own view of that stem.
 
 A station whose stem map cannot be matched keeps all its points (and says so); a scan that holds
 fewer than `min_stems` stems (already cut to one tree) is left as it is.
@@ -206,11 +207,11 @@ def match_stem_maps(ref: Stems, tgt: Stems, tol_m: float = 0.2) -> tuple[np.ndar
 
 
 def _surrounded(xy: np.ndarray, stations: np.ndarray) -> tuple[float, float]:
-    """(largest gap between the stations' azimuths seen from `xy`, degrees; mean distance, m)."""
+    """(largest gap between the stations' azimuths seen from `xy`, degrees; farthest station, m)."""
     v = stations - xy
     az = np.sort(np.degrees(np.arctan2(v[:, 1], v[:, 0])))
     gaps = np.diff(np.r_[az, az[0] + 360.0]) if len(az) > 1 else np.array([360.0])
-    return float(gaps.max()), float(np.linalg.norm(v, axis=1).mean())
+    return float(gaps.max()), float(np.linalg.norm(v, axis=1).max())
 
 
 def choose_targets(stems: list[Stems], *, target: TargetParams) -> list[TargetChoice]:
@@ -241,11 +242,16 @@ def choose_targets(stems: list[Stems], *, target: TargetParams) -> list[TargetCh
             if T is not None:
                 seen[pairs[:, 0]] += 1
         cand = np.flatnonzero(seen == seen.max())
-        scores = [_surrounded(ref.xy[k], np.array(origins)) for k in cand]
-        best = min(range(len(cand)), key=lambda i: (round(scores[i][0], 0), scores[i][1]))
+        scores = np.array([_surrounded(ref.xy[k], np.array(origins)) for k in cand])
+        # Surrounded: no gap between the stations' directions wider than a half turn (two stations:
+        # the stems between them). Of those, the one no station is far from (stations stand around
+        # the target at similar distances; a neighbour is much farther from the opposite station).
+        inside = np.flatnonzero(scores[:, 0] <= 180.0 + 1e-6)
+        pool = inside if len(inside) else np.arange(len(cand))
+        best = int(pool[np.argmin(scores[pool, 1])])
         k_ref, t_xy = int(cand[best]), ref.xy[int(cand[best])]
-        how = (f"the stem the stations surround (largest gap between stations {scores[best][0]:.0f} deg, "
-               f"{len(origins)} of {n} stations placed by their stem maps)")
+        how = (f"the stem the stations surround (largest gap between their directions {scores[best][0]:.0f} deg, "
+               f"farthest station {scores[best][1]:.1f} m; {len(origins)} of {n} stations placed by their stem maps)")
     out = [TargetChoice((float(t_xy[0]), float(t_xy[1])), how)]
     for (T, pairs), s in zip(maps, stems[1:]):
         if T is None:

@@ -236,14 +236,15 @@ def choose_targets(stems: list[Stems], *, target: TargetParams) -> list[TargetCh
             k_ref, t_xy = None, at
             how = f"--tree-at {at[0]:g} {at[1]:g} (no stem found there)"
     else:
-        # Stems seen from most stations first; then the one the stations surround best.
+        # Stems seen from at least two stations (one station's stray "stem" is not a tree; a trunk
+        # may hide from one station, or its partial arc give another radius there) ...
         seen = np.ones(len(ref), dtype=int)
         for T, pairs in maps:
             if T is not None:
                 seen[pairs[:, 0]] += 1
-        cand = np.flatnonzero(seen == seen.max())
+        cand = np.flatnonzero(seen >= min(2, int(seen.max())))
         scores = np.array([_surrounded(ref.xy[k], np.array(origins)) for k in cand])
-        # Surrounded: no gap between the stations' directions wider than a half turn (two stations:
+        # ... surrounded: no gap between the stations' directions wider than a half turn (two stations:
         # the stems between them). Of those, the one no station is far from (stations stand around
         # the target at similar distances; a neighbour is much farther from the opposite station).
         inside = np.flatnonzero(scores[:, 0] <= 180.0 + 1e-6)

@@ -9,8 +9,10 @@ real RIEGL station with simulated companions.
    its surroundings) and over the whole station; whether the right tree was taken; time and peak
    memory of the whole `register` call.
 2. The real station (../shared/data/real_trees/rtls_single_scan_scanner_at_origin.xyz.gz) with
-   companions: stations simulated from its own points by visibility from nearby positions
-   (nearest point per angular cell, range noise, a random heading), registered onto it.
+   companions: stations simulated from its own points from positions 3-6 m away (nearest point per
+   angular cell of the real station's step, range noise, millimetre rounding, a random heading),
+   registered onto it. A companion only sees what the real station saw, from elsewhere: a hard,
+   one-sided case.
 
 Success = rotation error < 0.5 deg and mean displacement < 3 cm (over the target region).
 Times are ratios to the median time per case of this run (printed in seconds below the table).
@@ -38,7 +40,7 @@ from treereg_core.params import Params  # noqa: E402
 from treereg_core.pipeline import register  # noqa: E402
 from treereg_core.scan import Scan  # noqa: E402
 from treereg_core.simulate.plots import plot_cases, target_in_scan  # noqa: E402
-from treereg_core.simulate.scanner import visible_points_splat  # noqa: E402
+from treereg_core.simulate.scanner import visible_points  # noqa: E402
 
 REAL_STATION = Path(__file__).resolve().parents[2] / "shared" / "data" / "real_trees" / "rtls_single_scan_scanner_at_origin.xyz.gz"
 MAX_ROT_DEG = 0.5
@@ -108,7 +110,7 @@ def companions(n: int, seed: int) -> tuple[list[Scan], dict[str, np.ndarray], li
         pos = np.array([d * np.cos(a), d * np.sin(a), rng.uniform(-0.3, 0.3)])
         T_real_comp = make_transform(rotation_z(rng.uniform(0, 360)), pos)
         local = apply_transform(invert(T_real_comp), pts)
-        vis, _ = visible_points_splat(local, real.angular_step_deg, 0.02, rng)
+        vis, _ = visible_points(local, real.angular_step_deg, rng)
         name = f"companion{k + 1}"
         scans.append(Scan.from_points(np.round(vis, 3), name=name, angular_step_deg=real.angular_step_deg))
         truth[name] = T_real_comp

@@ -110,3 +110,14 @@ def test_scan_shifted_off_its_scanner_warns_about_both_flags(tmp_path):
     assert not [x for x in w if issubclass(x.category, ScanWarning)]
     assert s.step.confidence > 0.7 and s.angular_step_deg == pytest.approx((0.06, 0.06), rel=0.02)
     assert np.allclose(apply_transform(s.pose, s.points), scan.points + [25.0, 8.0, 0.0])
+
+
+def test_cli_prints_a_doubtful_step_as_one_warning_line(tmp_path, capsys):
+    case = demo_case()
+    files = []
+    for scan in case.scans[:2]:
+        write_scan(tmp_path / scan.name, scan.points + [25.0, 8.0, 0.0])
+        files.append(str(tmp_path / scan.name))
+    main(["register", *files, "--until", "coarse", "--out", str(tmp_path / "t.json")])
+    lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.startswith("treereg: warning:")]
+    assert len(lines) == 2 and all("--angular-step H V" in ln and "confidence" in ln for ln in lines)

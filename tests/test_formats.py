@@ -176,3 +176,44 @@ def test_cli_returns_flag_reaches_the_reader(tmp_path):
     args = build_parser().parse_args(["register", "a.e57", "--returns", "all", "--tree-at", "1", "2",
                                       "--scanner-position", "1", "2", "3"])
     assert args.returns == "all" and args.tree_at == [1.0, 2.0] and args.scanner_position == [[1.0, 2.0, 3.0]]
+
+
+def _write_e57_with_returns(path, pts, ret):
+    """An E57 whose points carry returnIndex/returnCount (as multi-return scanners write), via libE57."""
+    import uuid
+
+    import pye57
+    from pye57 import libe57
+
+    e = pye57.E57(str(path), mode="w")
+    imf = e.image_file
+    node = libe57.StructureNode(imf)
+    node.set("guid", libe57.StringNode(imf, "{%s}" % uuid.uuid4()))
+    node.set("name", libe57.StringNode(imf, "multi"))
+    proto = libe57.StructureNode(imf)
+    for f in ("cartesianX", "cartesianY", "cartesianZ"):
+        proto.set(f, libe57.FloatNode(imf, 0.0, libe57.E57_DOUBLE, -1e6, 1e6))
+    proto.set("returnIndex", libe57.IntegerNode(imf, 0, 0, 7))
+    proto.set("returnCount", libe57.IntegerNode(imf, 1, 1, 8))
+    cv = libe57.CompressedVectorNode(imf, proto, libe57.VectorNode(imf, True))
+    node.set("points", cv)
+    e.data3d.append(node)
+    n = len(pts)
+    arrays = {"cartesianX": np.ascontiguousarray(pts[:, 0]), "cartesianY": np.ascontiguousarray(pts[:, 1]),
+              "cartesianZ": np.ascontiguousarray(pts[:, 2]), "returnIndex": ret.astype("q"),
+              "returnCount": (ret + 1).astype("q")}
+    bufs = libe57.VectorSourceDestBuffer()
+    for k, v in arrays.items():
+        bufs.append(libe57.SourceDestBuffer(imf, k, v, n, True, True))
+    w = cv.writer(bufs)
+    w.write(n)
+    w.close()
+    e.close()
+
+
+def test_e57_return_numbers_select_first_or_all(tmp_path):
+    pts = demo_case().scans[0].points
+    ret = (np.arange(len(pts)) % 5 == 0).astype(int)  # every fifth point a second return
+    _write_e57_with_returns(tmp_path / "returns.e57", pts, ret)
+    assert read_scan(tmp_path / "returns.e57").n_points == int((ret == 0).sum())
+    assert read_scan(tmp_path / "returns.e57", returns="all").n_points == len(pts)

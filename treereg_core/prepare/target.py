@@ -37,6 +37,8 @@ from ..params import TargetParams
 BAND_M = (1.0, 1.6)
 #: Grid cell of the stem search (m); groups are cells connected after one cell of dilation.
 CELL_M = 0.05
+#: Stems are looked for within this horizontal range of the scanner (m): a plot, not the horizon.
+MAX_RANGE_M = 60.0
 #: Plausible stem radii (m).
 STEM_RADIUS_M = (0.03, 0.8)
 #: A stem needs this many points in the band, and a fitted circle covering this much arc.
@@ -85,7 +87,7 @@ class TargetChoice:
 
 def find_stems(points: np.ndarray, heights: np.ndarray) -> Stems:
     """Stems in the breast-height band of one station (points N x 3, heights above the ground N)."""
-    sel = (heights > BAND_M[0]) & (heights < BAND_M[1])
+    sel = (heights > BAND_M[0]) & (heights < BAND_M[1]) & (np.hypot(points[:, 0], points[:, 1]) < MAX_RANGE_M)
     xy = points[sel, :2]
     empty = Stems(np.zeros((0, 2)), np.zeros(0))
     if len(xy) < MIN_STEM_POINTS:

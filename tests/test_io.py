@@ -172,8 +172,8 @@ def test_too_few_columns_names_the_line(tmp_path, pts):
 
 
 def test_unknown_extension_lists_supported(tmp_path):
-    p = _write_text(tmp_path / "scan.e57", "whatever")
-    with pytest.raises(ScanError, match=r"scan\.e57: unknown file type '\.e57'; supported: \.ply, \.las, \.laz, .*\.npz"):
+    p = _write_text(tmp_path / "scan.pcd", "whatever")
+    with pytest.raises(ScanError, match=r"scan\.pcd: unknown file type '\.pcd'; supported: \.ply, \.las, \.laz, .*\.npz.*\.e57, \.ptx"):
         read_points(p)
     with pytest.raises(ScanError, match=r"cannot write '\.xyz' files; supported: \.ply, \.las, \.laz"):
         write_scan(tmp_path / "out.xyz", np.zeros((5, 3)))

@@ -12,6 +12,7 @@ import time
 from pathlib import Path
 
 from treereg_core.errors import ConfigError
+from treereg_core.io.e57 import write_registered_e57
 from treereg_core.io.transforms import registration_file, write_exports, write_transforms
 from treereg_core.pipeline import register
 from treereg_core.verify.report import quality_report, verdict_lines
@@ -32,22 +33,27 @@ def add(sub: argparse._SubParsersAction) -> None:
         "each scan is placed right. Only verified scans go into \"transforms\"; best guesses are listed "
         "under \"unverified\" with the reasons.",
     )
-    p.add_argument("scans", nargs="+", metavar="SCAN", help="scan files (first = reference): PLY, LAS/LAZ, XYZ/TXT/CSV, NPY/NPZ")
+    p.add_argument("scans", nargs="+", metavar="SCAN", help="scan files (first scan = reference): PLY, LAS/LAZ, "
+                   "XYZ/TXT/CSV, NPY/NPZ, or E57/PTX files holding one or more scans")
     p.add_argument("--out", default="transforms.json", help="transform file to write (default: transforms.json)")
     p.add_argument("--until", choices=tuple(UNTIL), default="fine",
                    help="last stage to run (default: fine, with verification; coarse leaves every scan unverified)")
     p.add_argument("--keep-unverified", action="store_true",
                    help="also write the best guesses of unverified scans into \"transforms\" (marked in \"quality\")")
     add_param_args(p)
-    p.add_argument("--exports", action="store_true", help="also write CloudCompare and PDAL matrix files beside --out")
+    p.add_argument("--exports", action="store_true", help="also write CloudCompare and PDAL matrix files and "
+                   "registered.e57 beside --out")
+    p.add_argument("--e57", metavar="FILE", help="also write the registered scans as one multi-scan E57 (each scan "
+                   "with its estimated pose: CloudCompare and other E57 readers open it registered)")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    if len(args.scans) < 2:
-        raise ConfigError("register needs at least two scans (the first is the reference)")
     params = load_params(args)
-    scans = read_scans(args.scans, params)
+    scans = read_scans(args.scans, params, args.scanner_position)
+    if len(scans) < 2:
+        raise ConfigError("register needs at least two scans (the first is the reference); "
+                          f"{', '.join(args.scans)} hold(s) {len(scans)}")
     t0 = time.perf_counter()
     reg = register(scans, params, until=UNTIL[args.until], progress=ProgressBar("register"))
     seconds = time.perf_counter() - t0
@@ -59,9 +65,13 @@ def run(args: argparse.Namespace) -> int:
     metrics = pipe.pair_metrics()
     tf = registration_file(scans, reg.transforms, params, stage=args.until, metrics=metrics, verdicts=verdicts,
                            quality=quality_report(scans, pipe.pairs, pipe.outputs), keep_unverified=args.keep_unverified,
-                           sources={s.name: str(Path(f).resolve()) for s, f in zip(scans, args.scans)}, seconds=seconds)
+                           sources={s.name: str(s.source.resolve()) if s.source.exists() else str(s.source) for s in scans},
+                           seconds=seconds)
     out = Path(args.out)
     written = write_exports(out.parent, tf, name=out.name) if args.exports else [write_transforms(out, tf)]
+    e57 = Path(args.e57) if args.e57 else (out.parent / "registered.e57" if args.exports else None)
+    if e57 is not None:
+        written.append(write_registered_e57(e57, scans, tf))
     for name, rows in metrics.items():
         print(f"\n{name}" if " -> " in name else f"\n{name} -> {scans[0].name}")
         for r in rows:

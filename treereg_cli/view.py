@@ -31,7 +31,7 @@ def add(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     params = load_params(args)
     if args.scans:
-        scans = read_scans(args.scans, params)
+        scans = read_scans(args.scans, params, args.scanner_position)
         truth_path = Path(args.truth) if args.truth else truth_beside([Path(f) for f in args.scans])
         truth = read_truth(truth_path) if truth_path else None
     else:

@@ -41,6 +41,19 @@ class PrepareParams:
     crop_radius_m: float | None = _f(None, "m", "keep points within this horizontal radius of the stem (None = keep all)", lo=0.1)
     crop_z_min_m: float | None = _f(None, "m", "keep points above this height in the scanner frame (None = no limit)")
     crop_z_max_m: float | None = _f(None, "m", "keep points below this height in the scanner frame (None = no limit)")
+    returns: str = _f("first", "", "several returns per pulse: keep the first of each pulse, or all (applies when a file is read; files without return numbers keep every point)",
+                      choices=("first", "all"))
+
+
+@dataclass(frozen=True)
+class TargetParams:
+    """which tree of a plot is registered: the target stem, and the crop around it."""
+
+    select: str = _f("auto", "", "auto: when a station holds several stems, register the target tree and its surroundings; off: use every point",
+                     choices=("auto", "off"))
+    tree_at: tuple[float, float] | None = _f(None, "m", "the target stem's x y in the reference scan's frame; None = the stem the stations surround")
+    radius_m: float = _f(5.0, "m", "keep points within this horizontal distance of the target stem (neighbours farther away swamp the coarse stage; nearer ones help it)", lo=0.5, hi=100.0)
+    min_stems: int = _f(3, "stems", "auto selects a target only when a station holds at least this many stems (a scan cut to one tree is left as it is)", lo=2, hi=100)
 
 
 @dataclass(frozen=True)
@@ -48,6 +61,7 @@ class ProjectionParams:
     """spherical projection images (paper eq. 2-3) and rotation sequences (2.1.2)."""
 
     pixel_factor: int = _f(2, "steps", "a pixel covers k*phi x k*varphi (paper: k = 2)", lo=1, hi=10)
+    square_pixels: bool = _f(True, "", "steps differing by more than 1.5x (e.g. 0.622 x 0.048 deg) get square pixels of k times the finer step, the gaps between scan lines closed (paper: k*phi x k*varphi)")
     border_px: tuple[int, int] = _f((10, 10), "px", "image borders r1, r2 (paper eq. 2)")
     relative_azimuth: bool = _f(True, "", "measure azimuth from the scan centroid's azimuth, so a tree never straddles +-180 deg")
     theta_deg: float = _f(10.0, "deg", "rotation step of the image sequence (paper: 10)", lo=0.5, hi=90.0)
@@ -259,6 +273,7 @@ class Params:
     """Everything treereg's pipeline needs, one section per stage."""
 
     prepare: PrepareParams = field(default_factory=PrepareParams)
+    target: TargetParams = field(default_factory=TargetParams)
     projection: ProjectionParams = field(default_factory=ProjectionParams)
     matching: MatchingParams = field(default_factory=MatchingParams)
     coarse: CoarseParams = field(default_factory=CoarseParams)
@@ -313,7 +328,7 @@ def _paper() -> Params:
     return replace(
         p,
         prepare=replace(p.prepare, remove_ground=False),
-        projection=replace(p.projection, relative_azimuth=False, max_image_px=None, min_span_deg=0.0),
+        projection=replace(p.projection, relative_azimuth=False, max_image_px=None, min_span_deg=0.0, square_pixels=False),
         matching=replace(p.matching, n_pairs=3, matches_per_pair=5, beta_check=True, image_mode="binary", snap_px=0),
         coarse=replace(p.coarse, estimator="svd", dof=6, refit_6dof=False, final_inlier_m=None),
         slicing=replace(p.slicing, quantiles=(0.25, 0.5, 0.75), thickness_m=0.1),

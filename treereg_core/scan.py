@@ -3,6 +3,11 @@
 A scan is immutable: points (N x 3 float64, metres, scanner at the origin, z up), a name, the
 file it came from, and the instrument's angular steps phi (horizontal) and varphi (vertical) in
 degrees. Azimuth alpha and elevation beta are computed once, when the scan is made.
+
+`pose` (T_user_scan) is where the user's file puts the scan: the pose an E57 or PTX file carries,
+or the shift from a scanner position the user gave for a georeferenced file. Registration works
+in the scanner frame (where the angular grid is regular and coordinates are small enough for
+float32); `io.transforms.registration_file` maps the transforms back through the poses.
 """
 
 from __future__ import annotations
@@ -12,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .prepare.angular_step import estimate_angular_step
+from .prepare.angular_step import StepEstimate, estimate_steps, grid_steps
 from .errors import ScanError
 
 #: Fewer points than this cannot be registered meaningfully (and cannot estimate a grid).
@@ -36,6 +41,10 @@ class Scan:
     angular_step_deg: tuple[float, float]
     source: Path | None = None
     step_estimated: bool = False
+    #: T_user_scan: maps the scan's points into the frame its file (or the user) gave them in.
+    pose: np.ndarray | None = field(default=None, repr=False)
+    #: How the steps were obtained and how far to trust them (`StepEstimate`); None = given.
+    step: StepEstimate | None = field(default=None, repr=False)
     azimuth_deg: np.ndarray = field(init=False, repr=False)
     elevation_deg: np.ndarray = field(init=False, repr=False)
 
@@ -56,6 +65,13 @@ class Scan:
         if not (h > 0 and v > 0):
             raise ScanError(self.label, f"angular steps must be positive, got {self.angular_step_deg}")
         object.__setattr__(self, "angular_step_deg", (h, v))
+        pose = np.eye(4) if self.pose is None else np.array(self.pose, dtype=np.float64)
+        if pose.shape != (4, 4) or not np.isfinite(pose).all():
+            raise ScanError(self.label, f"the scan's pose must be a finite 4 x 4 matrix, got shape {pose.shape}")
+        pose.setflags(write=False)
+        object.__setattr__(self, "pose", pose)
+        if self.step is None:
+            object.__setattr__(self, "step", StepEstimate(h, v, 1.0, "estimated" if self.step_estimated else "given"))
 
     @property
     def label(self) -> str:
@@ -74,8 +90,11 @@ class Scan:
         source: Path | str | None = None,
         angular_step_deg: tuple[float, float] | None = None,
         min_points: int = MIN_POINTS,
+        pose: np.ndarray | None = None,
+        grid: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> "Scan":
-        """Validate `points` and make a scan; estimate the angular steps when not given."""
+        """Validate `points` and make a scan; when the steps are not given, read them off the
+        file's row/column `grid` (row, col per point) if there is one, else estimate them."""
         src = Path(source) if source is not None else None
         label = str(src) if src is not None else name
         pts = np.asarray(points, dtype=np.float64)
@@ -85,19 +104,26 @@ class Scan:
             raise ScanError(
                 label, f"only {pts.shape[0]} points; at least {min_points} are needed to register a scan"
             )
-        estimated = angular_step_deg is None
-        if estimated:
+        step: StepEstimate | None = None
+        if angular_step_deg is None:
             alpha, beta = spherical_angles_deg(pts)
             try:
-                angular_step_deg = estimate_angular_step(alpha, beta)
+                step = grid_steps(alpha, beta, *grid) if grid is not None else None
+            except ValueError:
+                step = None  # a grid too sparse to read: estimate from the angles instead
+            try:
+                step = step or estimate_steps(alpha, beta)
             except ValueError as e:
-                raise ScanError(label, f"cannot estimate the angular step: {e}") from None
+                raise ScanError(label, f"cannot estimate the angular step: {e}; give it with --angular-step H V") from None
+            angular_step_deg = step.steps
         return cls(
             points=pts,
             name=name,
             angular_step_deg=tuple(angular_step_deg),  # type: ignore[arg-type]
             source=src,
-            step_estimated=estimated,
+            step_estimated=step is not None and step.source == "estimated",
+            pose=pose,
+            step=step,
         )
 
     def with_points(self, points: np.ndarray, name: str | None = None) -> "Scan":
@@ -108,4 +134,6 @@ class Scan:
             angular_step_deg=self.angular_step_deg,
             source=self.source,
             step_estimated=self.step_estimated,
+            pose=self.pose,
+            step=self.step,
         )

@@ -23,10 +23,10 @@ from .fine.arcs import SliceArcs, separate_scan_slices, separate_slices
 from .fine.pose import FINE_SECTIONS, FineResult, FineStart, register_fine
 from .fine.sections import SectionsResult, fit_scan_sections, fit_sections
 from .fine.slicing import SliceResult, slice_scans
-from .geometry.rigid import invert, mean_displacement, rotation_error_deg
-from .results import Metric
-from .prepare.ground import PreparedScan, prepare_scan
 from .fine.surface import scan_surface
+from .geometry.rigid import invert, mean_displacement, rotation_error_deg
+from .prepare.ground import PreparedScan, prepare_scans
+from .results import Metric
 from .scan import Scan
 from .stage import Stage, StageContext
 from .verify.evidence import PairVerification, gather_evidence, judge, verification
@@ -46,7 +46,9 @@ def _label(ctx: StageContext, k: int) -> str:
 
 
 def _run_prepare(ctx: StageContext) -> list[Any]:
-    return ctx.each(lambda i: prepare_scan(ctx.scans[i], prepare=ctx.params.prepare), lambda i: ctx.scans[i].name)
+    # Across scans: the target tree of a plot is chosen from every station's stems at once.
+    ctx.progress(0.0, "ground, stems and the target tree")
+    return list(prepare_scans(list(ctx.scans), **ctx.params.pick("prepare", "target")))
 
 
 def _run_projection(ctx: StageContext) -> list[Any]:
@@ -214,8 +216,8 @@ def _icp_result(ctx: StageContext, k: int) -> IcpResult | None:
 
 
 STAGES: tuple[Stage, ...] = (
-    Stage("prepare", "Scans", "Each station as measured; the ground removed and the scan cropped to the tree.",
-          "scan", ("prepare",), (), PreparedScan, _run_prepare, stop_on_failure=True),
+    Stage("prepare", "Scans", "Each station as measured; the ground removed, the target tree found and the scan cropped to it.",
+          "scan", ("prepare", "target"), (), PreparedScan, _run_prepare, stop_on_failure=True),
     Stage("projection", "Projection", "Spherical binary images of each scan, rotated in steps about the tree (2.1.1-2.1.2).",
           "scan", ("projection",), ("prepare",), ImageSequence, _run_projection, stop_on_failure=True),
     Stage("matching", "Matching", "The most similar image pairs, ORB matches and 3-D tie points (2.1.3-2.1.4, 4.1).",

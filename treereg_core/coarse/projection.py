@@ -126,9 +126,27 @@ def image_geometry(
                               float(azimuth_ref_deg))
 
 
-def pixel_size_deg(angular_step_deg: tuple[float, float], pixel_factor: int) -> tuple[float, float]:
-    """k*phi x k*varphi (paper: k = 2)."""
-    return (pixel_factor * float(angular_step_deg[0]), pixel_factor * float(angular_step_deg[1]))
+#: Steps differing by more than this factor get square pixels (with `square`).
+ANISOTROPY = 1.5
+
+
+def pixel_size_deg(angular_step_deg: tuple[float, float], pixel_factor: int, square: bool = False) -> tuple[float, float]:
+    """k*phi x k*varphi (paper: k = 2).
+
+    With `square`, steps that differ a lot (a RIEGL scan of 0.622 x 0.048 deg) give square pixels of
+    k times the finer step instead: k*phi x k*varphi would squash the scene 13:1 into vertical
+    stripes. The gaps this leaves between scan lines along the coarser direction are closed by
+    `project(fill_px=...)` (`gap_fill_px`).
+    """
+    phi, vphi = float(angular_step_deg[0]), float(angular_step_deg[1])
+    if square and max(phi, vphi) > ANISOTROPY * min(phi, vphi):
+        return (pixel_factor * min(phi, vphi),) * 2
+    return (pixel_factor * phi, pixel_factor * vphi)
+
+
+def gap_fill_px(angular_step_deg: tuple[float, float], pixel_deg: tuple[float, float]) -> tuple[int, int]:
+    """Empty pixels that can lie between two scan lines along x and y (pixels finer than the step)."""
+    return tuple(max(int(np.ceil(s / p - 1e-9)) - 1, 0) for s, p in zip(angular_step_deg, pixel_deg))  # type: ignore[return-value]
 
 
 def limit_pixel_size(
@@ -152,6 +170,7 @@ def project(
     pixel_deg: tuple[float, float],
     border_px: tuple[int, int] = (10, 10),
     azimuth_ref_deg: float | None = None,
+    fill_px: tuple[int, int] = (0, 0),
 ) -> Projection:
     """Project points given by their angles into one binary image (eq. 2-3).
 
@@ -162,6 +181,8 @@ def project(
     border_px : (r1, r2) border in pixels.
     azimuth_ref_deg : measure alpha relative to this azimuth, wrapped into [-180, 180) (None: use
         alpha as it is, like the paper; a tree straddling +-180 deg then gives a very wide image).
+    fill_px : close empty runs of up to this many pixels between occupied ones along x and y (the
+        gaps between scan lines when pixels are finer than the step); filled pixels hold no points.
 
     Returns
     -------
@@ -183,4 +204,10 @@ def project(
     labels = (y * cols + x).astype(np.int32)
     image = np.full(rows * cols, EMPTY, dtype=np.uint8)
     image[labels] = OCCUPIED
-    return Projection(image=image.reshape(rows, cols), labels=labels, geometry=geo)
+    image = image.reshape(rows, cols)
+    if any(fill_px):
+        from scipy import ndimage
+
+        occ = ndimage.binary_closing(image == OCCUPIED, structure=np.ones((2 * fill_px[1] + 1, 2 * fill_px[0] + 1)))
+        image[occ] = OCCUPIED
+    return Projection(image=image, labels=labels, geometry=geo)

@@ -12,7 +12,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..params import ProjectionParams
-from .projection import Projection, limit_pixel_size, pixel_size_deg, project
+from .projection import Projection, gap_fill_px, limit_pixel_size, pixel_size_deg, project
+from ..prepare.image_check import fill_rate, image_warning, stripe_fraction
 from ..geometry.rigid import rotation_z
 from ..results import Metric
 from ..scan import Scan
@@ -59,17 +60,25 @@ class ImageSequence:
 
     @property
     def message(self) -> str:
-        return ""
+        """A warning when the image of the scan as taken is striped or mostly empty, else ""."""
+        return image_warning(self.projections[len(self) // 2].image == 0)
 
     @property
     def metrics(self) -> tuple[Metric, ...]:
         shapes = np.array([p.shape for p in self.projections])
-        return (
+        occ = self.projections[len(self) // 2].image == 0  # the scan as taken (rotation 0)
+        gx, gy = stripe_fraction(occ)
+        rows = [
             Metric("images", "", len(self)),
             Metric("rotation step", "deg", float(np.diff(self.angles_deg).mean()) if len(self) > 1 else 0.0),
             Metric("pixel size", "deg", f"{self.pixel_deg[0]:.3g} x {self.pixel_deg[1]:.3g}"),
             Metric("largest image", "px", f"{shapes[:, 1].max()} x {shapes[:, 0].max()}"),
-        )
+            Metric("fill rate", "", round(fill_rate(occ), 3)),
+            Metric("single-pixel gaps (x, y)", "", f"{gx:.0%}, {gy:.0%}"),
+        ]
+        if self.message:
+            rows.append(Metric("warning", "", self.message))
+        return tuple(rows)
 
 
 def sequence_angles_deg(theta_deg: float, span_deg: float) -> np.ndarray:
@@ -128,7 +137,7 @@ def build_sequence(scan: Scan, *, projection: ProjectionParams, n_scans: int) ->
         R = rotation_z(-az_ref)[:2, :2].astype(np.float32)
         pts = np.column_stack([pts[:, :2] @ R.T, pts[:, 2]])
     centre_rel = (rotation_z(-az_ref)[:2, :2] @ centre).astype(np.float32)
-    pixel = pixel_size_deg(scan.angular_step_deg, p.pixel_factor)
+    pixel = pixel_size_deg(scan.angular_step_deg, p.pixel_factor, p.square_pixels)
     if p.max_image_px is not None:
         sample = pts[:: max(1, scan.n_points // _SIZING_SAMPLE)]
         spans = np.zeros(2)
@@ -137,10 +146,11 @@ def build_sequence(scan: Scan, *, projection: ProjectionParams, n_scans: int) ->
             spans = np.maximum(spans, [np.ptp(al), np.ptp(be)])
         # 5% margin: the sample can miss the extreme points.
         pixel = limit_pixel_size(spans[0] * 1.05, spans[1] * 1.05, pixel, p.max_image_px)
+    fill = gap_fill_px(scan.angular_step_deg, pixel)
     projections = []
     for a in angles:
         al, be = rotated_angles_deg(pts, centre_rel, a)
-        projections.append(project(al, be, pixel, p.border_px, None))
+        projections.append(project(al, be, pixel, p.border_px, None, fill))
     # Record the reference azimuth in each image's geometry (project() saw relative angles).
     projections = [replace(pr, geometry=replace(pr.geometry, azimuth_ref_deg=az_ref)) for pr in projections]
     return ImageSequence(

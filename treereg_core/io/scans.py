@@ -1,6 +1,9 @@
-"""Reading and writing scans: PLY, LAS/LAZ, XYZ/TXT/CSV (optionally gzipped), NPY/NPZ.
+"""Reading and writing scans: PLY, LAS/LAZ, XYZ/TXT/CSV (optionally gzipped), NPY/NPZ, and the
+multi-scan exchange formats E57 and PTX (`io.e57`, `io.ptx`).
 
-Every reader returns N x 3 float64 metres; every problem a user has to fix raises
+`read_scans(path)` gives every scan a file holds (one for most formats, any number for E57/PTX),
+each in its scanner's own frame with the pose the file (or `scanner_position`) gives it.
+Every point reader returns N x 3 float64 metres; every problem a user has to fix raises
 `errors.ScanError`, whose message names the file and says what is wrong and what to do.
 Readers never loop over points in Python: text goes through numpy's C parser, LAS/LAZ is read
 in chunks into one preallocated array, NPY is memory-mapped. Writers are atomic: a temporary file
@@ -18,15 +21,23 @@ from typing import TextIO
 import numpy as np
 
 from .atomic import write_atomic
+from .record import RETURNS, ScanRecord
 from ..errors import ScanError
+from ..prepare.frames import far_from_origin, far_message, one_sided, to_scanner_frame
 from ..scan import MIN_POINTS, Scan
 
 #: Plain-text point formats (x y z in the first three columns); each may also be gzipped (+".gz").
 TEXT_EXTENSIONS: tuple[str, ...] = (".xyz", ".txt", ".csv")
+#: Formats that hold several scans, each with a pose (`read_scans` reads them all).
+MULTI_SCAN_EXTENSIONS: tuple[str, ...] = (".e57", ".ptx", ".ptx.gz")
 #: Everything `read_points` understands.
-READ_EXTENSIONS: tuple[str, ...] = (
+POINT_EXTENSIONS: tuple[str, ...] = (
     (".ply", ".las", ".laz") + TEXT_EXTENSIONS + tuple(e + ".gz" for e in TEXT_EXTENSIONS) + (".npy", ".npz")
 )
+#: Everything `read_scans` understands.
+READ_EXTENSIONS: tuple[str, ...] = POINT_EXTENSIONS + MULTI_SCAN_EXTENSIONS
+#: Column names (lower case) of a text header or LAS field that hold the return number (1 = first).
+RETURN_COLUMNS: tuple[str, ...] = ("return_number", "returnnumber", "target_index", "return_index")
 #: Everything `write_scan` writes.
 WRITE_EXTENSIONS: tuple[str, ...] = (".ply", ".las", ".laz")
 
@@ -75,6 +86,21 @@ def read_points(path: str | Path, check_units: bool = True) -> np.ndarray:
         no finite points, or (with `check_units`) millimetre-looking coordinates.
     """
     path = Path(path)
+    ext = _check_file(path)
+    if ext in MULTI_SCAN_EXTENSIONS:
+        records = read_records(path, check_units=check_units)
+        if len(records) != 1:
+            raise ScanError(str(path), f"holds {len(records)} scans; read them with read_scans")
+        return records[0].points
+    pts, _ = _read_single(path, ext)
+    pts = _drop_non_finite(path, pts)
+    if check_units:
+        check_metres(pts, str(path))
+    return pts
+
+
+def _check_file(path: Path) -> str:
+    """The file's format extension, after checking the file exists, is a file and is not empty."""
     ext = extension(path)
     if ext not in READ_EXTENSIONS:
         raise ScanError(
@@ -87,20 +113,127 @@ def read_points(path: str | Path, check_units: bool = True) -> np.ndarray:
         raise ScanError(str(path), "is a directory, not a scan file")
     if path.stat().st_size == 0:
         raise ScanError(str(path), "the file is empty")
+    return ext
+
+
+def _read_single(path: Path, ext: str) -> tuple[np.ndarray, np.ndarray | None]:
+    """Points of a single-scan file and, where the format has them, 0-based return numbers."""
+    ret = None
     if ext == ".ply":
         pts = _read_ply(path)
     elif ext in (".las", ".laz"):
-        pts = _read_las(path)
+        pts, ret = _read_las(path)
     elif ext == ".npy":
         pts = _read_npy(path)
     elif ext == ".npz":
         pts = _read_npz(path)
     else:
-        pts = _read_text(path, gzipped=ext.endswith(".gz"))
-    pts = _drop_non_finite(path, pts)
-    if check_units:
-        check_metres(pts, str(path))
-    return pts
+        pts, ret = _read_text(path, gzipped=ext.endswith(".gz"))
+    return pts, ret
+
+
+def read_records(path: str | Path, check_units: bool = True) -> list[ScanRecord]:
+    """Every scan a file holds, as stored (`ScanRecord`: points, pose, grid, return numbers).
+
+    Rows with NaN or infinite coordinates are dropped (with a `ScanWarning`); with `check_units`,
+    millimetre-looking coordinates are refused (`check_metres`).
+    """
+    path = Path(path)
+    ext = _check_file(path)
+    if ext == ".e57":
+        from .e57 import read_e57
+        records = read_e57(path)
+    elif ext in (".ptx", ".ptx.gz"):
+        from .ptx import read_ptx
+        records = read_ptx(path)
+    else:
+        pts, ret = _read_single(path, ext)
+        records = [ScanRecord(path.name, pts, np.eye(4), None, ret)]
+    out = []
+    for r in records:
+        label = str(path) if len(records) == 1 else f"{path} [{r.name}]"
+        finite = np.isfinite(r.points).all(axis=1)
+        if not finite.all():
+            _drop_non_finite(Path(label), r.points)  # warns, or raises when nothing is left
+            r = r.select(finite)
+        if len(r.points) == 0:
+            raise ScanError(label, "the scan holds no valid points")
+        if check_units:
+            check_metres(r.points, label)
+        out.append(r)
+    return out
+
+
+def read_scans(
+    path: str | Path,
+    angular_step_deg: tuple[float, float] | None = None,
+    returns: str = "first",
+    scanner_positions: list[tuple[float, float, float] | None] | None = None,
+    min_points: int = MIN_POINTS,
+) -> list[Scan]:
+    """Every scan of a file, each in its scanner's own frame (see `record_to_scan`).
+
+    Parameters
+    ----------
+    path
+        Any of `READ_EXTENSIONS`; E57 and PTX files may hold several scans.
+    angular_step_deg
+        (phi, varphi) in degrees; None = from the file's grid, else estimated from the points.
+    returns
+        "first" keeps the first return of each pulse (where the file numbers returns), "all" all.
+    scanner_positions
+        Per scan of the file, the scanner's position in the file's coordinates (or None).
+    """
+    path = Path(path)
+    records = read_records(path)
+    positions = list(scanner_positions or [])
+    if positions and len(positions) != len(records):
+        raise ScanError(str(path), f"holds {len(records)} scan(s) but {len(positions)} scanner position(s) were given for it")
+    positions += [None] * (len(records) - len(positions))
+    return [record_to_scan(r, path if len(records) == 1 else Path(f"{path}#{r.name}"), angular_step_deg, returns,
+                           pos, min_points) for r, pos in zip(records, positions)]
+
+
+def record_to_scan(
+    record: ScanRecord,
+    source: Path,
+    angular_step_deg: tuple[float, float] | None = None,
+    returns: str = "first",
+    scanner_position: tuple[float, float, float] | None = None,
+    min_points: int = MIN_POINTS,
+) -> Scan:
+    """A `Scan` in its scanner's frame from a file's record.
+
+    With `scanner_position` (in the record's coordinates) the points are shifted so the scanner is
+    the origin, in float64, and the shift joins the record's pose: `scan.pose` = T_user_scan. A
+    scan whose points lie kilometres from the origin without a position is refused (it is not in
+    its scanner's frame); one whose points all lie to one side and show no angular grid gets a
+    warning naming both flags that could help.
+    """
+    if returns not in RETURNS:
+        raise ScanError(str(source), f"returns must be one of {', '.join(RETURNS)}, got {returns!r}")
+    record = record.with_returns(returns)
+    pose = record.pose
+    pts = record.points
+    if scanner_position is not None:
+        pts, shift = to_scanner_frame(pts, scanner_position)
+        pose = pose @ shift
+    else:
+        far = far_from_origin(pts)
+        if far is not None:
+            raise ScanError(str(source), far_message(far))
+    scan = Scan.from_points(pts, name=record.name, source=source, angular_step_deg=angular_step_deg,
+                            min_points=min_points, pose=pose, grid=record.grid)
+    if scan.step.low and one_sided(pts):
+        warnings.warn(
+            f"{source}: the points show no regular angular grid (step estimate {scan.step.describe()}) and all lie on "
+            "one side of the origin: if the scan is not in its scanner's frame, give --scanner-position X Y Z; "
+            "if it is, give the instrument's steps with --angular-step H V",
+            ScanWarning, stacklevel=2)
+    elif scan.step.low:
+        warnings.warn(f"{source}: the angular step estimate is unreliable ({scan.step.describe()}); "
+                      "give the instrument's steps with --angular-step H V", ScanWarning, stacklevel=2)
+    return scan
 
 
 def read_scan(
@@ -108,8 +241,10 @@ def read_scan(
     angular_step_deg: tuple[float, float] | None = None,
     name: str | None = None,
     min_points: int = MIN_POINTS,
+    returns: str = "first",
+    scanner_position: tuple[float, float, float] | None = None,
 ) -> Scan:
-    """Read a scan file (scanner at the origin, metres, z up) into a `Scan`.
+    """Read a single-scan file (scanner at the origin, metres, z up) into a `Scan`.
 
     Parameters
     ----------
@@ -121,12 +256,17 @@ def read_scan(
         Name of the scan; default the file's base name (the key used in transforms.json).
     min_points
         Fewer points than this is an error.
+    returns, scanner_position
+        As for `read_scans`.
     """
     path = Path(path)
-    pts = read_points(path)
-    return Scan.from_points(
-        pts, name=name or path.name, source=path, angular_step_deg=angular_step_deg, min_points=min_points
-    )
+    scans = read_scans(path, angular_step_deg=angular_step_deg, returns=returns,
+                       scanner_positions=None if scanner_position is None else [scanner_position],
+                       min_points=min_points)
+    if len(scans) != 1:
+        raise ScanError(str(path), f"holds {len(scans)} scans ({', '.join(s.name for s in scans)}); read them with read_scans")
+    scan = scans[0]
+    return scan if name is None else scan.with_points(scan.points, name=name)
 
 
 def check_metres(points: np.ndarray, label: str) -> None:
@@ -214,7 +354,7 @@ def _read_ply(path: Path) -> np.ndarray:
     return _as_xyz(path, np.asarray(vertices), "the vertex element")
 
 
-def _read_las(path: Path) -> np.ndarray:
+def _read_las(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
     import laspy
 
     try:
@@ -223,19 +363,23 @@ def _read_las(path: Path) -> np.ndarray:
             if n == 0:
                 raise ScanError(str(path), "the LAS/LAZ file holds no points")
             out = np.empty((n, 3), dtype=np.float64)
+            ret = np.empty(n, dtype=np.int16)
             i = 0
-            # Chunks keep memory bounded: only x, y, z of the whole file are ever held.
+            # Chunks keep memory bounded: only x, y, z (and the return number) are ever held.
             for chunk in reader.chunk_iterator(_LAS_CHUNK):
                 m = len(chunk)
                 out[i : i + m, 0] = chunk.x
                 out[i : i + m, 1] = chunk.y
                 out[i : i + m, 2] = chunk.z
+                ret[i : i + m] = np.asarray(chunk.return_number, dtype=np.int16) - 1
                 i += m
     except ScanError:
         raise
     except Exception as e:  # laspy / lazrs raise their own types for bad files
         raise ScanError(str(path), f"not a readable LAS/LAZ file ({type(e).__name__}: {e})") from None
-    return out[:i]
+    ret = ret[:i]
+    # Writers that do not number returns leave 0 (-1 here): then there is nothing to select on.
+    return out[:i], (ret if (ret >= 0).all() and (ret > 0).any() else None)
 
 
 # ---- text --------------------------------------------------------------------------------------
@@ -271,8 +415,9 @@ def _is_header(fields: list[str]) -> bool:
     return not any(_is_number(f) for f in fields[:3])
 
 
-def _sniff(path: Path, gzipped: bool) -> tuple[str | None, int]:
-    """Delimiter (None = whitespace) and the number of lines to skip before the data.
+def _sniff(path: Path, gzipped: bool) -> tuple[str | None, int, int | None]:
+    """Delimiter (None = whitespace), the number of lines to skip before the data, and the column
+    holding the return number (None when no header or comment line names one).
 
     Comment lines ('#', '//') and blank lines may come first; then at most one header line.
     """
@@ -283,7 +428,9 @@ def _sniff(path: Path, gzipped: bool) -> tuple[str | None, int]:
         raise ScanError(str(path), f"cannot read the file ({e})") from None
     head = [h for h in head if h]
     lineno = 0
+    ret_col = None
     while lineno < len(head) and _is_comment(head[lineno]):
+        ret_col = _return_column(head[lineno].strip().lstrip("#/ ")) if ret_col is None else ret_col
         lineno += 1
     if lineno == len(head):
         raise ScanError(str(path), "the file holds no points (only blank or comment lines)")
@@ -292,22 +439,31 @@ def _sniff(path: Path, gzipped: bool) -> tuple[str | None, int]:
     skip = lineno
     if _is_header(_split(first, delimiter)):
         skip += 1  # one header line ("x y z", "X,Y,Z,intensity", ...)
+        ret_col = _return_column(first) if ret_col is None else ret_col
         rest = [h for h in head[skip:] if not _is_comment(h)]
         if rest:
             # the delimiter is better read off a data line than off the header
             delimiter = "," if "," in rest[0] else (";" if ";" in rest[0] else None)
-    return delimiter, skip
+    return delimiter, skip, ret_col
 
 
-def _read_text(path: Path, gzipped: bool) -> np.ndarray:
-    delimiter, skip = _sniff(path, gzipped)
+def _return_column(line: str) -> int | None:
+    """Index of the column a header line names as the return number (see `RETURN_COLUMNS`)."""
+    names = [f.strip().lower() for f in line.split(";")[0].replace(",", " ").split()]
+    hit = [i for i, n in enumerate(names) if n in RETURN_COLUMNS]
+    return hit[0] if hit and names[:3] == ["x", "y", "z"] else None
+
+
+def _read_text(path: Path, gzipped: bool) -> tuple[np.ndarray, np.ndarray | None]:
+    delimiter, skip, ret_col = _sniff(path, gzipped)
+    cols = (0, 1, 2) if ret_col is None else (0, 1, 2, ret_col)
     try:
         with _open_text(path, gzipped) as fh:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")  # numpy warns "input contained no data"; handled below
                 pts = np.loadtxt(
                     fh, dtype=np.float64, comments=("#", "//"), delimiter=delimiter,
-                    skiprows=skip, usecols=(0, 1, 2), ndmin=2,
+                    skiprows=skip, usecols=cols, ndmin=2,
                 )
     except ValueError:
         raise ScanError(str(path), _first_bad_line(path, gzipped, delimiter, skip)) from None
@@ -315,7 +471,11 @@ def _read_text(path: Path, gzipped: bool) -> np.ndarray:
         raise ScanError(str(path), f"cannot read the file ({e})") from None
     if pts.shape[0] == 0:
         raise ScanError(str(path), "the file holds no points (only a header)")
-    return pts
+    if ret_col is None:
+        return pts, None
+    ret = pts[:, 3]
+    ok = np.isfinite(ret) & (ret >= 1)
+    return np.ascontiguousarray(pts[:, :3]), (ret.astype(np.int16) - 1 if ok.all() else None)
 
 
 def _first_bad_line(path: Path, gzipped: bool, delimiter: str | None, skip: int) -> str:

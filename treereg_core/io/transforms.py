@@ -25,6 +25,7 @@ import numpy as np
 
 from .._version import __version__
 from ..errors import ConfigError
+from ..geometry.rigid import invert
 from ..params import Params, to_dict
 from ..scan import Scan
 from .atomic import write_text_atomic
@@ -295,11 +296,18 @@ def registration_file(scans: Sequence[Scan], transforms: dict[str, np.ndarray], 
     "transforms" holds the reference and the verified scans (and, with `keep_unverified`, the best
     guesses too, marked as such in "quality"); "unverified" the best guesses with the reasons
     ({"matrix": 4x4, "why": [...]}); "unregistered" the scans without any transform and why;
-    "quality" the verdict and evidence per scan and the numbers of every registered pair. It also
-    records the parameters, the stage the transforms come from, every scan's angular steps, the
-    per-pair metrics and, when known, the source files and the time taken. Without `verdicts`
-    every transform given counts as verified (a caller that has no verification).
+    "quality" the verdict and evidence per scan and the numbers of every registered pair. Without
+    `verdicts` every transform given counts as verified (a caller that has no verification).
+
+    `transforms` holds the registered scans in their scanner frames, as the pipeline gives them. A
+    scan with a pose (`Scan.pose`, T_user_scan: an E57/PTX pose or a scanner position the user
+    gave) is mapped back, so each matrix maps the scan's points *as its file gives them* onto the
+    reference's points as its file gives them: T = pose_ref @ T_ref_scan @ inv(pose_scan). The poses
+    are recorded under "poses" (only when one is not the identity). Besides the matrices it records
+    the parameters used, the stage the transforms come from, every scan's angular steps (and how
+    they were found), the per-pair metrics and, when known, the source files and the time taken.
     """
+    transforms = user_frame_transforms(scans, transforms)
     verdicts = verdicts or {name: ("verified", (), "") for name in transforms}
     kept: dict[str, np.ndarray] = {}
     unverified: dict[str, Any] = {}
@@ -319,6 +327,9 @@ def registration_file(scans: Sequence[Scan], transforms: dict[str, np.ndarray], 
     if seconds is not None:
         extra["seconds"] = round(float(seconds), 3)
     extra["angular_step_deg"] = {s.name: list(s.angular_step_deg) for s in scans}
+    extra["angular_step_source"] = {s.name: s.step.describe() for s in scans}
+    if any(not np.allclose(s.pose, np.eye(4)) for s in scans):
+        extra["poses"] = {s.name: s.pose for s in scans}
     if sources:
         extra["sources"] = dict(sources)
     extra["metrics"] = metrics
@@ -331,3 +342,15 @@ def registration_file(scans: Sequence[Scan], transforms: dict[str, np.ndarray], 
     if keep_unverified and unverified:
         extra["kept_unverified"] = sorted(unverified)
     return TransformFile(reference=scans[0].name, transforms=kept, params=to_dict(params), extra=extra)
+
+
+def user_frame_transforms(scans: Sequence[Scan], transforms: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Transforms between scanner frames mapped into the frames the users' files give the scans:
+    pose_ref @ T_ref_scan @ inv(pose_scan) (unchanged when every pose is the identity)."""
+    ref = scans[0]
+    poses = {s.name: s.pose for s in scans}
+    out = {}
+    for name, T in transforms.items():
+        P = poses.get(name, np.eye(4))
+        out[name] = ref.pose @ np.asarray(T) @ invert(P)
+    return out

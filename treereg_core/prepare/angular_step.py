@@ -20,6 +20,8 @@ per angular cell of a sparse merged cloud) give the typical point spacing, not a
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
 from scipy.spatial import cKDTree
@@ -32,6 +34,41 @@ _MIN_GAP_DEG = 1e-6
 _MIN_SUPPORT = 20
 #: A neighbour is "in the same row" when |d_beta| < _DIRECTION_RATIO * |d_alpha| (and vice versa).
 _DIRECTION_RATIO = 0.5
+#: A gap within this fraction of the step counts as one grid step (for the confidence).
+_STEP_TOLERANCE = 0.2
+#: Below this confidence an estimated step is not trusted: the user is told to give it.
+LOW_CONFIDENCE = 0.5
+
+
+@dataclass(frozen=True)
+class StepEstimate:
+    """The angular steps of a scan and how far to trust them.
+
+    phi_deg, varphi_deg : horizontal and vertical steps, degrees.
+    confidence : fraction (0-1) of row and column neighbour gaps that lie within 20 % of one step
+        (the lower of the two directions); a scanner's grid gives 0.7-0.95, points that were not
+        sampled on a grid (a merged cloud, a scan not in its scanner frame) 0.2-0.4. 1 for steps
+        given or read off a grid.
+    source : "given" (by the user), "grid" (the file's row/column indices) or "estimated".
+    """
+
+    phi_deg: float
+    varphi_deg: float
+    confidence: float
+    source: str
+
+    @property
+    def steps(self) -> tuple[float, float]:
+        return (self.phi_deg, self.varphi_deg)
+
+    @property
+    def low(self) -> bool:
+        return self.confidence < LOW_CONFIDENCE
+
+    def describe(self) -> str:
+        """E.g. '0.622 x 0.0473 deg (estimated, confidence 0.72)'."""
+        what = self.source if self.source != "estimated" else f"estimated, confidence {self.confidence:.2f}"
+        return f"{self.phi_deg:.4g} x {self.varphi_deg:.4g} deg ({what})"
 
 
 def _centred_azimuth(alpha_deg: np.ndarray) -> np.ndarray:
@@ -102,6 +139,19 @@ def _neighbour_gaps(
 def estimate_angular_step(
     azimuth_deg: np.ndarray, elevation_deg: np.ndarray, seed: int = 0
 ) -> tuple[float, float]:
+    """(phi, varphi) in degrees; see `estimate_steps` (which also says how far to trust them).
+
+    Examples
+    --------
+    >>> a, b = np.meshgrid(np.arange(0, 5, 0.1), np.arange(0, 3, 0.05))
+    >>> phi, varphi = estimate_angular_step(a.ravel(), b.ravel())
+    >>> round(phi, 3), round(varphi, 3)
+    (0.1, 0.05)
+    """
+    return estimate_steps(azimuth_deg, elevation_deg, seed).steps
+
+
+def estimate_steps(azimuth_deg: np.ndarray, elevation_deg: np.ndarray, seed: int = 0) -> StepEstimate:
     """Estimate the instrument's angular steps (phi horizontal, varphi vertical), in degrees.
 
     Parameters
@@ -114,21 +164,15 @@ def estimate_angular_step(
 
     Returns
     -------
-    (phi, varphi)
-        Horizontal and vertical angular steps in degrees.
+    StepEstimate
+        Horizontal and vertical angular steps in degrees, with a confidence: the share of row and
+        column neighbours that sit one step apart.
 
     Raises
     ------
     ValueError
         When the points do not show a grid (too few points, or no row/column neighbours), so the
         caller should ask the user for the steps.
-
-    Examples
-    --------
-    >>> a, b = np.meshgrid(np.arange(0, 5, 0.1), np.arange(0, 3, 0.05))
-    >>> phi, varphi = estimate_angular_step(a.ravel(), b.ravel())
-    >>> round(phi, 3), round(varphi, 3)
-    (0.1, 0.05)
     """
     alpha = np.asarray(azimuth_deg, dtype=np.float64).ravel()
     beta = np.asarray(elevation_deg, dtype=np.float64).ravel()
@@ -161,7 +205,51 @@ def estimate_angular_step(
 
     # Pass 2: rescale beta so the grid is square, then a compact neighbourhood is enough and rows
     # and columns separate cleanly.
-    h, v = _neighbour_gaps(alpha, beta, phi / varphi, 12, min(alpha.size, MAX_QUERY_POINTS), rng)
-    if h.size >= _MIN_SUPPORT and v.size >= _MIN_SUPPORT:
+    h2, v2 = _neighbour_gaps(alpha, beta, phi / varphi, 12, min(alpha.size, MAX_QUERY_POINTS), rng)
+    if h2.size >= _MIN_SUPPORT and v2.size >= _MIN_SUPPORT:
+        h, v = h2, v2
         phi, varphi = _mode(h), _mode(v)
-    return phi, varphi
+    # On a grid most neighbours sit one step apart; off a grid the gaps spread widely.
+    confidence = min(float(np.mean(np.abs(h / phi - 1.0) <= _STEP_TOLERANCE)),
+                     float(np.mean(np.abs(v / varphi - 1.0) <= _STEP_TOLERANCE)))
+    return StepEstimate(phi, varphi, confidence, "estimated")
+
+
+def grid_steps(azimuth_deg: np.ndarray, elevation_deg: np.ndarray, row: np.ndarray, col: np.ndarray) -> StepEstimate:
+    """The angular steps read off a scan's row/column grid (PTX, structured E57).
+
+    Two points of one grid line that are k cells apart are k steps apart in angle, however many
+    cells between them are empty, so the step is the median angle change per cell between
+    successive valid points of a line. Which index runs along azimuth is read off the data (files
+    differ): the index whose successive points change azimuth more than elevation.
+
+    Raises
+    ------
+    ValueError
+        When no grid line holds two valid points in either direction.
+    """
+    alpha = np.asarray(azimuth_deg, dtype=np.float64)
+    beta = np.asarray(elevation_deg, dtype=np.float64)
+    row = np.asarray(row, dtype=np.int64)
+    col = np.asarray(col, dtype=np.int64)
+
+    def per_cell(line: np.ndarray, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        order = np.lexsort((pos, line))
+        same = line[order][1:] == line[order][:-1]
+        dk = np.diff(pos[order])[same]
+        da = (np.diff(alpha[order])[same] + 180.0) % 360.0 - 180.0  # across the +-180 seam too
+        db = np.diff(beta[order])[same]
+        ok = dk > 0
+        return np.abs(da[ok]) / dk[ok], np.abs(db[ok]) / dk[ok]
+
+    a_along_col, b_along_col = per_cell(row, col)  # successive columns of one row
+    a_along_row, b_along_row = per_cell(col, row)  # successive rows of one column
+    if a_along_col.size < _MIN_SUPPORT or a_along_row.size < _MIN_SUPPORT:
+        raise ValueError("the row/column grid has too few neighbouring valid points")
+    if np.median(a_along_col) >= np.median(b_along_col):  # columns run along azimuth
+        phi, varphi = float(np.median(a_along_col)), float(np.median(b_along_row))
+    else:
+        phi, varphi = float(np.median(a_along_row)), float(np.median(b_along_col))
+    if not (phi > 0 and varphi > 0):
+        raise ValueError("the row/column grid gives a zero angular step")
+    return StepEstimate(phi, varphi, 1.0, "grid")

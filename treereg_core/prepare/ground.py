@@ -1,4 +1,5 @@
-"""Preparing a scan before projection: height crop, ground removal, radius crop around the stem.
+"""Preparing the scans before projection: height crop, ground removal, the target tree of a plot
+(`prepare.target`), radius crop around the target's stem.
 
 The ground matters for the coarse stage: it fills the lower part of every projection image, where
 it carries no structure ORB can match, and it drags the rotation centre (x_mean, y_mean) of the
@@ -11,13 +12,14 @@ accepted only when it is nearly level, holds many cells, and has almost no point
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..params import PrepareParams
+from ..params import PrepareParams, TargetParams
 from ..results import Metric
 from ..scan import MIN_POINTS, Scan
+from .target import Stems, TargetChoice, choose_targets, find_stems
 
 #: A ground plane may be tilted at most this much from level (terrain slope + scanner tilt).
 MAX_GROUND_SLOPE_DEG = 30.0
@@ -42,7 +44,12 @@ class PreparedScan:
     ground_mask : (N,) bool over the original points: removed as ground.
     plane : (a, b, c, d) with a x + b y + c z + d = 0, (a, b, c) unit and c > 0, or None (no ground found
         or ground removal off).
-    stem_xy : horizontal position of the stem used for the radius crop, or None when not cropped.
+    stem_xy : horizontal position of the stem used for the radius crop (the target's, in a plot), or
+        None when not cropped.
+    stems : K x 3 (x, y, radius) of the stems found at breast height (empty when none were looked for).
+    target : how the target tree was chosen (or why the scan keeps all its points), or "".
+    T_stem_map : 4 x 4 placing this station's stems onto the reference's (yaw + horizontal shift),
+        when its stem map matched; None otherwise (and for the reference).
     """
 
     ok: bool
@@ -53,6 +60,9 @@ class PreparedScan:
     ground_mask: np.ndarray
     plane: tuple[float, float, float, float] | None
     stem_xy: tuple[float, float] | None
+    stems: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    target: str = ""
+    T_stem_map: np.ndarray | None = None
 
 
 def cell_minima(points: np.ndarray, cell_m: float) -> np.ndarray:
@@ -131,20 +141,23 @@ def stem_position(points: np.ndarray, heights: np.ndarray, cell_m: float = 0.25)
     return np.median(low[key == best], axis=0)
 
 
-def prepare_scan(scan: Scan, *, prepare: PrepareParams) -> PreparedScan:
-    """Crop a scan by height, remove its ground, crop it to a radius around the stem.
+@dataclass(frozen=True, eq=False)
+class _Ground:
+    """The first step of preparation: the points kept by the height crop and ground removal."""
 
-    Parameters
-    ----------
-    scan : the station as read.
-    prepare : preparation parameters (ground removal on/off, cell, band, crop radius and heights).
+    kept: np.ndarray
+    ground: np.ndarray
+    plane: np.ndarray | None
+    note: str
 
-    Returns
-    -------
-    PreparedScan; `ok` is False (with the scan left as it was) when fewer than MIN_POINTS points
-    would remain.
-    """
-    p = prepare
+    def heights(self, points: np.ndarray) -> np.ndarray:
+        """Height above the ground plane (above the lowest points without one)."""
+        if self.plane is not None:
+            return points @ self.plane[:3] + self.plane[3]
+        return points[:, 2] - (float(np.quantile(points[:, 2], 0.001)) if len(points) else 0.0)
+
+
+def _remove_ground(scan: Scan, p: PrepareParams) -> _Ground:
     pts = scan.points
     n = len(pts)
     kept = np.ones(n, dtype=bool)
@@ -164,29 +177,74 @@ def prepare_scan(scan: Scan, *, prepare: PrepareParams) -> PreparedScan:
             note = f"ground plane found, slope {np.degrees(np.arccos(min(abs(plane[2]), 1.0))):.1f} deg"
         else:
             note = f"no ground removed ({why})"
+    return _Ground(kept, ground, plane, note)
+
+
+def prepare_scan(scan: Scan, *, prepare: PrepareParams, target: TargetParams | None = None) -> PreparedScan:
+    """Prepare one scan on its own (see `prepare_scans`; a single station can only pick its target
+    with `target.tree_at`, or as the stem nearest the scanner)."""
+    return prepare_scans([scan], prepare=prepare, target=target or TargetParams(select="off"))[0]
+
+
+def prepare_scans(scans: list[Scan], *, prepare: PrepareParams, target: TargetParams) -> list[PreparedScan]:
+    """Crop every scan by height, remove its ground, find the target tree, crop to it.
+
+    Parameters
+    ----------
+    scans : the stations as read; the first is the reference (its frame holds `target.tree_at`).
+    prepare : ground removal, crops.
+    target : target selection (`prepare.target`): in a plot, each scan is cut to `target.radius_m`
+        (or `prepare.crop_radius_m` when set) around its view of the target stem.
+
+    Returns
+    -------
+    One PreparedScan per scan; `ok` is False (with the scan left as it was) when fewer than
+    MIN_POINTS points would remain.
+    """
+    grounds = [_remove_ground(s, prepare) for s in scans]
+    if target.select == "off":
+        stems = [Stems(np.zeros((0, 2)), np.zeros(0)) for _ in scans]
+        choices = [TargetChoice(None, "") for _ in scans]
+    else:
+        stems = [find_stems(s.points[g.kept], g.heights(s.points[g.kept])) for s, g in zip(scans, grounds)]
+        choices = choose_targets(stems, target=target)
+    radius = prepare.crop_radius_m if prepare.crop_radius_m is not None else target.radius_m
+    return [_finish(s, g, st, ch, prepare, radius) for s, g, st, ch in zip(scans, grounds, stems, choices)]
+
+
+def _finish(scan: Scan, g: _Ground, stems: Stems, choice: TargetChoice, p: PrepareParams, radius_m: float) -> PreparedScan:
+    pts = scan.points
+    n = len(pts)
+    kept = g.kept.copy()
     stem = None
-    if p.crop_radius_m is not None and kept.sum() >= MIN_POINTS:
-        heights = pts[kept] @ plane[:3] + plane[3] if plane is not None else pts[kept, 2]
-        stem = stem_position(pts[kept], heights)
+    if choice.xy is not None:
+        stem = np.asarray(choice.xy)
+        kept &= np.hypot(pts[:, 0] - stem[0], pts[:, 1] - stem[1]) <= radius_m
+    elif p.crop_radius_m is not None and kept.sum() >= MIN_POINTS:
+        stem = stem_position(pts[kept], g.heights(pts[kept]))
         kept &= np.hypot(pts[:, 0] - stem[0], pts[:, 1] - stem[1]) <= p.crop_radius_m
     n_kept = int(kept.sum())
-    metrics = (
+    metrics = [
         Metric("points in", "", n),
         Metric("points kept", "", n_kept),
-        Metric("ground points removed", "", int(ground.sum())),
-        Metric("ground", "", note),
-    )
-    plane_t = None if plane is None else tuple(float(v) for v in plane)
+        Metric("ground points removed", "", int(g.ground.sum())),
+        Metric("ground", "", g.note),
+        Metric("angular step", "deg", scan.step.describe()),
+    ]
+    if choice.how:
+        metrics += [Metric("stems at breast height", "", len(stems)), Metric("target", "", choice.how)]
+        if stem is not None:
+            metrics.append(Metric("target stem x, y", "m", f"{stem[0]:.2f}, {stem[1]:.2f}"))
+    plane_t = None if g.plane is None else tuple(float(v) for v in g.plane)
     stem_t = None if stem is None else (float(stem[0]), float(stem[1]))
+    common = dict(metrics=tuple(metrics), plane=plane_t, stem_xy=stem_t, stems=stems.as_array(), target=choice.how,
+                  T_stem_map=choice.T_ref_scan)
     if n_kept < MIN_POINTS:
         return PreparedScan(
             ok=False,
             message=(f"{scan.label}: only {n_kept} of {n} points left after cropping and ground removal; "
                      "widen the crop (radius, z range) or lower the ground band"),
-            metrics=metrics, scan=scan, kept_mask=np.ones(n, dtype=bool),
-            ground_mask=np.zeros(n, dtype=bool), plane=plane_t, stem_xy=stem_t,
+            scan=scan, kept_mask=np.ones(n, dtype=bool), ground_mask=np.zeros(n, dtype=bool), **common,
         )
-    return PreparedScan(
-        ok=True, message="", metrics=metrics, scan=scan.with_points(pts[kept]), kept_mask=kept,
-        ground_mask=ground, plane=plane_t, stem_xy=stem_t,
-    )
+    return PreparedScan(ok=True, message="", scan=scan.with_points(pts[kept]), kept_mask=kept, ground_mask=g.ground,
+                        **common)

@@ -224,6 +224,8 @@ class SimulatedCase:
     scene: all primitives in the world frame (None for point clouds); cloud: the input point cloud
         in the world frame (None for procedural trees).
     labels: per scan, a part label per point (`simulate_tree.LABEL_NAMES`; -1 for point clouds).
+    tree_ids: per scan, the index into `trees` of the tree each point hit (-1 = ground); plots only.
+    return_index: per scan, 0 for first returns, 1 for second returns; plots only.
     """
 
     spec: CaseSpec
@@ -236,6 +238,8 @@ class SimulatedCase:
     labels: tuple[np.ndarray, ...]
     seconds: float
     metrics: tuple[Metric, ...]
+    tree_ids: tuple[np.ndarray, ...] = ()
+    return_index: tuple[np.ndarray, ...] = ()
 
     @property
     def angular_step_deg(self) -> tuple[float, float]:

@@ -31,7 +31,8 @@ class RayScan:
     points: N x 3 (metres, noise included); labels: N part labels (`simulate_tree.LABEL_NAMES`);
     primitive: N indices of the primitive hit (cylinders, then spheres, then disks; -1 = ground);
     grid_ij: N x 2 integer ray indices (azimuth i, elevation j; angles i*phi, j*varphi);
-    n_rays: rays cast over the window; window_ij: (i0, i1, j0, j1) inclusive ray index ranges.
+    n_rays: rays cast over the window; window_ij: (i0, i1, j0, j1) inclusive ray index ranges;
+    return_index: N, 0 for the first return of a ray, 1 for a second one (`second_returns`).
     """
 
     points: np.ndarray
@@ -40,6 +41,7 @@ class RayScan:
     grid_ij: np.ndarray
     n_rays: int
     window_ij: tuple[int, int, int, int]
+    return_index: np.ndarray | None = None
 
 
 def _angles(p: np.ndarray, alpha_c: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -60,7 +62,7 @@ def _segment_distance(p0: np.ndarray, p1: np.ndarray, dims: int) -> np.ndarray:
     return np.linalg.norm(a + t[:, None] * ab, axis=1)
 
 
-def _boxes(scene: Scene, alpha_c: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _boxes(scene: Scene, alpha_c: float, wrap: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Conservative angular boxes (alpha_lo, alpha_hi, beta_lo, beta_hi, radians) of every primitive:
     cylinders first, then spheres, then disks.
 
@@ -79,7 +81,10 @@ def _boxes(scene: Scene, alpha_c: float) -> tuple[np.ndarray, np.ndarray, np.nda
     da = np.arcsin(np.clip(r / np.maximum(rho_min, 1e-9), 0.0, 1.0))
     db = np.arcsin(np.clip(r / np.maximum(dist_min, 1e-9), 0.0, 1.0))
     # A segment whose azimuths straddle the cut behind the scanner, or one that passes over the
-    # instrument, spans all azimuths: let the window clip it.
+    # instrument, spans all azimuths: let the window clip it. In a full panorama (`wrap`) the
+    # straddling segment keeps a narrow box that runs past the cut (ray columns wrap around).
+    if wrap:
+        a1 = a0 + (a1 - a0 + np.pi) % (2 * np.pi) - np.pi
     full = (np.abs(a1 - a0) > np.pi) | (r >= rho_min)
     ca_lo = np.where(full, -np.inf, np.minimum(a0, a1) - da)
     ca_hi = np.where(full, np.inf, np.maximum(a0, a1) + da)
@@ -167,6 +172,9 @@ def scan_scene(
     window_deg: tuple[float, float, float, float] | None = None,
     ground_near_m: float | None = None,
     progress: Progress | None = None,
+    second_returns: float = 0.0,
+    second_return_labels: tuple[int, ...] = (3, 4, 5),
+    second_return_gap_m: float = 0.8,
 ) -> RayScan:
     """Ray-cast `scene`, given in the instrument frame (scanner at the origin).
 
@@ -183,15 +191,25 @@ def scan_scene(
         see the ground from this horizontal distance on (towards the ground plane's centre, the
         tree; default 2 m before it).
     progress : called with (fraction, text) as chunks complete.
+    second_returns : probability that a ray whose first hit is on a part in `second_return_labels`
+        (thin branches and leaves, which a beam's footprint only partly covers) also returns the
+        next surface at least `second_return_gap_m` behind it, as a real multi-return scanner does.
+
+    A window spanning 360 deg of azimuth is a full panorama: ray columns wrap around, so objects
+    behind the scanner (across the cut) are scanned whole.
     """
     phi, vphi = (np.radians(float(v)) for v in angular_step_deg)
     c = scene.cylinders
     lo_all, hi_all = scene.points_bounds()
     centre = 0.5 * (lo_all + hi_all)
     alpha_c = float(np.arctan2(centre[1], centre[0]))
-    a_lo, a_hi, b_lo, b_hi = _boxes(scene, alpha_c)
+    wrap = window_deg is not None and window_deg[1] - window_deg[0] >= 360.0 - float(angular_step_deg[0])
+    a_lo, a_hi, b_lo, b_hi = _boxes(scene, alpha_c, wrap)
 
-    if window_deg is not None:
+    if window_deg is not None and wrap:
+        wb0, wb1 = (np.radians(v) for v in window_deg[2:])
+        wa0, wa1 = alpha_c - np.pi, alpha_c + np.pi - phi
+    elif window_deg is not None:
         wa0, wa1, wb0, wb1 = (np.radians(v) for v in window_deg)
         wa0 = alpha_c + (wa0 - alpha_c + np.pi) % (2 * np.pi) - np.pi
         wa1 = wa0 + (wa1 - wa0) % (2 * np.pi)
@@ -212,6 +230,8 @@ def scan_scene(
             wb0 = min(wb0, float(np.arctan2(q[2], np.hypot(q[0], q[1]))))
     wb0, wb1 = max(wb0, np.radians(-89.0)), min(wb1, np.radians(89.0))
     i0, i1 = int(np.ceil(wa0 / phi)), int(np.floor(wa1 / phi))
+    if wrap:
+        i1 = i0 + int(round(2 * np.pi / phi)) - 1
     j0, j1 = int(np.ceil(wb0 / vphi)), int(np.floor(wb1 / vphi))
     n_cols, n_rows = i1 - i0 + 1, j1 - j0 + 1
     n_rays = n_cols * n_rows
@@ -220,8 +240,12 @@ def scan_scene(
     ca, sa, cb, sb = np.cos(alpha), np.sin(alpha), np.cos(beta), np.sin(beta)
 
     # Ray index ranges of every primitive, clipped to the window; one step of margin.
-    pi0 = np.maximum(np.ceil(np.where(np.isfinite(a_lo), a_lo / phi - 1, i0)), i0).astype(np.int64)
-    pi1 = np.minimum(np.floor(np.where(np.isfinite(a_hi), a_hi / phi + 1, i1)), i1).astype(np.int64)
+    pi0 = np.ceil(np.where(np.isfinite(a_lo), a_lo / phi - 1, i0)).astype(np.int64)
+    pi1 = np.floor(np.where(np.isfinite(a_hi), a_hi / phi + 1, i1)).astype(np.int64)
+    if wrap:  # columns wrap around: a box may run past either end, but never more than once round
+        pi1 = np.minimum(pi1, pi0 + n_cols - 1)
+    else:
+        pi0, pi1 = np.maximum(pi0, i0), np.minimum(pi1, i1)
     pj0 = np.maximum(np.ceil(b_lo / vphi - 1), j0).astype(np.int64)
     pj1 = np.minimum(np.floor(b_hi / vphi + 1), j1).astype(np.int64)
     w = np.maximum(pi1 - pi0 + 1, 0)
@@ -269,6 +293,8 @@ def scan_scene(
         off = np.arange(n_pairs) - start
         q, r = np.divmod(off, h[prim])
         col = pi0[prim] - i0 + q
+        if wrap:
+            col %= n_cols
         row = pj0[prim] - j0 + r
         dx, dy, dz = cb[row] * ca[col], cb[row] * sa[col], sb[row]
         t = np.full(n_pairs, np.inf)
@@ -303,15 +329,31 @@ def scan_scene(
     key, tt, lab, pid = key[order], tt[order], lab[order], pid[order]
     first = np.ones(key.size, dtype=bool)
     first[1:] = key[1:] != key[:-1]
-    key, tt, lab, pid = key[first], tt[first], lab[first], pid[first]
+    ret = np.zeros(key.size, dtype=np.int8)
+    if second_returns > 0:
+        # The next surface behind a partly covered first hit: the first entry of each ray that lies
+        # at least the gap behind that ray's first hit.
+        group = np.cumsum(first) - 1
+        t_first = tt[first][group]
+        partial = np.isin(lab[first], second_return_labels)[group]
+        behind = (tt > t_first + second_return_gap_m) & partial
+        b_idx = np.flatnonzero(behind)
+        second = np.zeros(key.size, dtype=bool)
+        if b_idx.size:
+            b_first = np.r_[True, group[b_idx][1:] != group[b_idx][:-1]]
+            chosen = b_idx[b_first]
+            second[chosen[rng.random(chosen.size) < second_returns]] = True
+        ret[second] = 1
+        first |= second
+    key, tt, lab, pid, ret = key[first], tt[first], lab[first], pid[first], ret[first]
 
     keep = rng.random(key.size) >= dropout
-    key, tt, lab, pid = key[keep], tt[keep], lab[keep], pid[keep]
+    key, tt, lab, pid, ret = key[keep], tt[keep], lab[keep], pid[keep], ret[keep]
     rng_m = tt + rng.normal(0.0, range_sigma_m, tt.size)
     col, row = np.divmod(key, n_rows)
     pts = np.stack([cb[row] * ca[col], cb[row] * sa[col], sb[row]], axis=1) * rng_m[:, None]
     grid = np.stack([col + i0, row + j0], axis=1)
-    return RayScan(pts, lab.astype(np.int8), pid, grid, n_rays, (i0, i1, j0, j1))
+    return RayScan(pts, lab.astype(np.int8), pid, grid, n_rays, (i0, i1, j0, j1), ret)
 
 
 def visible_points(

@@ -204,7 +204,7 @@ def _trunk_radius(s: np.ndarray, height: float, dbh: float) -> np.ndarray:
     """Radius along the trunk at arc length `s`: DBH at 1.3 m, tapering to a twig at the top, with a
     butt swell near the ground (real stems flare)."""
     rel = np.clip(s / height, 0.0, 1.0)
-    rel_bh = 1.3 / height
+    rel_bh = min(1.3 / height, 0.5)  # a shrub lower than breast height keeps its DBH at mid height
     r = 0.5 * dbh * ((1.0 - rel) / (1.0 - rel_bh)) ** 0.85
     r = r * (1.0 + 0.25 * np.exp(-np.maximum(s, 0.0) / 0.35))
     return np.maximum(r, _MIN_RADIUS_M)

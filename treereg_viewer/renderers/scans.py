@@ -123,31 +123,72 @@ def apply_poses(handles: dict[int, Any], poses: list[np.ndarray]) -> None:
             h.wxyz, h.position = kw["wxyz"], kw["position"]
 
 
+def _stem_markers(scene: viser.SceneApi, root: str, snap: Snapshot) -> list[Any]:
+    """The target tree of each scan (a tall line at its stem, in the scan's colour, labelled) and the
+    other stems found at breast height (short grey lines), in each scan's own frame."""
+    prepared = snap.output("prepare")
+    handles: list[Any] = []
+    if prepared is None:
+        return handles
+    for i, prep in enumerate(prepared.items):
+        stems = getattr(prep, "stems", None)
+        if stems is not None and len(stems):
+            base = _ground_z(prep, stems[:, :2])
+            segs = np.stack([np.column_stack([stems[:, :2], base]), np.column_stack([stems[:, :2], base + 2.0])], axis=1)
+            handles.append(scene.add_line_segments(f"{root}/s{i}/stems", segs, GREY, thickness=2.0, thickness_units="screen"))
+        xy = getattr(prep, "stem_xy", None)
+        if xy is not None and getattr(prep, "target", ""):
+            z = float(_ground_z(prep, np.asarray([xy]))[0])
+            seg = np.array([[[xy[0], xy[1], z], [xy[0], xy[1], z + 12.0]]])
+            handles.append(scene.add_line_segments(f"{root}/s{i}/target", seg, scan_color(i), thickness=5.0,
+                                                   thickness_units="screen"))
+            handles.append(scene.add_label(f"{root}/s{i}/target/name", f"target ({snap.scans[i].name})",
+                                           position=(xy[0], xy[1], z + 12.5 + 0.5 * i)))
+    return handles
+
+
+def _ground_z(prep: Any, xy: np.ndarray) -> np.ndarray:
+    """Height of the ground plane below `xy` (the scanner's foot, 1.5 m down, without a plane)."""
+    plane = getattr(prep, "plane", None)
+    if plane is None:
+        return np.full(len(xy), -1.5)
+    a, b, c, d = plane
+    return -(a * xy[:, 0] + b * xy[:, 1] + d) / c
+
+
 def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> tuple[list[Any], PanelContent]:
-    """The Scans stage's panel: a table of the scans and what preparation kept."""
+    """The Scans stage's panel: a table of the scans, what preparation kept and which tree it took."""
     prepared = snap.output("prepare")
     rows = []
     for i, scan in enumerate(snap.scans):
         prep = prepared.items[i] if prepared is not None and i < len(prepared.items) else None
         phi, vphi = scan.angular_step_deg
-        kept = ground = ""
+        kept = ground = target = ""
         if prep is not None:
             kept = f"{prep.scan.n_points:,}" if getattr(prep, "scan", None) is not None else ""
             if getattr(prep, "ground_mask", None) is not None:
                 ground = f"{int(np.count_nonzero(prep.ground_mask)):,}"
+            xy = getattr(prep, "stem_xy", None)
+            target = f"{xy[0]:.2f}, {xy[1]:.2f}" if xy is not None and getattr(prep, "target", "") else "all points"
+        step = scan.step
+        how = "" if step is None or step.source == "given" else (" (grid)" if step.source == "grid" else f" (est., {step.confidence:.2f})")
         rows.append((
             f"{i + 1}{' (reference)' if i == 0 else ''}", scan.name, f"{scan.n_points:,}",
-            f"{phi:.3g} / {vphi:.3g}{' (est.)' if scan.step_estimated else ''}", kept, ground,
+            f"{phi:.3g} / {vphi:.3g}{how}", kept, ground, target,
         ))
-    table = md_table(("#", "scan", "points", "φ / ϕ (deg)", "kept", "ground"), rows)
+    table = md_table(("#", "scan", "points", "φ / ϕ (deg)", "kept", "ground", "target stem x, y (m)"), rows)
     text = not_ready_text(snap, "prepare")
     if prepared is not None:
         bad = [f"**{snap.scans[i].name}:** {it.message}" for i, it in enumerate(prepared.items) if not it.ok]
         notes = [f"{snap.scans[i].name}: {it.message}" for i, it in enumerate(prepared.items) if it.ok and it.message]
         text = "\n\n".join(bad + notes) or "Grey points were removed as ground; light grey were cropped."
+        chosen = getattr(prepared.items[0], "target", "") if prepared.items else ""
+        if chosen and getattr(prepared.items[0], "stem_xy", None) is not None:
+            text += (f"\n\n**Target tree:** {chosen}. The tall line marks it in every scan, grey lines the other stems; "
+                     "to take another tree, type its stem's x, y (reference scan's frame) into *tree at* below.")
     if snap.truth:
         text += "\n\nTruth is known for this case (`truth.json`): the Result stage reports errors against it."
-    return [], PanelContent(title("prepare"), text=text, table=table)
+    return _stem_markers(scene, root, snap), PanelContent(title("prepare"), text=text, table=table)
 
 
 #: Drawn even before the stage has run: the table of scans is the first thing a user needs.

@@ -8,6 +8,7 @@ module (a function returning a frozen result with `ok`, `message`, `metrics`) an
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -24,6 +25,7 @@ from .fine.sections import SectionsResult, fit_scan_sections, fit_sections
 from .fine.slicing import SliceResult, slice_scans
 from .geometry.rigid import invert
 from .prepare.ground import PreparedScan, prepare_scan
+from .prepare.resolution import working_resolution
 from .scan import Scan
 from .stage import Stage, StageContext
 
@@ -39,7 +41,12 @@ def _label(ctx: StageContext, k: int) -> str:
 
 
 def _run_prepare(ctx: StageContext) -> list[Any]:
-    return ctx.each(lambda i: prepare_scan(ctx.scans[i], prepare=ctx.params.prepare), lambda i: ctx.scans[i].name)
+    def one(i: int) -> PreparedScan:
+        # First the working resolution (prepare/resolution.py), then ground and crops on it.
+        work = working_resolution(ctx.scans[i], resolution=ctx.params.resolution)
+        prep = prepare_scan(work.scan, prepare=ctx.params.prepare)
+        return replace(prep, metrics=work.metrics + prep.metrics) if work.reduced else prep
+    return ctx.each(one, lambda i: ctx.scans[i].name)
 
 
 def _run_projection(ctx: StageContext) -> list[Any]:
@@ -139,7 +146,7 @@ def _icp_result(ctx: StageContext, k: int) -> IcpResult | None:
 
 STAGES: tuple[Stage, ...] = (
     Stage("prepare", "Scans", "Each station as measured; the ground removed and the scan cropped to the tree.",
-          "scan", ("prepare",), (), PreparedScan, _run_prepare),
+          "scan", ("prepare", "resolution"), (), PreparedScan, _run_prepare),
     Stage("projection", "Projection", "Spherical binary images of each scan, rotated in steps about the tree (2.1.1-2.1.2).",
           "scan", ("projection",), ("prepare",), ImageSequence, _run_projection),
     Stage("matching", "Matching", "The most similar image pairs, ORB matches and 3-D tie points (2.1.3-2.1.4, 4.1).",

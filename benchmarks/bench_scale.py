@@ -45,9 +45,9 @@ from treereg_core.io.transforms import read_transforms  # noqa: E402
 from treereg_core.simulate.cases import CaseSpec, benchmark_cases, write_case  # noqa: E402
 
 SIZES = {"100k": 100_000, "300k": 300_000, "1M": 1_000_000, "3M": 3_000_000, "10M": 10_000_000}
-#: The trees, as indices into `benchmark_cases(24, 0)`: a plain leaning tree and the first awkward
-#: one (leaves and ground).
-TREES = {"plain": 1, "awkward": 0}
+#: The trees, as indices into `benchmark_cases(24, 0)`: a plain leaning tree, the first awkward one
+#: (leaves and ground) and the most awkward one (bent, leaves, ground, tilted instruments).
+TREES = {"plain": 1, "awkward": 0, "awkward2": 6}
 #: The floor: what any tool has to pay before registering (start Python, import the numerical
 #: stack, read the files). PLY is read as the binary array it is; LAS/LAZ with laspy.
 FLOOR = r"""
@@ -68,15 +68,16 @@ for f in sys.argv[1:]:
 """
 
 
-def rss_run(cmd: list[str], cwd: Path | None = None, env: dict | None = None) -> tuple[float, float, int, str]:
-    """Run `cmd`; (wall seconds, peak RSS in bytes of that process, exit status, stderr tail)."""
+def rss_run(cmd: list[str], cwd: Path | None = None, env: dict | None = None) -> tuple[float, float, int, str, float]:
+    """Run `cmd`; (wall seconds, peak RSS in bytes of that process, exit status, stderr tail, CPU seconds)."""
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, cwd=cwd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     err = proc.stderr.read() if proc.stderr else b""
     _, status, usage = os.wait4(proc.pid, 0)
     wall = time.perf_counter() - t0
     proc.returncode = os.waitstatus_to_exitcode(status)
-    return wall, usage.ru_maxrss * 1024.0, proc.returncode, err.decode(errors="replace")[-300:]
+    return (wall, usage.ru_maxrss * 1024.0, proc.returncode, err.decode(errors="replace")[-300:],
+            usage.ru_utime + usage.ru_stime)
 
 
 def case_dir(cache: Path, tree: str, size: str, fmt: str) -> Path:
@@ -124,7 +125,9 @@ class Row:
     size: str
     points: list[int]
     floor_s: float
+    floor_cpu_s: float
     wall_s: float
+    cpu_s: float
     rss: float
     status: int
     rot_deg: list[float]
@@ -134,6 +137,10 @@ class Row:
     @property
     def ratio(self) -> float:
         return self.wall_s / self.floor_s
+
+    @property
+    def cpu_ratio(self) -> float:
+        return self.cpu_s / self.floor_cpu_s
 
 
 def accuracy(files: list[Path], transforms_json: Path, truth: dict[str, np.ndarray]) -> tuple[list[float], list[float], list[int]]:
@@ -160,15 +167,16 @@ def accuracy(files: list[Path], transforms_json: Path, truth: dict[str, np.ndarr
     return rot, disp, npts
 
 
-def floor_time(files: list[Path], repeats: int) -> float:
-    """Median wall time of the floor (a fresh Python importing numpy, scipy, cv2 and reading the files)."""
-    times = []
+def floor_time(files: list[Path], repeats: int) -> tuple[float, float]:
+    """Median wall and CPU time of the floor (a fresh Python importing numpy, scipy, cv2 and reading the files)."""
+    times, cpus = [], []
     for _ in range(repeats):
-        wall, _, status, err = rss_run([sys.executable, "-c", FLOOR, *map(str, files)])
+        wall, _, status, err, cpu = rss_run([sys.executable, "-c", FLOOR, *map(str, files)])
         if status:
             raise RuntimeError(f"floor failed: {err}")
         times.append(wall)
-    return statistics.median(times)
+        cpus.append(cpu)
+    return statistics.median(times), statistics.median(cpus)
 
 
 def measure(tree: str, size: str, folder: Path, repeats: int, floor_repeats: int, extra: list[str],
@@ -176,21 +184,23 @@ def measure(tree: str, size: str, folder: Path, repeats: int, floor_repeats: int
     files = scan_files(folder)
     truth = read_truth(folder / TRUTH_NAME)
     # Reference first, as truth.json lists them.
-    floor = floor_time(files, floor_repeats)
-    walls, rss, status, err = [], 0.0, 0, ""
+    floor, floor_cpu = floor_time(files, floor_repeats)
+    walls, cpus, rss, status, err = [], [], 0.0, 0, ""
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "transforms.json"
         for _ in range(repeats):
-            w, r, status, err = rss_run([sys.executable, "-m", "treereg_cli", "register", *map(str, files),
-                                         "--out", str(out), *extra], cwd=root)
+            w, r, status, err, c = rss_run([sys.executable, "-m", "treereg_cli", "register", *map(str, files),
+                                            "--out", str(out), *extra], cwd=root)
             walls.append(w)
+            cpus.append(c)
             rss = max(rss, r)
         if out.is_file():
             rot, disp, npts = accuracy(files, out, truth)
         else:
             rot, disp, npts = [], [], [0]
     note = "" if status == 0 else f"exit {status}: {err.strip().splitlines()[-1] if err.strip() else ''}"
-    return Row(tree, size, npts, floor, statistics.median(walls), rss, status, rot, disp, note)
+    return Row(tree, size, npts, floor, floor_cpu, statistics.median(walls), statistics.median(cpus), rss, status,
+               rot, disp, note)
 
 
 def fmt_list(v: list[float], scale: float, digits: int) -> str:
@@ -198,11 +208,13 @@ def fmt_list(v: list[float], scale: float, digits: int) -> str:
 
 
 def scale_table(rep: Report, rows: list[Row]) -> None:
-    rep.say("| tree | points per scan | floor (s) | register (s) | ratio to floor | peak RSS (GB) | rot err (deg) | mean disp (mm) | note |")
-    rep.say("|---|---|---|---|---|---|---|---|---|")
+    rep.say("| tree | points per scan | floor wall (s) | register wall (s) | wall ratio | floor CPU (s) | register CPU (s) "
+            "| CPU ratio | peak RSS (GB) | rot err (deg) | mean disp (mm) | note |")
+    rep.say("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         pts = "/".join(f"{n / 1e6:.2f}M" if n >= 1e6 else f"{n / 1e3:.0f}k" for n in r.points)
-        rep.say(f"| {r.tree} | {pts} | {r.floor_s:.2f} | {r.wall_s:.1f} | {r.ratio:.1f} | {r.rss / 1e9:.2f} | "
+        rep.say(f"| {r.tree} | {pts} | {r.floor_s:.2f} | {r.wall_s:.1f} | {r.ratio:.1f} | {r.floor_cpu_s:.2f} | "
+                f"{r.cpu_s:.1f} | {r.cpu_ratio:.1f} | {r.rss / 1e9:.2f} | "
                 f"{fmt_list(r.rot_deg, 1, 3)} | {fmt_list(r.disp_m, 1000, 1)} | {r.note} |")
 
 
@@ -276,7 +288,7 @@ def batch_section(rep: Report, cache: Path, n: int, dask: bool) -> None:
 def main() -> None:
     ap = parser(__doc__, 0)
     ap.add_argument("--sizes", nargs="*", default=list(SIZES), choices=list(SIZES))
-    ap.add_argument("--trees", nargs="*", default=list(TREES), choices=list(TREES))
+    ap.add_argument("--trees", nargs="*", default=["plain", "awkward"], choices=list(TREES))
     ap.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "treereg_bench_scale")
     ap.add_argument("--format", default=".ply", choices=(".ply", ".las", ".laz"), help="scan file format")
     ap.add_argument("--repeats", type=int, default=1, help="register runs per case (median wall, max RSS)")
@@ -302,12 +314,13 @@ def main() -> None:
                     extra = ["--angular-step", *map(str, step)]
                 row = measure(tree, size, folder, args.repeats, args.floor_repeats, extra, args.root)
                 rows.append(row)
-                print(f"  {tree} {size}: {row.wall_s:.1f} s, x{row.ratio:.1f}, {row.rss / 1e9:.2f} GB, "
+                print(f"  {tree} {size}: {row.wall_s:.1f} s, x{row.ratio:.1f} (CPU x{row.cpu_ratio:.1f}), {row.rss / 1e9:.2f} GB, "
                       f"disp {fmt_list(row.disp_m, 1000, 1)} mm {row.note}", file=sys.stderr, flush=True)
         scale_table(rep, rows)
         rep.say("\nfloor = a fresh `python3` importing numpy, scipy and cv2 and reading the three files (median of "
                 f"{args.floor_repeats}); register = `python3 -m treereg_cli register` as a subprocess; "
-                "peak RSS of that process (`wait4`). Displacement: mean over each target scan's points of the "
+                "peak RSS of that process (`wait4`); CPU = user + system time of each process, less disturbed than "
+                "wall time by other work on the machine. Displacement: mean over each target scan's points of the "
                 "distance between its estimated and true placement.")
     if args.batch:
         batch_section(rep, args.cache, args.batch, args.dask)

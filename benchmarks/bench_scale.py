@@ -262,8 +262,10 @@ def batch_section(rep: Report, cache: Path, n: int, dask: bool) -> None:
             cluster_py = ("from dask.distributed import LocalCluster; import time, sys; "
                           "c = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None); "
                           "print(c.scheduler_address, flush=True); time.sleep(3600)")
+            # The cluster's workers import this checkout's treereg (a real cluster runs the same install).
+            env = {**os.environ, "PYTHONPATH": str(ROOT)}
             proc = subprocess.Popen([sys.executable, "-c", cluster_py], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
-                                    text=True)
+                                    text=True, env=env)
             try:
                 addr = proc.stdout.readline().strip()
                 out = Path(tmp) / "dask"

@@ -236,7 +236,7 @@ def batch_cases(cache: Path, n: int) -> Path:
 def batch_run(root: Path, out: Path, workers: int | None, dask: str | None = None) -> tuple[float, int, str]:
     cmd = [sys.executable, "-m", "treereg_cli", "batch", str(root), "--out", str(out), "--redo"]
     cmd += ["--dask", dask] if dask else ["--workers", str(workers)]
-    wall, _, status, err = rss_run(cmd, cwd=ROOT)
+    wall, _, status, err, _ = rss_run(cmd, cwd=ROOT)
     return wall, status, err
 
 

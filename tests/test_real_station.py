@@ -1,6 +1,5 @@
 """The real RIEGL VZ-400i station in shared/data: its angular step read right, its projection not striped."""
 
-import numpy as np
 import pytest
 
 from conftest import REAL_TREES, needs

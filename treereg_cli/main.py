@@ -12,10 +12,10 @@ import warnings
 from treereg_core._version import __version__
 from treereg_core.errors import ConfigError, ScanError
 
-from . import evaluate, params, register, simulate, view
+from . import batch, evaluate, params, register, simulate, view
 
 #: The subcommands, in the order `treereg --help` lists them.
-COMMANDS = (simulate, register, evaluate, params, view)
+COMMANDS = (simulate, register, batch, evaluate, params, view)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -30,6 +30,14 @@ def _f(default: Any, unit: str, doc: str, choices: tuple[Any, ...] | None = None
 
 
 @dataclass(frozen=True)
+class ResolutionParams:
+    """the working resolution: a scan sampled finer than this is reduced once, before anything else."""
+
+    spacing_m: float | None = _f(0.01, "m", "working point spacing at the scan's median range: a finer scan is reduced to one point per angular cell of this size (None = use every point)", lo=0.0005, hi=0.5)
+    depth_m: float = _f(0.02, "m", "a cell's point is the mean of its points within this range of its nearest one (averages the range noise, keeps what lies behind apart)", lo=0.0, hi=1.0)
+
+
+@dataclass(frozen=True)
 class PrepareParams:
     """per-scan preparation before anything is matched."""
 
@@ -274,6 +282,7 @@ class Params:
 
     prepare: PrepareParams = field(default_factory=PrepareParams)
     target: TargetParams = field(default_factory=TargetParams)
+    resolution: ResolutionParams = field(default_factory=ResolutionParams)
     projection: ProjectionParams = field(default_factory=ProjectionParams)
     matching: MatchingParams = field(default_factory=MatchingParams)
     coarse: CoarseParams = field(default_factory=CoarseParams)

@@ -2,7 +2,8 @@
 
 A scan is immutable: points (N x 3 float64, metres, scanner at the origin, z up), a name, the
 file it came from, and the instrument's angular steps phi (horizontal) and varphi (vertical) in
-degrees. Azimuth alpha and elevation beta are computed once, when the scan is made.
+degrees. Azimuth alpha and elevation beta are computed once, when first asked for: a station of
+10 M points as read is only reduced to the working resolution, and never needs its own (160 MB).
 
 `pose` (T_user_scan) is where the user's file puts the scan: the pose an E57 or PTX file carries,
 or the shift from a scanner position the user gave for a georeferenced file. Registration works
@@ -13,6 +14,7 @@ float32); `io.transforms.registration_file` maps the transforms back through the
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -27,8 +29,13 @@ MIN_POINTS = 100
 def spherical_angles_deg(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Azimuth alpha in (-180, 180] and elevation beta in [-90, 90], degrees (paper Fig. 2)."""
     x, y, z = points[:, 0], points[:, 1], points[:, 2]
-    alpha = np.degrees(np.arctan2(y, x))
-    beta = np.degrees(np.arctan2(z, np.hypot(x, y)))
+    alpha = np.arctan2(y, x)
+    np.degrees(alpha, out=alpha)
+    rho = x * x  # sqrt(x^2 + y^2) in place: np.hypot is several times slower on millions of points
+    rho += y * y
+    np.sqrt(rho, out=rho)
+    beta = np.arctan2(z, rho, out=rho)
+    np.degrees(beta, out=beta)
     return alpha, beta
 
 
@@ -45,8 +52,6 @@ class Scan:
     pose: np.ndarray | None = field(default=None, repr=False)
     #: How the steps were obtained and how far to trust them (`StepEstimate`); None = given.
     step: StepEstimate | None = field(default=None, repr=False)
-    azimuth_deg: np.ndarray = field(init=False, repr=False)
-    elevation_deg: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         pts = np.ascontiguousarray(self.points, dtype=np.float64)
@@ -55,12 +60,7 @@ class Scan:
         if not np.isfinite(pts).all():
             raise ScanError(self.label, "points contain NaN or infinite values")
         pts.setflags(write=False)
-        alpha, beta = spherical_angles_deg(pts)
-        alpha.setflags(write=False)
-        beta.setflags(write=False)
         object.__setattr__(self, "points", pts)
-        object.__setattr__(self, "azimuth_deg", alpha)
-        object.__setattr__(self, "elevation_deg", beta)
         h, v = (float(s) for s in self.angular_step_deg)
         if not (h > 0 and v > 0):
             raise ScanError(self.label, f"angular steps must be positive, got {self.angular_step_deg}")
@@ -72,6 +72,28 @@ class Scan:
         object.__setattr__(self, "pose", pose)
         if self.step is None:
             object.__setattr__(self, "step", StepEstimate(h, v, 1.0, "estimated" if self.step_estimated else "given"))
+
+    @cached_property
+    def _angles(self) -> tuple[np.ndarray, np.ndarray]:
+        alpha, beta = spherical_angles_deg(self.points)
+        alpha.setflags(write=False)
+        beta.setflags(write=False)
+        return alpha, beta
+
+    def forget_angles(self) -> None:
+        """Drop the cached angles (a full-resolution scan needs them once, to be reduced; they are
+        recomputed if asked for again)."""
+        self.__dict__.pop("_angles", None)
+
+    @property
+    def azimuth_deg(self) -> np.ndarray:
+        """Azimuth alpha of every point, degrees in (-180, 180] (computed on first use)."""
+        return self._angles[0]
+
+    @property
+    def elevation_deg(self) -> np.ndarray:
+        """Elevation beta of every point, degrees in [-90, 90] (computed on first use)."""
+        return self._angles[1]
 
     @property
     def label(self) -> str:
@@ -105,7 +127,8 @@ class Scan:
                 label, f"only {pts.shape[0]} points; at least {min_points} are needed to register a scan"
             )
         step: StepEstimate | None = None
-        if angular_step_deg is None:
+        computed = angular_step_deg is None
+        if computed:
             alpha, beta = spherical_angles_deg(pts)
             try:
                 step = grid_steps(alpha, beta, *grid) if grid is not None else None
@@ -116,7 +139,7 @@ class Scan:
             except ValueError as e:
                 raise ScanError(label, f"cannot estimate the angular step: {e}; give it with --angular-step H V") from None
             angular_step_deg = step.steps
-        return cls(
+        scan = cls(
             points=pts,
             name=name,
             angular_step_deg=tuple(angular_step_deg),  # type: ignore[arg-type]
@@ -125,6 +148,12 @@ class Scan:
             pose=pose,
             step=step,
         )
+        if computed and scan.points is pts:
+            # Computed for the estimate: kept for the working resolution (the points were not copied).
+            alpha.setflags(write=False)
+            beta.setflags(write=False)
+            scan.__dict__["_angles"] = (alpha, beta)
+        return scan
 
     def with_points(self, points: np.ndarray, name: str | None = None) -> "Scan":
         """The same station (steps, source) with other points, e.g. after cropping or ground removal."""

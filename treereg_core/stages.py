@@ -26,6 +26,7 @@ from .fine.slicing import SliceResult, slice_scans
 from .fine.surface import scan_surface
 from .geometry.rigid import invert, mean_displacement, rotation_error_deg
 from .prepare.ground import PreparedScan, prepare_scans
+from .prepare.resolution import working_resolution
 from .results import Metric
 from .scan import Scan
 from .stage import Stage, StageContext
@@ -46,9 +47,14 @@ def _label(ctx: StageContext, k: int) -> str:
 
 
 def _run_prepare(ctx: StageContext) -> list[Any]:
-    # Across scans: the target tree of a plot is chosen from every station's stems at once.
-    ctx.progress(0.0, "ground, stems and the target tree")
-    return list(prepare_scans(list(ctx.scans), **ctx.params.pick("prepare", "target")))
+    # First each station at the working resolution (prepare/resolution.py); then ground and crops,
+    # across scans: the target tree of a plot is chosen from every station's stems at once.
+    work = ctx.each(lambda i: working_resolution(ctx.scans[i], resolution=ctx.params.resolution),
+                    lambda i: f"working resolution: {ctx.scans[i].name}")
+    ctx.progress(0.9, "ground, stems and the target tree")
+    preps = prepare_scans([w.scan for w in work], **ctx.params.pick("prepare", "target"))
+    return [replace(p, station=w.scan, metrics=(w.metrics + p.metrics) if w.reduced else p.metrics)
+            for w, p in zip(work, preps)]
 
 
 def _run_projection(ctx: StageContext) -> list[Any]:
@@ -75,6 +81,12 @@ def _surface(ctx: StageContext, i: int, max_points: int | None = None) -> Any:
     return scan_surface(scan, scan.points, ctx.params.surface.voxel_m, max_points)
 
 
+def _station(ctx: StageContext, i: int) -> Scan:
+    """Scan i's whole station at the working resolution (ground and neighbours included): what the
+    free-space test compares with."""
+    return ctx.item("prepare", i).station or ctx.scans[i]
+
+
 def _run_hypotheses(ctx: StageContext) -> list[Any]:
     hp = ctx.params.hypotheses
 
@@ -83,7 +95,7 @@ def _run_hypotheses(ctx: StageContext) -> list[Any]:
         if not hp.enabled:
             return pass_through(c.T_ref_target)
         tgt = _scan(ctx, p.tgt)
-        return score_hypotheses(scan_range_image(ctx.scans[p.ref], hp.cell_steps), _surface(ctx, p.ref),
+        return score_hypotheses(scan_range_image(_station(ctx, p.ref), hp.cell_steps), _surface(ctx, p.ref),
                                 _surface(ctx, p.tgt, hp.polish_points), tgt.points, c.T_ref_target, list(c.modes),
                                 hypotheses=hp, choose=ctx.choices.get(_label(ctx, k)))
     return ctx.each(one, lambda k: _label(ctx, k))
@@ -143,7 +155,7 @@ def _run_verify(ctx: StageContext) -> list[Any]:
     def one(k: int) -> PairVerification:
         p, f = ctx.pairs[k], ctx.item("fine", k)
         tgt = _scan(ctx, p.tgt)
-        e = gather_evidence(scan_range_image(ctx.scans[p.ref], hp.cell_steps), _surface(ctx, p.ref),
+        e = gather_evidence(scan_range_image(_station(ctx, p.ref), hp.cell_steps), _surface(ctx, p.ref),
                             _surface(ctx, p.tgt, SURFACE_SAMPLE), tgt.points, f.T_ref_target, ctx.item("coarse", k),
                             ctx.item("hypotheses", k), ctx.item("prepare", p.ref).plane, ctx.item("prepare", p.tgt).plane,
                             hypotheses=hp, acceptance=ctx.params.acceptance)
@@ -216,8 +228,8 @@ def _icp_result(ctx: StageContext, k: int) -> IcpResult | None:
 
 
 STAGES: tuple[Stage, ...] = (
-    Stage("prepare", "Scans", "Each station as measured; the ground removed, the target tree found and the scan cropped to it.",
-          "scan", ("prepare", "target"), (), PreparedScan, _run_prepare, stop_on_failure=True),
+    Stage("prepare", "Scans", "Each station at the working resolution; the ground removed, the target tree found and the scan cropped to it.",
+          "scan", ("prepare", "resolution", "target"), (), PreparedScan, _run_prepare, stop_on_failure=True),
     Stage("projection", "Projection", "Spherical binary images of each scan, rotated in steps about the tree (2.1.1-2.1.2).",
           "scan", ("projection",), ("prepare",), ImageSequence, _run_projection, stop_on_failure=True),
     Stage("matching", "Matching", "The most similar image pairs, ORB matches and 3-D tie points (2.1.3-2.1.4, 4.1).",

@@ -26,8 +26,13 @@ import numpy as np
 from scipy.ndimage import gaussian_filter1d
 from scipy.spatial import cKDTree
 
-#: Points queried per pass; the k-d tree always holds all points, so neighbours stay true neighbours.
-MAX_QUERY_POINTS = 100_000
+#: Points queried per pass (the mode of 10 000 gaps is as sharp as that of 100 000).
+MAX_QUERY_POINTS = 10_000
+#: Points the k-d tree holds at most. A larger scan is cut to whole angular patches (all their
+#: points), so that a queried point's neighbours stay its true neighbours.
+MAX_TREE_POINTS = 100_000
+#: Points per patch, on average.
+_PATCH_POINTS = 2500
 #: Gaps below this (degrees) are repeated angles (several returns of one pulse), not grid steps.
 _MIN_GAP_DEG = 1e-6
 #: Fewest usable gaps per direction before we trust a mode.
@@ -71,11 +76,40 @@ class StepEstimate:
         return f"{self.phi_deg:.4g} x {self.varphi_deg:.4g} deg ({what})"
 
 
-def _centred_azimuth(alpha_deg: np.ndarray) -> np.ndarray:
+def centred_azimuth_deg(alpha_deg: np.ndarray) -> np.ndarray:
     """Azimuth relative to the circular mean, in (-180, 180]: a tree never straddles the +-180 seam."""
-    a = np.radians(alpha_deg)
+    a = np.radians(alpha_deg[:: max(1, len(alpha_deg) // 100_000)])  # the mean direction of a subset
     centre = np.degrees(np.arctan2(np.sin(a).mean(), np.cos(a).mean()))
-    return (alpha_deg - centre + 180.0) % 360.0 - 180.0
+    out = alpha_deg - centre  # within (-360, 360): wrap by one turn (cheaper than a float modulo)
+    out[out >= 180.0] -= 360.0
+    out[out < -180.0] += 360.0
+    return out
+
+
+def patches(alpha: np.ndarray, beta: np.ndarray, max_points: int, seed: int = 0) -> np.ndarray:
+    """Indices of the points in a seeded random choice of angular patches, about `max_points` in all.
+
+    Patches are square cells holding `_PATCH_POINTS` points on average (sized from the occupied
+    area of a coarse 0.5 deg grid); every point of a chosen patch is kept, so only points on a
+    patch's edge lose neighbours.
+    """
+    n = len(alpha)
+    coarse = 0.5
+    stride = max(1, n // 200_000)
+    ci = np.floor(alpha[::stride] / coarse).astype(np.int64)
+    cj = np.floor(beta[::stride] / coarse).astype(np.int64)
+    occupied = len(np.unique(ci * 1_000_003 + cj))
+    density = n / (occupied * coarse * coarse)  # points per square degree where there are points
+    inv = 1.0 / float(np.sqrt(_PATCH_POINTS / density))
+    # Patch (i, j) is drawn when frac((i * 100003 + j) * golden ratio + seed offset) < the fraction
+    # wanted: a Weyl sequence, equidistributed over the patches, in a few float passes over the points.
+    key = np.floor(alpha * inv)
+    key *= 100_003.0
+    key += np.floor(beta * inv)
+    key *= 0.6180339887498949
+    key += 0.1234567 * seed
+    key -= np.floor(key)
+    return np.flatnonzero(key < max_points / n)
 
 
 def _peak(x: np.ndarray, bin_width: float) -> float:
@@ -160,7 +194,7 @@ def estimate_steps(azimuth_deg: np.ndarray, elevation_deg: np.ndarray, seed: int
         Per-point azimuth alpha and elevation beta in degrees, in the scanner's own frame
         (as `scan.spherical_angles_deg` computes them).
     seed
-        Seed of the subsampling of query points (only used for scans over `MAX_QUERY_POINTS`).
+        Seed of the choice of query points and patches (used only for scans over `MAX_QUERY_POINTS`).
 
     Returns
     -------
@@ -178,8 +212,11 @@ def estimate_steps(azimuth_deg: np.ndarray, elevation_deg: np.ndarray, seed: int
     beta = np.asarray(elevation_deg, dtype=np.float64).ravel()
     if alpha.shape != beta.shape:
         raise ValueError(f"azimuth and elevation differ in length ({alpha.size} vs {beta.size})")
+    if alpha.size > MAX_TREE_POINTS:
+        keep = patches(alpha, beta, MAX_TREE_POINTS, seed)
+        alpha, beta = alpha[keep], beta[keep]
     ok = np.isfinite(alpha) & np.isfinite(beta)
-    alpha, beta = _centred_azimuth(alpha[ok]), beta[ok]
+    alpha, beta = centred_azimuth_deg(alpha[ok]), beta[ok]
     if alpha.size < 2 * _MIN_SUPPORT:
         raise ValueError(f"only {alpha.size} points: too few to estimate the angular step")
     rng = np.random.default_rng(seed)

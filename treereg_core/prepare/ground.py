@@ -50,6 +50,8 @@ class PreparedScan:
     target : how the target tree was chosen (or why the scan keeps all its points), or "".
     T_stem_map : 4 x 4 placing this station's stems onto the reference's (yaw + horizontal shift),
         when its stem map matched; None otherwise (and for the reference).
+    station : the whole station at the working resolution, before ground removal and crops (what
+        the masks index; the free-space test needs everything the scanner saw); None = as read.
     """
 
     ok: bool
@@ -63,6 +65,7 @@ class PreparedScan:
     stems: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     target: str = ""
     T_stem_map: np.ndarray | None = None
+    station: Scan | None = None
 
 
 def cell_minima(points: np.ndarray, cell_m: float) -> np.ndarray:

@@ -1,0 +1,72 @@
+"""`treereg batch`: register every tree of a campaign (a folder of tree folders, or a CSV manifest)."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+from treereg_core.batch.jobs import find_jobs
+from treereg_core.batch.report import write_summary
+from treereg_core.batch.runner import picture_of, run_batch
+from treereg_core.errors import ConfigError
+
+from .common import add_param_args, load_params
+from .progress import ProgressBar
+
+
+def add(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "batch",
+        help="register many trees: a folder of tree folders or a CSV manifest -> per-tree transforms and a report",
+        description="Register every tree of a campaign. INPUT is a folder with one sub-folder per tree (its "
+        "scan files; the first by name, or by truth.json's order, is the reference) or a CSV manifest with "
+        "the columns tree, scans (files separated by ';', reference first)[, angular_step][, target]. Writes "
+        "OUT/<tree>/transforms.json with the CloudCompare and PDAL matrices, and OUT/summary.csv, "
+        "OUT/scans.csv and a self-contained OUT/report.html. Trees already done are skipped (unless --redo); "
+        "a failing tree never stops the others.",
+    )
+    p.add_argument("input", metavar="INPUT", help="folder of tree folders, or a .csv manifest")
+    p.add_argument("--out", help="output folder (default: INPUT_results beside the input)")
+    p.add_argument("--workers", type=int, default=None, metavar="N",
+                   help=f"processes working in parallel (default: all cores, here {os.cpu_count()})")
+    p.add_argument("--dask", metavar="SCHEDULER_ADDRESS",
+                   help="run the trees on this Dask cluster instead (tcp://host:8786; needs treereg[dask])")
+    p.add_argument("--redo", action="store_true", help="register every tree again, even those already done")
+    p.add_argument("--until", choices=("coarse", "fine"), default="fine", help="last stage to run (default: fine)")
+    add_param_args(p)
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    src = Path(args.input)
+    out = Path(args.out) if args.out else src.parent / f"{src.stem if src.is_file() else src.name}_results"
+    if args.workers is not None and args.workers < 1:
+        raise ConfigError(f"--workers must be at least 1, got {args.workers}")
+    params = load_params(args)
+    jobs = find_jobs(src, exclude=out)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        probe = out / ".treereg-write-test"
+        probe.write_text("")
+        probe.unlink()
+    except OSError as e:
+        raise ConfigError(f"{out}: cannot write the results there ({e.strerror or e})") from None
+    t0 = time.perf_counter()
+    where = f"Dask cluster {args.dask}" if args.dask else f"{args.workers or os.cpu_count()} worker(s)"
+    print(f"{len(jobs)} trees from {src}, {where}, results in {out}", file=sys.stderr)
+    outcomes, ran = run_batch(jobs, params, out, until=args.until, workers=args.workers, dask_address=args.dask,
+                              redo=args.redo, progress=ProgressBar("batch"))
+    seconds = time.perf_counter() - t0
+    paths = write_summary(outcomes, out, {o.tree: picture_of(o.tree, out) for o in outcomes},
+                          title=f"treereg batch: {src.name}")
+    counts = {s: sum(o.status == s for o in outcomes) for s in ("ok", "partial", "failed", "error")}
+    print(f"{len(outcomes)} trees ({ran} run, {len(outcomes) - ran} already done) in {seconds:.1f} s: "
+          + ", ".join(f"{v} {k}" for k, v in counts.items() if v))
+    for o in outcomes:
+        if o.status != "ok":
+            print(f"  {o.tree}: {o.status}: {o.message}", file=sys.stderr)
+    print(f"wrote {', '.join(str(p) for p in paths)}")
+    return 0 if counts["ok"] == len(outcomes) else 1

@@ -1,0 +1,188 @@
+"""One tree of a campaign: read its scans, register them, and return everything there is to write.
+
+`run_tree` never raises: bad input, a failed registration and an unexpected error all become a
+`TreeOutcome` with a status and a one-line message, so one tree never stops the others. It writes
+nothing itself (the runner does, in the process that owns the output folder), so it runs the same
+in a local process pool and on a Dask worker that only sees the input files.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+import traceback
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import ConfigError, ScanError
+from ..geometry.rigid import apply_transform, rotation_error_deg
+from ..io.cases import read_truth
+from ..io.scans import read_scan
+from ..io.transforms import TransformFile, registration_file
+from ..params import Params, to_dict
+from ..pipeline import Pipeline, register
+from .jobs import TreeJob
+from .picture import tree_picture
+
+#: Exit codes as `treereg register` gives them: 0 all registered, 1 some or all failed, 2 bad input.
+OK, FAILED, BAD_INPUT = 0, 1, 2
+
+
+@dataclass(frozen=True)
+class ScanOutcome:
+    """One scan of a tree: how it ended, and its error against the truth when there is one.
+
+    verdict : "reference", "fine" (the fine transform), "coarse" (fine not kept: the coarse one),
+        or "failed" (not registered; `message` says where and why).
+    """
+
+    name: str
+    points: int
+    verdict: str
+    message: str = ""
+    rot_err_deg: float | None = None
+    disp_err_m: float | None = None
+
+
+@dataclass(frozen=True)
+class TreeOutcome:
+    """A tree's result: status "ok" (every scan registered), "partial", "failed" (no scan registered,
+    or bad input) or "error" (an unexpected exception; its last line is the message)."""
+
+    tree: str
+    status: str
+    exit_code: int
+    message: str
+    scans: tuple[ScanOutcome, ...]
+    seconds: dict[str, float]
+    fingerprint: str
+    transforms: TransformFile | None = None
+    picture_png: bytes | None = None
+
+    def summary(self) -> dict:
+        """JSON-ready record (what result.json holds; the transforms are in transforms.json)."""
+        return {"tree": self.tree, "status": self.status, "exit_code": self.exit_code, "message": self.message,
+                "scans": [s.__dict__ for s in self.scans], "seconds": self.seconds, "fingerprint": self.fingerprint}
+
+
+def fingerprint(job: TreeJob, params: Params, until: str) -> str:
+    """What a tree's result depends on: its files (name, size, time), its options and the parameters.
+    A resumed run redoes a tree whose fingerprint changed."""
+    h = hashlib.sha256()
+    for f in job.scans:
+        try:
+            st = f.stat()
+            h.update(f"{f.resolve()}|{st.st_size}|{st.st_mtime_ns}".encode())
+        except OSError:
+            h.update(f"{f}|missing".encode())
+    h.update(json.dumps([job.angular_step_deg, job.target_xy_m, until, to_dict(params)], sort_keys=True).encode())
+    return h.hexdigest()[:16]
+
+
+def tree_params(job: TreeJob, params: Params) -> Params:
+    """The parameters of one tree: the campaign's, with the tree's own angular step and target."""
+    p = params
+    if job.angular_step_deg is not None:
+        p = p.with_value("prepare", "angular_step_deg", job.angular_step_deg)
+    if job.target_xy_m is not None:
+        p = apply_target(p, job.target_xy_m)
+    return p
+
+
+def apply_target(params: Params, xy: tuple[float, float]) -> Params:
+    """The target stem's position as a parameter. Target-tree selection is a prepare-stage step of
+    its own; until it is part of the parameters, a manifest's target cannot be honoured."""
+    for section, name in (("target", "tree_at_m"), ("prepare", "tree_at_m")):
+        sec = getattr(params, section, None)
+        if sec is not None and hasattr(sec, name):
+            return params.with_value(section, name, xy)
+    raise ConfigError("the manifest gives a target position, but this version of treereg cannot select a "
+                      "target tree; leave the target column empty")
+
+
+def _pair_verdict(pipe: Pipeline, k: int) -> tuple[str, str]:
+    """("fine" | "coarse" | "failed", message) of pair k."""
+    for name in ("prepare", "projection", "matching", "coarse"):
+        out = pipe.output(name)
+        if out is None:
+            continue
+        items = out.items
+        idx = [0, k + 1] if name in ("prepare", "projection") else [k]
+        for i in idx:
+            if i < len(items) and not items[i].ok:
+                return "failed", f"{name}: {items[i].message}"
+    fine = pipe.output("fine")
+    if fine is not None and k < len(fine.items):
+        it = fine.items[k]
+        if it.ok and getattr(it, "accepted", False):
+            return "fine", ""
+        return "coarse", getattr(it, "message", "")
+    return "coarse", ""
+
+
+def run_tree(job: TreeJob, params: Params, until: str = "fine", picture: bool = True) -> TreeOutcome:
+    """Register one tree (never raises; see the module docstring)."""
+    t0 = time.perf_counter()
+    fp = fingerprint(job, params, until)
+    seconds: dict[str, float] = {}
+    try:
+        p = tree_params(job, params)
+        if len(job.scans) < 2:
+            raise ConfigError(f"{job.name}: only {len(job.scans)} scan file; at least two are needed")
+        scans = [read_scan(f, angular_step_deg=p.prepare.angular_step_deg) for f in job.scans]
+        names = [s.name for s in scans]
+        if len(set(names)) != len(names):
+            raise ConfigError(f"{job.name}: scan files must have distinct base names, got {names}")
+        seconds["read"] = time.perf_counter() - t0
+        t1 = time.perf_counter()
+        reg = register(scans, p, until=until)
+        seconds["register"] = time.perf_counter() - t1
+    except (ScanError, ConfigError) as e:
+        seconds["total"] = time.perf_counter() - t0
+        return TreeOutcome(job.name, "failed", BAD_INPUT, str(e), (), seconds, fp)
+    except Exception as e:  # noqa: BLE001 - one tree's bug or exhaustion must not stop the campaign
+        seconds["total"] = time.perf_counter() - t0
+        last = traceback.format_exception_only(type(e), e)[-1].strip()
+        return TreeOutcome(job.name, "error", FAILED, f"unexpected error: {last}", (), seconds, fp)
+    truth = _read_truth(job)
+    outcomes = [ScanOutcome(scans[0].name, scans[0].n_points, "reference")]
+    for k, s in enumerate(scans[1:]):
+        verdict, msg = _pair_verdict(reg.pipeline, k)
+        if s.name not in reg.transforms:
+            verdict = "failed"
+        rot = disp = None
+        if truth is not None and s.name in reg.transforms and s.name in truth and names[0] in truth:
+            T_true = np.linalg.inv(truth[names[0]]) @ truth[s.name]
+            T = reg.transforms[s.name]
+            rot = rotation_error_deg(T, T_true)
+            disp = float(np.linalg.norm(apply_transform(T, s.points) - apply_transform(T_true, s.points), axis=1).mean())
+        outcomes.append(ScanOutcome(s.name, s.n_points, verdict, msg, rot, disp))
+    n_failed = sum(o.verdict == "failed" for o in outcomes)
+    status = "ok" if n_failed == 0 else ("failed" if n_failed == len(scans) - 1 else "partial")
+    message = "" if n_failed == 0 else "; ".join(f"{o.name}: {o.message}" for o in outcomes if o.verdict == "failed")
+    tf = None
+    if status != "failed":
+        tf = registration_file(scans, reg.transforms, p, stage=until, metrics=reg.pipeline.pair_metrics(),
+                               sources={s.name: str(Path(f).resolve()) for s, f in zip(scans, job.scans)},
+                               seconds=seconds["register"])
+    png = tree_picture([s.points for s in scans], [reg.transforms.get(s.name) for s in scans]) if picture else None
+    seconds["total"] = time.perf_counter() - t0
+    return TreeOutcome(job.name, status, OK if status == "ok" else FAILED, message, tuple(outcomes),
+                       {k: round(v, 3) for k, v in seconds.items()}, fp, tf, png)
+
+
+def _read_truth(job: TreeJob) -> dict[str, np.ndarray] | None:
+    if job.truth is None:
+        return None
+    try:
+        return read_truth(job.truth)
+    except (ConfigError, OSError):
+        return None
+
+
+def without_payload(outcome: TreeOutcome) -> TreeOutcome:
+    """The outcome without its transforms and picture (what the summary needs)."""
+    return replace(outcome, transforms=None, picture_png=None)

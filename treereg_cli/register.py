@@ -8,6 +8,8 @@ import time
 from pathlib import Path
 
 from treereg_core.errors import ConfigError
+from treereg_core.io.merged import write_merged
+from treereg_core.io.scans import WRITE_EXTENSIONS, extension
 from treereg_core.io.transforms import registration_file, write_exports, write_transforms
 from treereg_core.pipeline import register
 
@@ -26,13 +28,22 @@ def add(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", default="transforms.json", help="transform file to write (default: transforms.json)")
     p.add_argument("--until", choices=("coarse", "fine"), default="fine", help="last stage to run (default: fine)")
     add_param_args(p)
-    p.add_argument("--exports", action="store_true", help="also write CloudCompare and PDAL matrix files beside --out")
+    p.add_argument("--exports", action="store_true",
+                   help="also write CloudCompare and PDAL matrix files beside --out, named after it "
+                   "(<out>.<scan>.cloudcompare.txt, <out>.<scan>.pdal.txt)")
+    p.add_argument("--merged", metavar="FILE",
+                   help="also write the merged registered cloud (.ply, .las or .laz), each point tagged with "
+                   "its scan's number (PLY property scan_id, LAS point_source_id; 1 = the reference)")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     if len(args.scans) < 2:
         raise ConfigError("register needs at least two scans (the first is the reference)")
+    if args.merged and extension(args.merged) not in WRITE_EXTENSIONS:
+        # Said before minutes of registration, not after.
+        raise ConfigError(f"{args.merged}: the merged cloud is written as {', '.join(WRITE_EXTENSIONS)}; "
+                          f"not {extension(args.merged) or '(no extension)'!r}")
     params = load_params(args)
     scans = read_scans(args.scans, params)
     t0 = time.perf_counter()
@@ -47,6 +58,8 @@ def run(args: argparse.Namespace) -> int:
                            sources={s.name: str(Path(f).resolve()) for s, f in zip(scans, args.scans)}, seconds=seconds)
     out = Path(args.out)
     written = write_exports(out.parent, tf, name=out.name) if args.exports else [write_transforms(out, tf)]
+    if args.merged:
+        written.append(write_merged(args.merged, scans, reg.transforms))
     for name, rows in metrics.items():
         print(f"\n{name} -> {scans[0].name}")
         for r in rows:

@@ -102,9 +102,16 @@ def test_app_runs_every_stage_and_matches_truth(env, case):
         assert f"/scans/s{i}/points" in _nodes(server)
     assert "✗" not in app.stages.status_md.content and "○" not in app.stages.status_md.content
     assert "⚠" not in app.stages.status_md.content  # the demo registers: nothing to warn about
-    # Before registration all scanners sit at one point: their names must not print over each other.
-    heights = [server.scene._handle_from_node_name[f"/scans/s{i}/station/name"].position[2] for i in range(3)]
-    assert len(set(np.round(heights, 3))) == 3
+    # Before registration all scanners sit at one point: one label names them all (names printed over
+    # each other could not be read); registered, each scanner is named at its own station.
+    nodes = _nodes(server)
+    assert "/scans/s0/station/name" in nodes and "/scans/s1/station/name" not in nodes
+    assert "scanners 1–3" in server.scene._handle_from_node_name["/scans/s0/station/name"].text
+    app.select_stage("coarse")
+    _idle(app)
+    assert all(f"/scans/s{i}/station/name" in _nodes(server) for i in range(3))
+    app.select_stage("prepare")
+    _idle(app)
 
 
 def test_the_apps_stages_are_the_pipelines():
@@ -289,7 +296,7 @@ def test_export_files_match_truth(env, case, tmp_path):
     names = {p.name for p in tmp_path.iterdir()}
     stems = [Path(s.name).stem for s in case.scans]
     assert {"transforms.json", "params.json", "merged.ply"} <= names
-    assert all(f"{st}.cloudcompare.txt" in names and f"{st}.pdal.txt" in names for st in stems)
+    assert all(f"transforms.{st}.cloudcompare.txt" in names and f"transforms.{st}.pdal.txt" in names for st in stems)
     tf = read_transforms(tmp_path / "transforms.json")
     assert tf.reference == case.scans[0].name
     assert json.loads((tmp_path / "transforms.json").read_text())["params"]["fine"]["max_iterations"] == \
@@ -300,6 +307,16 @@ def test_export_files_match_truth(env, case, tmp_path):
         assert mean_displacement(tf.matrix(scan.name), truth[scan.name], scan.points) < DISP_TOL_M
     merged = read_points(tmp_path / "merged.ply")
     assert len(merged) == sum(s.n_points for s in case.scans)
+    # Each point says which scan it came from (PLY property scan_id; 1 = the reference).
+    head, body = (tmp_path / "merged.ply").read_bytes().split(b"end_header\n", 1)
+    assert b"property ushort scan_id" in head
+    ids = np.frombuffer(body, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("scan_id", "<u2")])["scan_id"]
+    assert [int((ids == k + 1).sum()) for k in range(len(case.scans))] == [s.n_points for s in case.scans]
+    # The merged cloud alone, one click.
+    app.send_file = lambda client, name, data: sent.append((name, data))
+    app.files.download_cloud.value = True
+    del app.send_file
+    assert sent[-1][0] == "merged.ply" and sent[-1][1] == (tmp_path / "merged.ply").read_bytes()
     assert "Exported the fine transforms of 3 scans" in app.files.export_md.content
 
 

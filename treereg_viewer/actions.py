@@ -1,6 +1,7 @@
-"""What the panels may ask of the app: a narrow interface, so no panel holds (or imports) the app.
+"""What the panels may ask of their viewer: a narrow interface, so no panel holds (or imports) the app.
 
-`TreeregApp` implements it; a panel receives it at construction and calls only these.
+`viewer.Viewer` (one per browser tab) implements it; a panel receives it at construction and calls
+only these.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from .view_state import ViewState
 
 
 class AppActions(Protocol):
-    """The app as the panels see it."""
+    """A viewer as its panels see it."""
 
     controller: Controller
     out_dir: Path | None
@@ -36,6 +37,8 @@ class AppActions(Protocol):
     def select_target(self, label: str) -> None: ...
 
     def set_scan_visible(self, name: str, visible: bool) -> None: ...
+
+    def focus_section(self, stage: str, row_label: str) -> None: ...
 
     def on_param_change(self, section: str, name: str, value: Any) -> str | None: ...
 

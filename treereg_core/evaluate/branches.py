@@ -45,7 +45,8 @@ class BranchError:
     Attributes
     ----------
     index
-        Branch number (the order in which branches were found, bottom to top).
+        Branch number: its place among the branches found in the reference (bottom to top), the same
+        in the evaluation of every transform.
     height_m
         Height of the branch's middle layer (reference frame).
     radius_m
@@ -248,7 +249,7 @@ def evaluate_pair(ref: Scan, tgt: Scan, T_ref_target: np.ndarray, *, evaluation:
     half = p.layer_thickness_m / 2.0
     out: list[BranchError] = []
     layers = reference_layers(ref, branches, evaluation=p) if ref_layers is None else ref_layers
-    for b, b_layers in zip(branches, layers):
+    for number, (b, b_layers) in enumerate(zip(branches, layers)):
         zs_l, rc, tc = [], [], []
         reach = b.radius_m + p.margin_m
         for lay in b_layers:
@@ -267,7 +268,8 @@ def evaluate_pair(ref: Scan, tgt: Scan, T_ref_target: np.ndarray, *, evaluation:
             tc.append(ft.point_at_z(zl))
         if zs_l:
             rc_a, tc_a = np.array(rc), np.array(tc)
-            out.append(BranchError(len(out), float(b.point_m[2]), float(b.radius_m), np.array(zs_l), rc_a, tc_a,
+            # Numbered as found (not as kept): branch k is the same branch in every transform's result.
+            out.append(BranchError(number, float(b.point_m[2]), float(b.radius_m), np.array(zs_l), rc_a, tc_a,
                                    np.linalg.norm(rc_a - tc_a, axis=1), np.asarray(b.point_m, float),
                                    np.asarray(b.axis, float)))
     d = np.concatenate([b.distances_m for b in out]) if out else np.empty(0)

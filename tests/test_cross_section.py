@@ -58,6 +58,21 @@ def test_registered_stem_is_one_ring_and_a_misregistered_one_separate_arcs(case)
     np.testing.assert_allclose(ub - ua, np.tile([0.04, 0.0], (len(common), 1)), atol=1e-9)
 
 
+def test_unrolled_along_the_reference_circle_the_scans_lie_on_it_or_off_by_the_error(case):
+    scans, poses = case
+    p = Params()
+    cs = stem_section(scans, poses, _stem_height(scans), thickness_m=0.1, below_m=0.3, arcs=p.arcs, fitting=p.fitting)
+    truth, off = cs.ring("truth", 1), cs.ring("off", 1)
+    assert truth.radius_m == off.radius_m  # the reference's circle: the same under every registration
+    for s in scans:
+        assert len(truth.offset_m[s.name]) > 20
+        assert np.median(np.abs(truth.offset_m[s.name])) < 0.006
+    # A target moved 4 cm in x: its arc lies up to 4 cm off the circle (the most where it faces +-x).
+    worst = max(np.percentile(np.abs(off.offset_m[s.name]), 90) for s in scans[1:])
+    assert 0.015 < worst < 0.05, worst
+    assert cs.ring("nonsense", 1) is None
+
+
 def test_the_taper_check_names_the_part_below_and_drops_a_wider_section(case):
     scans, poses = case
     p = Params()

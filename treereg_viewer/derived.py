@@ -25,8 +25,11 @@ from .view_state import SECTION_POSES, ViewState
 
 #: How far below the chosen height the 4.2 check's "part below" is cut (m).
 BELOW_M = 0.3
-#: Farther than this from every other scan's point, a point was seen by its scan alone (no residual).
-RESIDUAL_REACH_M = 0.1
+#: A point farther than this from every other scan's point was seen by its scan alone (no residual):
+#: the colour map's top times this factor, at least `MIN_REACH_M`. Much farther and a point on one
+#: side of a stem would be measured against the other scan's points round the curve.
+REACH_FACTOR = 1.5
+MIN_REACH_M = 0.03
 
 
 def prepared_scans(snap: Snapshot) -> list[Any] | None:
@@ -133,19 +136,21 @@ class Derived:
                                                    arcs=params.arcs, fitting=params.fitting))
 
     # ---- residuals -----------------------------------------------------------------------------------
-    def residuals(self, snap: Snapshot, pose: str, max_points: int) -> list[np.ndarray] | None:
+    def residuals(self, snap: Snapshot, pose: str, max_points: int, top_m: float = 0.02) -> list[np.ndarray] | None:
         """Per scan, the distance of its displayed points (`display_subset`, as the scan layer draws
-        them) to the other scans' surface under registration `pose`; None when it has not run."""
+        them) to the other scans' surface under registration `pose` (NaN: not seen by the others
+        within reach of the colour map's top `top_m`); None when it has not run."""
         scans = prepared_scans(snap)
         if scans is None or snap.output(pose) is None:
             return None
         Ts = pose_transforms(snap, pose)
-        key = ("residuals", id(snap.output("prepare")), id(snap.output(pose)), pose, max_points)
+        reach = max(MIN_REACH_M, REACH_FACTOR * top_m)
+        key = ("residuals", id(snap.output("prepare")), id(snap.output(pose)), pose, max_points, round(reach, 4))
 
         def make() -> list[np.ndarray]:
             clouds = [apply_transform(T, s.points) if T is not None else np.empty((0, 3)) for T, s in zip(Ts, scans)]
             samples = [display_subset(len(s.points), max_points, seed=i) if T is not None else np.empty(0, dtype=int)
                        for i, (T, s) in enumerate(zip(Ts, scans))]
-            return overlap_residuals(clouds, samples, reach_m=RESIDUAL_REACH_M)
+            return overlap_residuals(clouds, samples, reach_m=reach)
 
         return self._get(key, make)

@@ -141,7 +141,8 @@ class Drawer:
         scene = self.scene
         # On-demand results (residuals, the cross-section) are computed before the atomic block:
         # the connection's other messages are not held back meanwhile.
-        residuals = self.derived.residuals(snap, view.result_pose, view.max_points) if residual_mode(view) else None
+        residuals = (self.derived.residuals(snap, view.result_pose, view.max_points, view.residual_max_m)
+                     if residual_mode(view) else None)
         sectioning = section_available(snap, view.stage) and view.panel == "section"
         branch = None
         cs = None

@@ -25,7 +25,8 @@ from .view_state import ViewState
 _STATUS_ICON = {"done": "✓", "failed": "✗", "stale": "○", "running": "…"}
 #: The Result stage's choices, as people read them.
 RESULT_POSES = {"Coarse": "coarse", "Fine": "fine", "ICP": "icp"}
-RESULT_COLOURS = {"Scan colours": "scan", "Distance to the other scans": "residual"}
+RESULT_COLOURS = {"Scan colours": "scan", "Scan colours, see-through": "seethrough",
+                  "Distance to the other scans": "residual"}
 NO_FOCUS = "(none)"
 
 
@@ -121,7 +122,8 @@ class StagePanel:
             c["result_pose"] = gui.add_button_group("Targets at", tuple(RESULT_POSES))
             c["result_pose"].on_click(lambda e: self._set(result_pose=RESULT_POSES[e.target.value]))
             c["result_colour"] = gui.add_dropdown("Colour by", tuple(RESULT_COLOURS), initial_value="Scan colours",
-                                                  hint="Scan colours, or each point's distance to the other scans' surface.")
+                                                  hint="Scan colours (opaque or see-through where scans overlap), or "
+                                                  "each point's distance to the other scans' surface.")
             c["result_colour"].on_update(lambda _: self._set(result_colour=RESULT_COLOURS[c["result_colour"].value]))
             c["residual_max"] = gui.add_slider("Colour map top (mm)", 2, 100, 1, 20,
                                                hint="Distances from here on get the top colour (red).")

@@ -23,7 +23,7 @@ from .view_state import SECTION_POSES, ViewState
 
 #: At most this many images and plots per stage.
 MAX_IMAGES = 2
-MAX_PLOTS = 2
+MAX_PLOTS = 3
 #: The switch's two faces.
 MODES = {"Stage details": "stage", "Cross-section": "section"}
 STEM = "Stem (pick a height)"
@@ -67,7 +67,8 @@ class ViewPanel:
         self._images: list[Any] = []
         self._plots: list[Any] = []
         with self._tab:
-            self.mode = gui.add_button_group("Show", tuple(MODES), order=0, visible=False)
+            self.mode = gui.add_dropdown("Show", tuple(MODES), initial_value="Stage details", order=0, visible=False,
+                                         hint="The current stage's details, or a cross-section of the registered scans.")
             self.section_of = gui.add_dropdown("Section of", (STEM,), order=0.1, visible=False,
                                                hint="The stem at a height, or a branch the Result stage evaluated.")
             self.height = gui.add_slider("Height (m)", -1.0, 10.0, 0.01, 0.0, order=0.2, visible=False,
@@ -83,7 +84,7 @@ class ViewPanel:
             self._table = gui.add_markdown("", order=20)
         self._panel.dock_left()
         self._panel.set_width(width)
-        self.mode.on_click(lambda e: self._changed(panel=MODES[e.target.value]))
+        self.mode.on_update(lambda _: self._changed(panel=MODES[self.mode.value]))
         self.section_of.on_update(lambda _: self._changed(branch=self._branch_choice()))
         self.height.on_update(lambda _: self._changed(section_height=float(self.height.value), branch=None))
         self.poses.on_update(lambda _: self._changed(section_poses=self.poses.value))
@@ -121,6 +122,9 @@ class ViewPanel:
         self._quiet = True
         try:
             self.mode.visible = available
+            want_mode = next(k for k, v in MODES.items() if v == view.panel)
+            if self.mode.value != want_mode:
+                self.mode.value = want_mode
             section = available and view.panel == "section"
             options = (STEM, *branches)
             if options != self._branch_options:

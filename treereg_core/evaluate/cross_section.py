@@ -93,6 +93,17 @@ class PoseCuts:
 
 
 @dataclass(frozen=True)
+class RingProfile:
+    """Points unrolled along a circle: per scan name, each point's angle around the centre (degrees,
+    from the section plane's u axis) and its distance from the circle (m, positive outside)."""
+
+    centre_m: np.ndarray
+    radius_m: float
+    angle_deg: dict[str, np.ndarray]
+    offset_m: dict[str, np.ndarray]
+
+
+@dataclass(frozen=True)
 class CrossSection:
     """Cross-sections at one or more heights, every scan, every registration given.
 
@@ -122,6 +133,33 @@ class CrossSection:
 
     def pose(self, name: str) -> PoseCuts | None:
         return next((p for p in self.poses if p.pose == name), None)
+
+    def ring(self, pose: str, layer: int, band: float = 0.5) -> RingProfile | None:
+        """Every scan's points of one layer unrolled along the reference's main section (the plausible
+        fit nearest the view's centre): the angle around its centre and the distance from its
+        circle. Registered well, every scan lies near 0; poorly, a target's arc lies off it, by up to
+        the misalignment. Only points within `band` radii of the circle count (not other branches).
+        None when the reference has no plausible section in that layer."""
+        pc = self.pose(pose)
+        if pc is None:
+            return None
+        lay = pc.layers[layer]
+        ref = next((sc for sc in lay.scans if sc.index == 0), None)
+        good = [s for s in ref.sections if s.plausible] if ref is not None else []
+        if not good:
+            return None
+        h = lay.height_m
+        at = self.origin + self.axis * (h - self.origin[2]) / self.axis[2] if abs(self.axis[2]) > 1e-6 else self.origin
+        main = min(good, key=lambda s: float(np.linalg.norm(s.centre_m - at)))
+        c = self.to_uv(main.centre_m)[0]
+        angles, offsets = {}, {}
+        for sc in lay.scans:
+            d = sc.uv - c
+            r = np.hypot(d[:, 0], d[:, 1])
+            keep = np.abs(r - main.radius_m) <= band * main.radius_m
+            angles[sc.scan] = np.degrees(np.arctan2(d[keep, 1], d[keep, 0]))
+            offsets[sc.scan] = r[keep] - main.radius_m
+        return RingProfile(main.centre_m.copy(), float(main.radius_m), angles, offsets)
 
     def to_uv(self, xyz: np.ndarray) -> np.ndarray:
         """Reference-frame points -> section-plane coordinates (metres)."""

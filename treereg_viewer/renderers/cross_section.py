@@ -28,6 +28,7 @@ from ..palette import CATEGORICAL, GREY, hex_color, scan_color
 from ..view_panel import PanelContent
 from ..view_state import ViewState
 from .common import md_table, plural
+from .fine import SPAN_FACTOR, SPAN_SLACK_M
 
 #: Registrations as people read them.
 POSE_TITLES = {"coarse": "Coarse", "fine": "Fine", "icp": "ICP"}
@@ -65,9 +66,8 @@ def drawable(sc: ScanCut, k: int) -> bool:
     s = sc.sections[k]
     if not (np.isfinite(s.radius_m) and s.radius_m > 0):
         return False
-    mine = sc.uv[sc.labels == k]
     span = float(np.ptp(sc.uv, axis=0).max()) if len(sc.uv) else 0.0
-    return len(mine) > 0 and 2.0 * s.radius_m <= max(span, 0.05)
+    return bool(np.any(sc.labels == k)) and 2.0 * s.radius_m <= SPAN_FACTOR * span + SPAN_SLACK_M
 
 
 def top_view_figure(cs: CrossSection, snap: Snapshot, layers: list[int], show_rejected: bool) -> go.Figure:
@@ -75,8 +75,8 @@ def top_view_figure(cs: CrossSection, snap: Snapshot, layers: list[int], show_re
     poses = [pc for pc in cs.poses]
     rows, cols = len(layers), len(poses)
     titles = [f"{POSE_TITLES.get(pc.pose, pc.pose)} · z = {cs.heights_m[lay]:.2f} m" for lay in layers for pc in poses]
-    fig = make_subplots(rows=rows, cols=cols, subplot_titles=titles, horizontal_spacing=0.06,
-                        vertical_spacing=0.12 / max(rows, 1) + 0.02)
+    fig = make_subplots(rows=rows, cols=cols, subplot_titles=titles, horizontal_spacing=0.08,
+                        vertical_spacing=0.12 / max(rows, 1) + 0.04)
     half = max(_extent(cs, lay) for lay in layers)
     cm = half < 0.6  # centimetres read better on a stem; metres across a crown
     unit, f = ("cm", 100.0) if cm else ("m", 1.0)
@@ -91,7 +91,7 @@ def top_view_figure(cs: CrossSection, snap: Snapshot, layers: list[int], show_re
                 shown_names.add(sc.scan)
                 fig.add_trace(go.Scattergl(
                     x=uv[:, 0], y=uv[:, 1], mode="markers", name=f"{sc.index + 1}: {sc.scan}", legendgroup=sc.scan,
-                    showlegend=first, marker=dict(size=4, color=color),
+                    showlegend=first, marker=dict(size=3, color=color),
                     hovertemplate=f"{sc.scan}<extra></extra>"), row=r, col=c)
                 for k, s in enumerate(sc.sections):
                     if not drawable(sc, k) or not (s.plausible or show_rejected):
@@ -100,7 +100,7 @@ def top_view_figure(cs: CrossSection, snap: Snapshot, layers: list[int], show_re
                     x, y = _circle(cu, cv, s.radius_m * f)
                     fig.add_trace(go.Scatter(
                         x=x, y=y, mode="lines", legendgroup=sc.scan, showlegend=False, hoverinfo="skip",
-                        line=dict(color=color if s.plausible else hex_color(GREY), width=1.5,
+                        line=dict(color=color if s.plausible else hex_color(GREY), width=2,
                                   dash="solid" if s.plausible else "dot")), row=r, col=c)
                     if s.plausible:
                         fig.add_trace(go.Scatter(
@@ -114,11 +114,43 @@ def top_view_figure(cs: CrossSection, snap: Snapshot, layers: list[int], show_re
             fig.update_yaxes(range=[-half * f, half * f], row=r, col=c, scaleanchor=f"x{'' if ax == 1 else ax}",
                              scaleratio=1, title_text=f"y ({unit})" if c == 1 else None, zeroline=False,
                              matches="y" if ax > 1 else None)
-    fig.update_layout(margin=dict(l=45, r=8, t=28, b=40), legend=dict(orientation="h", y=-0.12 if rows == 1 else -0.05,
-                      x=0.5, xanchor="center", font=dict(size=11)), plot_bgcolor="white",
+    fig.update_layout(margin=dict(l=45, r=8, t=28, b=62), legend=dict(orientation="h", y=-0.1 if rows == 1 else -0.04,
+                      yanchor="top", x=0.5, xanchor="center", font=dict(size=11)), plot_bgcolor="white",
                       font=dict(size=11))
     fig.update_annotations(font_size=12)
     fig.update_xaxes(showgrid=True, gridcolor="#e8e8e8")
+    fig.update_yaxes(showgrid=True, gridcolor="#e8e8e8")
+    return fig
+
+
+def ring_figure(cs: CrossSection, layer: int) -> go.Figure | None:
+    """Every scan's points unrolled along the reference's main circle, one column per registration:
+    angle around its centre across, distance from the circle up (mm). A target off by a few
+    millimetres, invisible in the top view, stands out here as a band away from zero."""
+    profiles = [(pc.pose, cs.ring(pc.pose, layer)) for pc in cs.poses]
+    profiles = [(pose, r) for pose, r in profiles if r is not None]
+    if not profiles:
+        return None
+    fig = make_subplots(rows=1, cols=len(profiles), shared_yaxes=True, horizontal_spacing=0.06,
+                        subplot_titles=[POSE_TITLES.get(pose, pose) for pose, _ in profiles])
+    top = 0.0
+    for c, (pose, ring) in enumerate(profiles, start=1):
+        pc = cs.pose(pose)
+        for sc in pc.layers[layer].scans:
+            a, d = ring.angle_deg.get(sc.scan), ring.offset_m.get(sc.scan)
+            if a is None or not len(a):
+                continue
+            top = max(top, float(np.percentile(np.abs(d), 98)))
+            fig.add_trace(go.Scattergl(x=a, y=d * 1000.0, mode="markers", showlegend=False,
+                                       marker=dict(size=3, color=hex_color(scan_color(sc.index))),
+                                       hovertemplate=f"{sc.scan}: %{{y:.1f}} mm<extra></extra>"), row=1, col=c)
+        fig.update_xaxes(range=[-180, 180], tickvals=[-180, -90, 0, 90, 180], row=1, col=c,
+                         title_text="angle around scan 1's centre (°)" if c == (len(profiles) + 1) // 2 else None)
+    lim = max(10.0, min(top * 1000.0 * 1.2, 100.0))
+    fig.update_yaxes(range=[-lim, lim], title_text="off scan 1's circle (mm)", row=1, col=1, zeroline=True,
+                     zerolinecolor="#999")
+    fig.update_layout(margin=dict(l=50, r=8, t=28, b=40), plot_bgcolor="white", font=dict(size=11))
+    fig.update_annotations(font_size=12)
     fig.update_yaxes(showgrid=True, gridcolor="#e8e8e8")
     return fig
 
@@ -211,48 +243,59 @@ def render(snap: Snapshot, view: ViewState, cs: CrossSection | None, branch: Any
     if branch is None:
         layers = [1]  # layer 0 is the part below, for the 4.2 check
         head = f"Cross-section at z = {cs.heights_m[1]:.2f} m"
-        where = (f"A {cs.thickness_m * 100:.0f} cm slab of every scan at z = {cs.heights_m[1]:.2f} m (reference frame), "
-                 "seen from above. Each arc's fitted circle is drawn in its scan's colour, its centre as a cross.")
+        where = f"A {cs.thickness_m * 100:.0f} cm slab of every scan, seen from above."
     else:
         layers = list(range(len(cs.heights_m)))
         head = f"Branch {branch.index + 1}: its {plural(len(layers), 'evaluation layer')}"
-        where = (f"The branch's layers (paper Fig. 12b), each seen along the branch axis: the points within "
-                 f"{branch.radius_m * 100:.0f} cm plus the margin of the axis, {cs.thickness_m * 100:.0f} cm slabs.")
-    text = where + "\n\n" + verdict(cs, layers[-1] if branch is None else len(layers) // 2)
-    plots = [(top_view_figure(cs, snap, layers, view.show_rejected), len(cs.poses) / max(len(layers), 1) * 1.05)]
+        where = (f"The branch's layers (paper Fig. 12b), each seen along its axis: the points within "
+                 f"{branch.radius_m * 100:.0f} cm plus the margin of the axis.")
+    mid = layers[-1] if branch is None else len(layers) // 2
+    text = where + " " + verdict(cs, mid)
+    plots = [(top_view_figure(cs, snap, layers, view.show_rejected), len(cs.poses) / max(len(layers), 1) * 0.85)]
+    ring = ring_figure(cs, mid)
+    if ring is not None:
+        plots.append((ring, 2.6))
     last = cs.poses[-1].pose
-    raster = raster_figure(cs, last, layers[-1] if branch is None else len(layers) // 2)
+    raster = raster_figure(cs, last, mid)
     if raster is not None:
         plots.append((raster, 2.4))
+    notes = ("**Reading the plots.** Top: each arc's fitted circle in its scan's colour, its centre a cross. "
+             "Middle: the same points unrolled along scan 1's circle, their distance from it against the angle "
+             "around its centre: a few millimetres show here. Bottom: each scan's slab at the "
+             f"{POSE_TITLES.get(last, last).lower()} pose in its own angular grid (one cell per angular step), "
+             "coloured by arc: cells within c steps form one arc (paper Fig. 6).")
+    if branch is None:
+        notes += (f" The table checks each scan's main section against the part "
+                  f"{abs(cs.heights_m[1] - cs.heights_m[0]) * 100:.0f} cm below (paper 4.2: no wider than it).")
     table = md_table(("registration", "scan", "arcs", "radius (cm)", "RMS (mm)", "4.2 check", "offset (mm)"),
-                     check_rows(cs, layers[-1] if branch is None else len(layers) // 2))
-    caption = (f"Below: each scan's slab at the {POSE_TITLES.get(last, last).lower()} pose in its own angular grid "
-               "(one cell per angular step, α across, β up), coloured by arc: cells within c steps are one arc "
-               "(paper Fig. 6). The table checks each scan's main section against the part "
-               f"{abs(cs.heights_m[1] - cs.heights_m[0]) * 100:.0f} cm below (paper 4.2: no wider than it)."
-               if branch is None else
-               f"Below: each scan's middle layer at the {POSE_TITLES.get(last, last).lower()} pose in its own angular "
-               "grid, coloured by arc (paper Fig. 6).")
-    return PanelContent(head, text=text + "\n\n" + caption, plots=tuple(plots), table=table)
+                     check_rows(cs, mid))
+    return PanelContent(head, text=text, plots=tuple(plots), table=notes + "\n\n" + table)
 
 
 def draw_marker(scene: Any, root: str, cs: CrossSection | None, branch: Any = None) -> list[Any]:
-    """Where the cut lies in 3-D: a translucent square in the section plane at each shown layer."""
+    """Where the cut lies in 3-D: a yellow band around each shown layer (its slab's thickness, a
+    little wider than the section), visible from the side as from above."""
+    import trimesh
+
     from ..palette import HIGHLIGHT
 
     if cs is None or not cs.ok:
         return []
     layers = [1] if branch is None else list(range(len(cs.heights_m)))
-    verts, faces = [], []
+    meshes = []
     for lay in layers:
         h = cs.heights_m[lay]
-        centre = cs.origin + cs.axis * (h - cs.origin[2]) / cs.axis[2] if abs(cs.axis[2]) > 1e-6 else cs.origin
-        c0 = _centre(cs, lay)
-        mid = centre + c0[0] * cs.e1 + c0[1] * cs.e2
-        half = _extent(cs, lay) * 1.2
-        n = len(verts)
-        for su, sv in ((-1, -1), (1, -1), (1, 1), (-1, 1)):
-            verts.append(mid + su * half * cs.e1 + sv * half * cs.e2)
-        faces += [(n, n + 1, n + 2), (n, n + 2, n + 3)]
-    return [scene.add_mesh_simple(f"{root}/cut", np.asarray(verts, np.float32), np.asarray(faces, np.int32),
-                                  color=HIGHLIGHT, opacity=0.35, side="double")]
+        at = cs.origin + cs.axis * (h - cs.origin[2]) / cs.axis[2] if abs(cs.axis[2]) > 1e-6 else cs.origin
+        ring = cs.ring(cs.poses[0].pose, lay) if cs.poses else None
+        if ring is not None and branch is None:
+            centre, r = ring.centre_m, ring.radius_m * 1.25 + 0.02
+        else:
+            c0 = _centre(cs, lay)
+            centre, r = at + c0[0] * cs.e1 + c0[1] * cs.e2, _extent(cs, lay)
+        half = cs.thickness_m / 2.0
+        meshes.append(trimesh.creation.annulus(r_min=r, r_max=r + max(0.01, 0.05 * r), height=2 * half,
+                                               segment=np.stack([centre - cs.axis * half, centre + cs.axis * half]),
+                                               sections=48))
+    mesh = trimesh.util.concatenate(meshes)
+    return [scene.add_mesh_simple(f"{root}/cut", mesh.vertices.astype(np.float32), mesh.faces.astype(np.int32),
+                                  color=HIGHLIGHT, opacity=0.6, side="double")]

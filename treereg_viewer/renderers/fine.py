@@ -128,7 +128,7 @@ class FitRow:
     scan: str
     scan_index: int  # 0 = reference
     section: Any
-    slice_span_m: float  # the horizontal extent of that slice's points of that scan
+    slice_span_m: float  # the horizontal extent of that slice's points (both scans)
 
     @property
     def label(self) -> str:
@@ -144,29 +144,41 @@ def fit_rows(snap: Snapshot, t: int, sl: SliceResult, sec: SectionsResult, ref: 
              show_rejected: bool) -> tuple[list[FitRow], int]:
     """The fits worth listing, accepted first (then rejected, when asked), each by slice and radius;
     and how many arcs have no fit to show (too few points, failed, or skipped: no NaN rows)."""
+    spans: dict[int, float] = {}  # per slice: the horizontal extent of both scans' points in it
+
+    def span(k: int) -> float:
+        if k not in spans:
+            parts = [ref.points[sl.ref_indices[k]]] if k < len(sl.ref_indices) else []
+            if k < len(sl.tgt_indices) and len(sl.tgt_indices[k]):
+                parts.append(apply_transform(sec.T_ref_target, tgt.points[sl.tgt_indices[k]]))
+            spans[k] = _span(np.concatenate(parts)) if parts else 0.0
+        return spans[k]
+
     rows: list[FitRow] = []
     hidden = 0
     for plausible in (True, False):
-        for who, secs, scan, T, idx, i in (("ref", sec.ref.sections, ref, None, sl.ref_indices, 0),
-                                           ("tgt", sec.tgt.sections, tgt, sec.T_ref_target, sl.tgt_indices, t + 1)):
+        for secs, i in ((sec.ref.sections, 0), (sec.tgt.sections, t + 1)):
             for s in sorted((s for s in secs if s.plausible == plausible), key=lambda s: (s.slice_index, -s.radius_m)):
                 if not (s.fit.ok and np.isfinite(s.radius_m) and np.isfinite(s.centre_m).all()):
                     hidden += plausible is False
                     continue
                 if not plausible and not show_rejected:
                     continue
-                pts = scan.points[idx[s.slice_index]] if s.slice_index < len(idx) else np.empty((0, 3))
-                if T is not None and len(pts):
-                    pts = apply_transform(T, pts)
-                rows.append(FitRow(0, snap.scans[i].name, i, s, _span(pts)))
+                rows.append(FitRow(0, snap.scans[i].name, i, s, span(s.slice_index)))
     rows = [FitRow(k + 1, r.scan, r.scan_index, r.section, r.slice_span_m) for k, r in enumerate(rows)]
     return rows, hidden
+
+
+#: A fit is drawn when its diameter is at most this many times its slice's extent (plus `SPAN_SLACK_M`):
+#: the scans see only part of a stem, so a true section can be a little wider than its points.
+SPAN_FACTOR = 1.25
+SPAN_SLACK_M = 0.05
 
 
 def drawable(row: FitRow) -> bool:
     """A fit is drawn only when it is no larger than the slice it came from: a circle fitted to an
     almost straight arc can have a radius of kilometres and would hide the tree."""
-    return 0 < 2.0 * row.section.radius_m <= max(row.slice_span_m, 0.05)
+    return 0 < 2.0 * row.section.radius_m <= SPAN_FACTOR * row.slice_span_m + SPAN_SLACK_M
 
 
 def section_mesh(section: Any, thickness_m: float, grow: float = 1.0) -> trimesh.Trimesh:

@@ -119,7 +119,8 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
     images = []
     if view.result_colour == "residual":
         text += (f"\n\nEach point is coloured by its distance to the other scans' surface (0 to "
-                 f"{view.residual_max_m * 1000:.0f} mm and beyond); light grey: seen by its own scan only.")
+                 f"{view.residual_max_m * 1000:.0f} mm and beyond); light grey: no other scan's point within "
+                 f"{max(30, 1.5 * view.residual_max_m * 1000):.0f} mm (seen by its own scan only).")
         images.append((residual_legend(view.residual_max_m),
                        f"0 mm — {view.residual_max_m * 1000 / 2:.0f} mm — {view.residual_max_m * 1000:.0f} mm and more"))
     truth = truth_rows(snap)

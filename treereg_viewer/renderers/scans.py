@@ -27,6 +27,8 @@ def scan_node(i: int) -> str:
     return f"/scans/s{i}"
 
 
+#: Opacity of a see-through scan's points.
+SEE_THROUGH_OPACITY = 0.45
 #: Height (m, above its scanner) of a scanner's name.
 STATION_LABEL_Z = 1.3
 
@@ -48,6 +50,12 @@ def stage_pose(view: ViewState) -> str | None:
     if view.stage == "evaluation":
         return view.result_pose
     return view_of(view.stage).pose
+
+
+def see_through(view: ViewState) -> bool:
+    """The Result stage draws the scans see-through (half-transparent splats): where they overlap,
+    both colours show, so no scan hides another."""
+    return view.stage == "evaluation" and view.result_colour == "seethrough"
 
 
 def residual_mode(view: ViewState) -> bool:
@@ -81,7 +89,7 @@ def scan_layer_key(snap: Snapshot, view: ViewState) -> tuple[Any, ...]:
     """What the scan layer's points depend on (it is redrawn only when this changes)."""
     residual = (view.result_pose, view.residual_max_m, id(snap.output(view.result_pose))) if residual_mode(view) else None
     return (tuple(id(s) for s in snap.scans), id(snap.output("prepare")), view.stage == "prepare", context_only(view),
-            view.point_size, view.max_points, view.show_stations, registered(view.stage), residual)
+            view.point_size, view.max_points, view.show_stations, registered(view.stage), residual, see_through(view))
 
 
 def draw_scan_layer(scene: viser.SceneApi, snap: Snapshot, view: ViewState,
@@ -116,12 +124,22 @@ def draw_scan_layer(scene: viser.SceneApi, snap: Snapshot, view: ViewState,
         node = scan_node(i)
         visible = scan.name not in view.hidden_scans
         handles.append(scene.add_frame(node, show_axes=False, visible=visible))
-        handles.append(
-            scene.add_point_cloud(
-                f"{node}/points", pts[idx], colors, point_size=view.point_size,
-                point_shape="circle", precision="float32",
+        if see_through(view) and prep is not None and getattr(prep, "ok", False):
+            # Gaussian splats blend: half-transparent discs of about the point size.
+            n = len(idx)
+            sigma = view.point_size / 3.0
+            rgb = np.broadcast_to(np.asarray(colors, np.float32).reshape(-1, 3) / 255.0, (n, 3))
+            handles.append(scene.add_gaussian_splats(
+                f"{node}/points", centers=pts[idx].astype(np.float32),
+                covariances=np.broadcast_to(np.eye(3, dtype=np.float32) * sigma * sigma, (n, 3, 3)).copy(),
+                rgbs=np.ascontiguousarray(rgb), opacities=np.full((n, 1), SEE_THROUGH_OPACITY, np.float32)))
+        else:
+            handles.append(
+                scene.add_point_cloud(
+                    f"{node}/points", pts[idx], colors, point_size=view.point_size,
+                    point_shape="circle", precision="float32",
+                )
             )
-        )
         if view.show_stations:
             handles.append(scene.add_frame(f"{node}/station", axes_length=1.0, axes_radius=0.04))
             # Before registration every scanner sits at the origin of its own frame, i.e. at the same

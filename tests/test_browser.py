@@ -101,13 +101,13 @@ def _open(browser, url, scene=True):
     page = context.new_page()
     # The machine is shared: SwiftShader and the app compete with other work for two cores.
     page.set_default_timeout(90_000)
-    playwright_api.expect.set_options(timeout=30_000)
+    playwright_api.expect.set_options(timeout=60_000)
     page.goto(url)
     playwright_api.expect(page.get_by_role("button", name="Run", exact=True)).to_be_visible(timeout=90_000)
     if scene:
         page.wait_for_function(
             "() => !!window.__viserMutable?.nodeRefFromName['/scans/s2/points'] && "
-            "window.__viserTestpoints.rendererInfo.render.frame > 0", timeout=30_000)
+            "window.__viserTestpoints.rendererInfo.render.frame > 0", timeout=90_000)
     return context, page, blocked
 
 
@@ -175,33 +175,10 @@ def _go(page, label):
     page.get_by_role("option", name=label, exact=True).click()
 
 
-def _wait_stage_done(page, label, timeout_ms=60_000):
-    """The status line shows stage `label` done (✓)."""
-    page.wait_for_function(
-        "(l) => [...document.querySelectorAll('p, div')].some(e => e.textContent.includes('✓ ' + l) && "
-        "/1 Scans/.test(e.textContent) && !e.textContent.includes('… ' + l) && !e.textContent.includes('○ ' + l))",
-        arg=label, timeout=timeout_ms)
-
-
 def _set_number(page, label, value):
     box = page.get_by_label(label, exact=True).filter(visible=True)  # several stages may share a label
     box.fill(str(value))
     box.press("Enter")
-
-
-def _rerun_seconds(page, stage_label, param_label, value, shown_label):
-    """Change a parameter on stage `stage_label`, press Run, and time until `shown_label` shows done."""
-    _wait_all_done(page)  # the previous run has finished: its messages do not hide this one's
-    _go(page, stage_label)
-    _set_number(page, param_label, value)
-    playwright_api.expect(page.get_by_text(re.compile("Parameters changed"))).to_be_visible(timeout=10_000)
-    t0 = time.perf_counter()
-    page.get_by_role("button", name="Run", exact=True).click()
-    page.wait_for_function(
-        "(l) => [...document.querySelectorAll('p, div')].some(e => e.textContent.includes('○ ' + l) || "
-        "e.textContent.includes('… ' + l)) === false", arg=shown_label, timeout=60_000)
-    _wait_stage_done(page, shown_label)
-    return time.perf_counter() - t0
 
 
 def test_walk_through_the_demo(served, browser):
@@ -247,23 +224,11 @@ def test_walk_through_the_demo(served, browser):
     assert all(c > 200 for c in counts), f"scan colours in the final overlay: {counts}"
     lap("screenshots checked")
 
-    # Parameters of the arcs, fits and evaluation stages changed and re-run: how long until the
-    # stage shows its new result (the stages are published one by one as they finish).
-    times = {
-        "arcs (6 Arcs shown)": _rerun_seconds(page, "6 Arcs", "min points", 25, "6 Arcs"),
-        "fits (7 Fits shown)": _rerun_seconds(page, "7 Fits", "min arc (deg)", 40, "7 Fits"),
-        "evaluation (10 Result shown)": _rerun_seconds(page, "10 Result", "layer spacing (m)", 0.16, "10 Result"),
-    }
-    print("re-run after a parameter change, seen in the browser: "
-          + ", ".join(f"{k} {v:.2f} s" for k, v in times.items()))
-    _wait_all_done(page)
-    lap("arcs, fits and evaluation parameters changed and re-run")
-
     # Change a fine-stage parameter and re-run: only fine and evaluation run again.
     _go(page, "8 Fine")
     expect(page.get_by_role("heading", name=re.compile("^8 Fine"))).to_be_visible()
     _set_number(page, "max iterations", 2)
-    expect(page.get_by_text(re.compile("Parameters changed: 8 Fine, 10 Result must re-run"))).to_be_visible(timeout=10_000)
+    expect(page.get_by_text(re.compile("Parameters changed: 8 Fine, 10 Result must re-run"))).to_be_visible(timeout=60_000)
     t0 = time.perf_counter()
     page.get_by_role("button", name="Run", exact=True).click()
     expect(page.get_by_text(re.compile(r"Ran 8 Fine, 10 Result in [\d.]+ s"))).to_be_visible(timeout=60_000)
@@ -277,7 +242,7 @@ def test_walk_through_the_demo(served, browser):
     chooser.value.set_files(files=[{"name": "broken.ply", "mimeType": "application/octet-stream",
                                     "buffer": b"ply\nformat ascii 1.0\nelement vertex 3\nend_header\n1 2\n"}])
     # The message names the file the user picked (not the temporary copy the server read).
-    expect(page.get_by_text(re.compile("Upload rejected — broken.ply: "))).to_be_visible(timeout=15_000)
+    expect(page.get_by_text(re.compile("Upload rejected — broken.ply: "))).to_be_visible(timeout=60_000)
     assert "treereg-upload-" not in page.evaluate("() => document.body.innerText")
     expect(page.get_by_label(re.compile("^4: "))).to_have_count(0)
     _wait_all_done(page, 5_000)  # every stage is still done
@@ -285,7 +250,7 @@ def test_walk_through_the_demo(served, browser):
 
     # Exports: one click starts each download (no link to click in a notification).
     page.get_by_role("tab", name="Files").click()
-    with page.expect_download(timeout=20_000) as dl:
+    with page.expect_download(timeout=60_000) as dl:
         page.get_by_role("button", name="Download transforms.json").click()
     data = Path(dl.value.path()).read_bytes()
     saved = out_dir / "downloaded_transforms.json"
@@ -358,7 +323,7 @@ def test_cross_section_and_fits_views(served, browser):
     _wait_all_done(page)
     _go(page, "8 Fine")
     _choose(page, "Show", "Cross-section")
-    expect(page.get_by_role("heading", name=re.compile("^Cross-section at z = "))).to_be_visible(timeout=20_000)
+    expect(page.get_by_role("heading", name=re.compile("^Cross-section at z = "))).to_be_visible(timeout=60_000)
     text = page.evaluate("() => document.body.innerText")
     assert re.search(r"Coarse: separate arcs", text) and re.search(r"Fine: one ring", text), text[:2000]
     _settle(page)
@@ -368,7 +333,7 @@ def test_cross_section_and_fits_views(served, browser):
     masks = {}
     for pose in ("Coarse", "Fine"):
         _choose(page, "Registration", pose)
-        expect(page.locator(".gtitle, .annotation-text").filter(has_text=re.compile(f"^{pose} ·"))).to_have_count(1, timeout=15_000)
+        expect(page.locator(".gtitle, .annotation-text").filter(has_text=re.compile(f"^{pose} ·"))).to_have_count(1, timeout=60_000)
         img = _plot(page, 0)
         masks[pose] = [(np.abs(img.astype(int) - np.array(scan_color(i))).max(axis=-1) < 30) for i in range(3)]
         for i in range(3):
@@ -383,13 +348,13 @@ def test_cross_section_and_fits_views(served, browser):
 
     # The fits view: rejected fits hidden by default; shown, none drawn larger than a tree's section.
     _go(page, "7 Fits")
-    expect(page.get_by_role("heading", name=re.compile("^7 Fits"))).to_be_visible(timeout=20_000)
-    page.wait_for_function("() => !!window.__viserMutable.nodeRefFromName['/sections/ref_fits']", timeout=20_000)
+    expect(page.get_by_role("heading", name=re.compile("^7 Fits"))).to_be_visible(timeout=60_000)
+    page.wait_for_function("() => !!window.__viserMutable.nodeRefFromName['/sections/ref_fits']", timeout=60_000)
     nodes = page.evaluate("() => Object.keys(window.__viserMutable.nodeRefFromName)")
     assert not any(n.endswith("_rejected") for n in nodes)  # hidden by default
     page.get_by_label("Show rejected fits", exact=True).check()
     page.wait_for_function("() => Object.keys(window.__viserMutable.nodeRefFromName).some(n => n.endsWith('_rejected'))",
-                           timeout=20_000)
+                           timeout=60_000)
     # Every drawn fit lies within the sliced points it was fitted to, give or take half a metre (a
     # circle of 51 m or 3.8 km fitted to a nearly straight arc would reach far beyond them).
     names = page.evaluate("() => Object.keys(window.__viserMutable.nodeRefFromName)")
@@ -417,20 +382,20 @@ def test_two_tabs_keep_their_own_stage_and_follow_a_presenter(served, browser):
     ctx2, page2, _ = _open(browser, url, scene=False)
     lap("two tabs open")
     _go(page1, "4 Coarse")
-    expect(page1.get_by_role("heading", name=re.compile("^4 Coarse"))).to_be_visible(timeout=10_000)
+    expect(page1.get_by_role("heading", name=re.compile("^4 Coarse"))).to_be_visible(timeout=60_000)
     page2.wait_for_timeout(500)
     expect(page2.get_by_label("Stage", exact=True)).to_have_value("1 Scans")  # its own stage
     _go(page2, "6 Arcs")
-    expect(page2.get_by_role("heading", name=re.compile("^6 Arcs"))).to_be_visible(timeout=10_000)
+    expect(page2.get_by_role("heading", name=re.compile("^6 Arcs"))).to_be_visible(timeout=60_000)
     expect(page1.get_by_label("Stage", exact=True)).to_have_value("4 Coarse")
     lap("each tab on its own stage")
     # Tab 1 presents: tab 2 follows its stage until it unticks "Follow the presenter".
     page1.get_by_role("tab", name="Teach").click()
     page1.get_by_label("Others follow me", exact=True).check()
-    expect(page2.get_by_label("Stage", exact=True)).to_have_value("4 Coarse", timeout=10_000)
+    expect(page2.get_by_label("Stage", exact=True)).to_have_value("4 Coarse", timeout=60_000)
     expect(page2.get_by_label("Follow the presenter", exact=True)).to_be_checked()
     page1.get_by_role("button", name="Next", exact=True).click()
-    expect(page2.get_by_label("Stage", exact=True)).to_have_value("5 Slices", timeout=10_000)
+    expect(page2.get_by_label("Stage", exact=True)).to_have_value("5 Slices", timeout=60_000)
     # The camera follows too: tab 1 frames its view elsewhere, tab 2's camera goes there.
     cam = "() => window.__viserMutable.camera.position.toArray()"
     before = np.array(page2.evaluate(cam))
@@ -440,7 +405,7 @@ def test_two_tabs_keep_their_own_stage_and_follow_a_presenter(served, browser):
     page1.mouse.move(box["x"] + box["width"] / 2 + 120, box["y"] + box["height"] / 2 + 30, steps=8)
     page1.mouse.up()
     page2.wait_for_function(f"(b) => {{ const p = ({cam})(); return Math.hypot(p[0]-b[0], p[1]-b[1], p[2]-b[2]) > 0.5; }}",
-                            arg=before.tolist(), timeout=10_000)
+                            arg=before.tolist(), timeout=60_000)
     np.testing.assert_allclose(page2.evaluate(cam), page1.evaluate(cam), atol=0.05)
     page2.get_by_label("Follow the presenter", exact=True).uncheck()
     page1.get_by_role("button", name="Next", exact=True).click()
@@ -463,12 +428,12 @@ def test_the_tour_walks_the_stages(served, browser):
     page.get_by_role("button", name="Start the tour", exact=True).click()
     for k, (stage, title) in enumerate((("1 Scans", "One tree, several stations"), ("2 Projection", "Rotating projection"),
                                         ("3 Matching", "Matching the most similar views"))):
-        expect(page.get_by_role("heading", name=re.compile(f"Tour · step {k + 1} of \\d+: {title}"))).to_be_visible(timeout=20_000)
+        expect(page.get_by_role("heading", name=re.compile(f"Tour · step {k + 1} of \\d+: {title}"))).to_be_visible(timeout=60_000)
         expect(page.get_by_label("Stage", exact=True)).to_have_value(stage)
         expect(page.get_by_text("Try:", exact=False).first).to_be_visible()
         _screenshot(page, f"tour_step{k + 1}")
         page.get_by_role("button", name="Next ▶", exact=True).click()
-    expect(page.get_by_role("heading", name=re.compile("Tour · step 4 of"))).to_be_visible(timeout=20_000)
+    expect(page.get_by_role("heading", name=re.compile("Tour · step 4 of"))).to_be_visible(timeout=60_000)
     page.get_by_role("button", name="End tour", exact=True).click()
     expect(page.get_by_role("heading", name=re.compile("Tour · step"))).to_have_count(0)
     context.close()

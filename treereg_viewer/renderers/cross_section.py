@@ -19,7 +19,6 @@ from typing import Any
 
 import numpy as np
 import plotly.graph_objects as go
-from plotly.subplots import make_subplots
 
 from treereg_core.evaluate.cross_section import CrossSection, ScanCut
 
@@ -32,6 +31,8 @@ from .fine import SPAN_FACTOR, SPAN_SLACK_M
 
 #: Registrations as people read them.
 POSE_TITLES = {"coarse": "Coarse", "fine": "Fine", "icp": "ICP"}
+#: Categorical colours (palette indices) for arcs other than a slab's largest: none of the scans' colours.
+OTHER_ARCS = (1, 4, 5, 6, 7, 8, 9)
 #: Target centres within this distance of the reference's: the sections make one ring.
 RING_M = 0.005
 
@@ -70,57 +71,86 @@ def drawable(sc: ScanCut, k: int) -> bool:
     return bool(np.any(sc.labels == k)) and 2.0 * s.radius_m <= SPAN_FACTOR * span + SPAN_SLACK_M
 
 
+def _grid(rows: int, cols: int, titles: list[str], hgap: float = 0.08, vgap: float = 0.12) -> tuple[dict, list[tuple[str, str]]]:
+    """A plotly layout with a rows x cols grid of axes and a title over each cell; returns the layout
+    and each cell's (x axis, y axis) names, row by row. Plain dicts: plotly's `make_subplots` and
+    validated figures cost ten times more, and the inspector redraws as its slider moves."""
+    layout: dict[str, Any] = {"annotations": []}
+    w = (1.0 - hgap * (cols - 1)) / cols
+    h = (1.0 - vgap * (rows - 1)) / rows
+    cells = []
+    for r in range(rows):
+        for c in range(cols):
+            k = r * cols + c + 1
+            x, y = ("x", "y") if k == 1 else (f"x{k}", f"y{k}")
+            x0, y1 = c * (w + hgap), 1.0 - r * (h + vgap)
+            layout["xaxis" if k == 1 else f"xaxis{k}"] = {"domain": [x0, x0 + w], "anchor": y}
+            layout["yaxis" if k == 1 else f"yaxis{k}"] = {"domain": [y1 - h, y1], "anchor": x}
+            cells.append((x, y))
+            if titles:
+                layout["annotations"].append({"text": titles[k - 1], "x": x0 + w / 2, "y": y1, "xref": "paper",
+                                              "yref": "paper", "xanchor": "center", "yanchor": "bottom",
+                                              "showarrow": False, "font": {"size": 12}})
+    return layout, cells
+
+
+def _axis(layout: dict, name: str) -> dict:
+    return layout["xaxis" if name == "x" else f"xaxis{name[1:]}"] if name.startswith("x") else \
+        layout["yaxis" if name == "y" else f"yaxis{name[1:]}"]
+
+
+def _figure(traces: list[dict], layout: dict) -> go.Figure:
+    return go.Figure({"data": traces, "layout": layout}, _validate=False)
+
+
 def top_view_figure(cs: CrossSection, snap: Snapshot, layers: list[int], show_rejected: bool) -> go.Figure:
     """Subplots: one column per registration, one row per layer; every scan in its colour."""
-    poses = [pc for pc in cs.poses]
+    poses = list(cs.poses)
     rows, cols = len(layers), len(poses)
     titles = [f"{POSE_TITLES.get(pc.pose, pc.pose)} · z = {cs.heights_m[lay]:.2f} m" for lay in layers for pc in poses]
-    fig = make_subplots(rows=rows, cols=cols, subplot_titles=titles, horizontal_spacing=0.08,
-                        vertical_spacing=0.12 / max(rows, 1) + 0.04)
+    layout, cells = _grid(rows, cols, titles, hgap=0.1, vgap=0.14 / max(rows, 1) + 0.04)
     half = max(_extent(cs, lay) for lay in layers)
     cm = half < 0.6  # centimetres read better on a stem; metres across a crown
     unit, f = ("cm", 100.0) if cm else ("m", 1.0)
+    traces: list[dict] = []
     shown_names: set[str] = set()
-    for r, lay in enumerate(layers, start=1):
+    for r, lay in enumerate(layers):
         c0 = _centre(cs, lay)
-        for c, pc in enumerate(poses, start=1):
+        for c, pc in enumerate(poses):
+            xa, ya = cells[r * cols + c]
             for sc in pc.layers[lay].scans:
                 color = hex_color(scan_color(sc.index))
                 uv = (sc.uv - c0) * f
                 first = sc.scan not in shown_names
                 shown_names.add(sc.scan)
-                fig.add_trace(go.Scattergl(
-                    x=uv[:, 0], y=uv[:, 1], mode="markers", name=f"{sc.index + 1}: {sc.scan}", legendgroup=sc.scan,
-                    showlegend=first, marker=dict(size=3, color=color),
-                    hovertemplate=f"{sc.scan}<extra></extra>"), row=r, col=c)
+                traces.append(dict(type="scattergl", x=uv[:, 0], y=uv[:, 1], mode="markers", xaxis=xa, yaxis=ya,
+                                   name=f"{sc.index + 1}: {sc.scan}", legendgroup=sc.scan, showlegend=first,
+                                   marker=dict(size=3, color=color), hovertemplate=f"{sc.scan}<extra></extra>"))
                 for k, s in enumerate(sc.sections):
                     if not drawable(sc, k) or not (s.plausible or show_rejected):
                         continue
                     cu, cv = (cs.to_uv(s.centre_m)[0] - c0) * f
                     x, y = _circle(cu, cv, s.radius_m * f)
-                    fig.add_trace(go.Scatter(
-                        x=x, y=y, mode="lines", legendgroup=sc.scan, showlegend=False, hoverinfo="skip",
-                        line=dict(color=color if s.plausible else hex_color(GREY), width=2,
-                                  dash="solid" if s.plausible else "dot")), row=r, col=c)
+                    traces.append(dict(type="scatter", x=x, y=y, mode="lines", xaxis=xa, yaxis=ya, legendgroup=sc.scan,
+                                       showlegend=False, hoverinfo="skip",
+                                       line=dict(color=color if s.plausible else hex_color(GREY), width=2,
+                                                 dash="solid" if s.plausible else "dot")))
                     if s.plausible:
-                        fig.add_trace(go.Scatter(
-                            x=[cu], y=[cv], mode="markers", legendgroup=sc.scan, showlegend=False,
-                            marker=dict(symbol="x-thin", size=11, color=color, line=dict(width=2, color=color)),
-                            hovertemplate=f"{sc.scan}: centre, r = {s.radius_m * 100:.1f} cm<extra></extra>"),
-                            row=r, col=c)
-            ax = (r - 1) * cols + c
-            fig.update_xaxes(range=[-half * f, half * f], row=r, col=c, title_text=f"x ({unit})" if r == rows else None,
-                             matches="x" if ax > 1 else None, zeroline=False)
-            fig.update_yaxes(range=[-half * f, half * f], row=r, col=c, scaleanchor=f"x{'' if ax == 1 else ax}",
-                             scaleratio=1, title_text=f"y ({unit})" if c == 1 else None, zeroline=False,
-                             matches="y" if ax > 1 else None)
-    fig.update_layout(margin=dict(l=45, r=8, t=28, b=62), legend=dict(orientation="h", y=-0.1 if rows == 1 else -0.04,
-                      yanchor="top", x=0.5, xanchor="center", font=dict(size=11)), plot_bgcolor="white",
-                      font=dict(size=11))
-    fig.update_annotations(font_size=12)
-    fig.update_xaxes(showgrid=True, gridcolor="#e8e8e8")
-    fig.update_yaxes(showgrid=True, gridcolor="#e8e8e8")
-    return fig
+                        traces.append(dict(type="scatter", x=[cu], y=[cv], mode="markers", xaxis=xa, yaxis=ya,
+                                           legendgroup=sc.scan, showlegend=False,
+                                           marker=dict(symbol="x-thin", size=11, color=color, line=dict(width=2, color=color)),
+                                           hovertemplate=f"{sc.scan}: centre, r = {s.radius_m * 100:.1f} cm<extra></extra>"))
+            ax, ay = _axis(layout, xa), _axis(layout, ya)
+            ax.update(range=[-half * f, half * f], zeroline=False, showgrid=True, gridcolor="#e8e8e8",
+                      title=dict(text=f"x ({unit})") if r == rows - 1 else None)
+            ay.update(range=[-half * f, half * f], zeroline=False, showgrid=True, gridcolor="#e8e8e8",
+                      scaleanchor=xa, scaleratio=1, title=dict(text=f"y ({unit})") if c == 0 else None)
+            if (xa, ya) != ("x", "y"):
+                ax["matches"], ay["matches"] = "x", "y"
+    layout.update(margin=dict(l=45, r=8, t=28, b=78), plot_bgcolor="white", font=dict(size=11),
+                  legend=dict(orientation="h", y=-0.2 if rows == 1 else -0.08, yanchor="top", x=0.5, xanchor="center",
+                              font=dict(size=11)))
+    return _figure(traces, layout)
 
 
 def ring_figure(cs: CrossSection, layer: int) -> go.Figure | None:
@@ -131,28 +161,30 @@ def ring_figure(cs: CrossSection, layer: int) -> go.Figure | None:
     profiles = [(pose, r) for pose, r in profiles if r is not None]
     if not profiles:
         return None
-    fig = make_subplots(rows=1, cols=len(profiles), shared_yaxes=True, horizontal_spacing=0.06,
-                        subplot_titles=[POSE_TITLES.get(pose, pose) for pose, _ in profiles])
+    layout, cells = _grid(1, len(profiles), [POSE_TITLES.get(pose, pose) for pose, _ in profiles], hgap=0.06)
+    traces: list[dict] = []
     top = 0.0
-    for c, (pose, ring) in enumerate(profiles, start=1):
-        pc = cs.pose(pose)
-        for sc in pc.layers[layer].scans:
+    for c, (pose, ring) in enumerate(profiles):
+        xa, ya = cells[c]
+        for sc in cs.pose(pose).layers[layer].scans:
             a, d = ring.angle_deg.get(sc.scan), ring.offset_m.get(sc.scan)
             if a is None or not len(a):
                 continue
             top = max(top, float(np.percentile(np.abs(d), 98)))
-            fig.add_trace(go.Scattergl(x=a, y=d * 1000.0, mode="markers", showlegend=False,
-                                       marker=dict(size=3, color=hex_color(scan_color(sc.index))),
-                                       hovertemplate=f"{sc.scan}: %{{y:.1f}} mm<extra></extra>"), row=1, col=c)
-        fig.update_xaxes(range=[-180, 180], tickvals=[-180, -90, 0, 90, 180], row=1, col=c,
-                         title_text="angle around scan 1's centre (°)" if c == (len(profiles) + 1) // 2 else None)
+            traces.append(dict(type="scattergl", x=a, y=d * 1000.0, mode="markers", xaxis=xa, yaxis=ya, showlegend=False,
+                               marker=dict(size=3, color=hex_color(scan_color(sc.index))),
+                               hovertemplate=f"{sc.scan}: %{{y:.1f}} mm<extra></extra>"))
+        _axis(layout, xa).update(range=[-180, 180], tickvals=[-180, -90, 0, 90, 180],
+                                 title=dict(text="angle around scan 1's centre (°)") if c == (len(profiles) - 1) // 2 else None)
     lim = max(10.0, min(top * 1000.0 * 1.2, 100.0))
-    fig.update_yaxes(range=[-lim, lim], title_text="off scan 1's circle (mm)", row=1, col=1, zeroline=True,
-                     zerolinecolor="#999")
-    fig.update_layout(margin=dict(l=50, r=8, t=28, b=40), plot_bgcolor="white", font=dict(size=11))
-    fig.update_annotations(font_size=12)
-    fig.update_yaxes(showgrid=True, gridcolor="#e8e8e8")
-    return fig
+    for c in range(len(profiles)):
+        ay = _axis(layout, cells[c][1])
+        ay.update(range=[-lim, lim], zeroline=True, zerolinecolor="#999", showgrid=True, gridcolor="#e8e8e8",
+                  showticklabels=c == 0, title=dict(text="off scan 1's circle (mm)") if c == 0 else None)
+        if c:
+            ay["matches"] = "y"
+    layout.update(margin=dict(l=50, r=8, t=28, b=40), plot_bgcolor="white", font=dict(size=11), showlegend=False)
+    return _figure(traces, layout)
 
 
 def raster_figure(cs: CrossSection, pose: str, layer: int) -> go.Figure | None:
@@ -163,22 +195,25 @@ def raster_figure(cs: CrossSection, pose: str, layer: int) -> go.Figure | None:
     cuts = [sc for sc in pc.layers[layer].scans if len(sc.cells)]
     if not cuts:
         return None
-    fig = make_subplots(rows=1, cols=len(cuts), horizontal_spacing=0.05,
-                        subplot_titles=[f"{sc.index + 1}: {sc.scan} · {plural(sc.n_arcs, 'arc')}" for sc in cuts])
-    for c, sc in enumerate(cuts, start=1):
+    layout, cells = _grid(1, len(cuts), [f"{sc.index + 1}: {sc.scan} · {plural(sc.n_arcs, 'arc')}" for sc in cuts],
+                          hgap=0.05)
+    traces: list[dict] = []
+    for c, sc in enumerate(cuts):
+        xa, ya = cells[c]
         labels = np.asarray(sc.labels)
-        colors = np.where(labels[:, None] >= 0, CATEGORICAL[np.mod(labels, len(CATEGORICAL))], np.array(GREY))
-        fig.add_trace(go.Scattergl(
-            x=sc.cells[:, 0], y=sc.cells[:, 1], mode="markers", showlegend=False,
-            marker=dict(symbol="square", size=5, color=[hex_color(tuple(int(v) for v in row)) for row in colors]),
-            text=[f"arc {lab + 1}" if lab >= 0 else "too small for an arc" for lab in labels],
-            hovertemplate="%{text}<extra></extra>"), row=1, col=c)
-        fig.update_xaxes(title_text="α (steps)", row=1, col=c, autorange="reversed")  # as seen from the scanner
-        fig.update_yaxes(title_text="β (steps)" if c == 1 else None, row=1, col=c,
-                         scaleanchor=f"x{'' if c == 1 else c}", scaleratio=1)
-    fig.update_layout(margin=dict(l=45, r=8, t=28, b=40), plot_bgcolor="white", font=dict(size=11))
-    fig.update_annotations(font_size=12)
-    return fig
+        # The largest arc (the stem, usually) in its scan's colour; the others in colours no scan has.
+        others = CATEGORICAL[list(OTHER_ARCS)]
+        colors = np.where(labels[:, None] > 0, others[np.mod(labels - 1, len(others))], np.array(GREY))
+        colors[labels == 0] = scan_color(sc.index)
+        traces.append(dict(type="scattergl", x=sc.cells[:, 0], y=sc.cells[:, 1], mode="markers", xaxis=xa, yaxis=ya,
+                           showlegend=False,
+                           marker=dict(symbol="square", size=5, color=[hex_color(tuple(int(v) for v in row)) for row in colors]),
+                           text=[f"arc {lab + 1}" if lab >= 0 else "too small for an arc" for lab in labels],
+                           hovertemplate="%{text}<extra></extra>"))
+        _axis(layout, xa).update(title=dict(text="α (steps)"), autorange="reversed")  # as seen from the scanner
+        _axis(layout, ya).update(title=dict(text="β (steps)") if c == 0 else None, scaleanchor=xa, scaleratio=1)
+    layout.update(margin=dict(l=45, r=8, t=28, b=40), plot_bgcolor="white", font=dict(size=11), showlegend=False)
+    return _figure(traces, layout)
 
 
 def _main(sc: ScanCut) -> int | None:
@@ -263,7 +298,8 @@ def render(snap: Snapshot, view: ViewState, cs: CrossSection | None, branch: Any
              "Middle: the same points unrolled along scan 1's circle, their distance from it against the angle "
              "around its centre: a few millimetres show here. Bottom: each scan's slab at the "
              f"{POSE_TITLES.get(last, last).lower()} pose in its own angular grid (one cell per angular step), "
-             "coloured by arc: cells within c steps form one arc (paper Fig. 6).")
+             "coloured by arc (the largest in its scan's colour, grey: too small for an arc): cells within c steps "
+             "form one arc (paper Fig. 6).")
     if branch is None:
         notes += (f" The table checks each scan's main section against the part "
                   f"{abs(cs.heights_m[1] - cs.heights_m[0]) * 100:.0f} cm below (paper 4.2: no wider than it).")

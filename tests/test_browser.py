@@ -355,12 +355,12 @@ def test_cross_section_and_fits_views(served, browser):
     page.get_by_label("Show rejected fits", exact=True).check()
     page.wait_for_function("() => Object.keys(window.__viserMutable.nodeRefFromName).some(n => n.endsWith('_rejected'))",
                            timeout=60_000)
-    # Every drawn fit lies within the sliced points it was fitted to, give or take half a metre (a
-    # circle of 51 m or 3.8 km fitted to a nearly straight arc would reach far beyond them).
+    # Every drawn fit lies within the sliced points it was fitted to, give or take a metre (a circle
+    # of 51 m or 3.8 km fitted to a nearly straight arc would reach far beyond them).
     names = page.evaluate("() => Object.keys(window.__viserMutable.nodeRefFromName)")
     sliced = [np.array(page.evaluate(_NODE_SIZE, n)) for n in names if re.fullmatch(r"/sections/(ref|tgt)\d+", n)]
-    lo = np.min([b[0] for b in sliced], axis=0) - 0.5
-    hi = np.max([b[1] for b in sliced], axis=0) + 0.5
+    lo = np.min([b[0] for b in sliced], axis=0) - 1.0
+    hi = np.max([b[1] for b in sliced], axis=0) + 1.0
     drawn = 0
     for name in ("/sections/ref_fits", "/sections/tgt_fits", "/sections/ref_rejected", "/sections/tgt_rejected"):
         box = page.evaluate(_NODE_SIZE, name)

@@ -615,12 +615,12 @@ def test_fits_hide_rejected_ones_and_never_draw_one_larger_than_its_slice(env):
     app.set_view(show_rejected=True)
     _idle(app)
     assert any(n.endswith("_rejected") for n in _nodes(server))
-    # Every drawn fit lies within the sliced points it was fitted to (give or take half a metre): a
-    # circle of 51 m or 3.8 km fitted to a nearly straight arc would reach far beyond them.
+    # Every drawn fit lies within the sliced points it was fitted to (give or take a metre): a circle
+    # of 51 m or 3.8 km fitted to a nearly straight arc would reach far beyond them.
     handles = server.scene._handle_from_node_name
     sliced = np.concatenate([np.asarray(h.points, float) for n, h in handles.items()
                              if n.startswith(("/sections/ref", "/sections/tgt")) and n[-1].isdigit()])
-    lo, hi = sliced.min(axis=0) - 0.5, sliced.max(axis=0) + 0.5
+    lo, hi = sliced.min(axis=0) - 1.0, sliced.max(axis=0) + 1.0
     drawn = 0
     for name in ("/sections/ref_fits", "/sections/tgt_fits", "/sections/ref_rejected", "/sections/tgt_rejected"):
         h = handles.get(name)

@@ -24,6 +24,18 @@ from .view_state import SECTION_POSES, ViewState
 #: At most this many images and plots per stage.
 MAX_IMAGES = 2
 MAX_PLOTS = 3
+#: Tables in the panel: a little room between columns, and a horizontal scrollbar when a table is
+#: wider than the panel (several targets) instead of clipped columns.
+TABLE_CSS = ("<style>.treereg-tables {overflow-x: auto; max-width: 100%;} "
+             ".treereg-tables td, .treereg-tables th {padding: 2px 10px 2px 0 !important; white-space: nowrap;} "
+             ".treereg-tables td:last-child {white-space: normal;}</style>")
+
+
+def scrolling(markdown: str) -> str:
+    """Markdown whose tables scroll sideways in the panel rather than clip (see `TABLE_CSS`)."""
+    return f'<div class="treereg-tables">\n\n{markdown}\n\n</div>' if "|" in markdown else markdown
+
+
 #: The switch's two faces.
 MODES = {"Stage details": "stage", "Cross-section": "section"}
 STEM = "Stem (pick a height)"
@@ -75,6 +87,7 @@ class ViewPanel:
                                          hint="Height of the slab (reference frame). Or click the tree in 3-D.")
             self.poses = gui.add_dropdown("Registration", tuple(SECTION_POSES), initial_value="Coarse and fine",
                                           order=0.3, visible=False, hint="Which registrations to cut, side by side.")
+            gui.add_markdown(TABLE_CSS, order=0.05)
             self._title = gui.add_markdown("### Scans", order=1)
             self._text = gui.add_markdown("", order=2)
             blank = np.full((8, 8, 3), 255, np.uint8)
@@ -153,7 +166,7 @@ class ViewPanel:
     def show(self, content: PanelContent) -> None:
         """Replace the panel's content (call inside the viewer's `atomic()` with the scene updates)."""
         self._title.content = f"### {content.title}"
-        self._text.content = content.text
+        self._text.content = scrolling(content.text)
         for k, (cap, img) in enumerate(zip(self._captions, self._images)):
             if k < len(content.images):
                 arr, caption = content.images[k]
@@ -174,7 +187,7 @@ class ViewPanel:
                 plot.visible = True
             else:
                 plot.visible = False
-        self._table.content = content.table
+        self._table.content = scrolling(content.table)
 
     @property
     def images(self) -> list[Any]:

@@ -27,7 +27,7 @@ from ..palette import CATEGORICAL, GREY, hex_color, scan_color
 from ..view_panel import PanelContent
 from ..view_state import ViewState
 from .common import md_table, plural
-from .fine import SPAN_FACTOR, SPAN_SLACK_M
+from .fine import within
 
 #: Registrations as people read them.
 POSE_TITLES = {"coarse": "Coarse", "fine": "Fine", "icp": "ICP"}
@@ -61,14 +61,21 @@ def _centre(cs: CrossSection, layer: int) -> np.ndarray:
     return (lo + hi) / 2.0
 
 
-def drawable(sc: ScanCut, k: int) -> bool:
-    """A fit is drawn only when it is no larger than the slab it came from (a 3 km circle fitted to
-    a straight arc would hide everything)."""
+def drawable(cs: CrossSection, box: tuple[np.ndarray, np.ndarray], sc: ScanCut, k: int) -> bool:
+    """A fit is drawn only when it stays within the slab it came from (`box`: the slab's points of
+    every scan, section-plane coordinates): a 3 km circle fitted to a straight arc would hide everything."""
     s = sc.sections[k]
-    if not (np.isfinite(s.radius_m) and s.radius_m > 0):
+    if not (np.isfinite(s.radius_m) and s.radius_m > 0 and np.any(sc.labels == k)):
         return False
-    span = float(np.ptp(sc.uv, axis=0).max()) if len(sc.uv) else 0.0
-    return bool(np.any(sc.labels == k)) and 2.0 * s.radius_m <= SPAN_FACTOR * span + SPAN_SLACK_M
+    return within(cs.to_uv(s.centre_m)[0], s.radius_m, *box)
+
+
+def _box(layer_scans: Any) -> tuple[np.ndarray, np.ndarray]:
+    uv = [sc.uv for sc in layer_scans if len(sc.uv)]
+    if not uv:
+        return np.zeros(2), np.zeros(2)
+    allp = np.concatenate(uv)
+    return allp.min(axis=0), allp.max(axis=0)
 
 
 def _grid(rows: int, cols: int, titles: list[str], hgap: float = 0.08, vgap: float = 0.12) -> tuple[dict, list[tuple[str, str]]]:
@@ -118,6 +125,7 @@ def top_view_figure(cs: CrossSection, snap: Snapshot, layers: list[int], show_re
         c0 = _centre(cs, lay)
         for c, pc in enumerate(poses):
             xa, ya = cells[r * cols + c]
+            box = _box(pc.layers[lay].scans)
             for sc in pc.layers[lay].scans:
                 color = hex_color(scan_color(sc.index))
                 uv = (sc.uv - c0) * f
@@ -127,7 +135,7 @@ def top_view_figure(cs: CrossSection, snap: Snapshot, layers: list[int], show_re
                                    name=f"{sc.index + 1}: {sc.scan}", legendgroup=sc.scan, showlegend=first,
                                    marker=dict(size=3, color=color), hovertemplate=f"{sc.scan}<extra></extra>"))
                 for k, s in enumerate(sc.sections):
-                    if not drawable(sc, k) or not (s.plausible or show_rejected):
+                    if not drawable(cs, box, sc, k) or not (s.plausible or show_rejected):
                         continue
                     cu, cv = (cs.to_uv(s.centre_m)[0] - c0) * f
                     x, y = _circle(cu, cv, s.radius_m * f)

@@ -128,7 +128,7 @@ class FitRow:
     scan: str
     scan_index: int  # 0 = reference
     section: Any
-    slice_span_m: float  # the horizontal extent of that slice's points (both scans)
+    slice_box: tuple[tuple[float, float], tuple[float, float]]  # (min x, min y), (max x, max y) of that slice's points
 
     @property
     def label(self) -> str:
@@ -136,23 +136,26 @@ class FitRow:
         return f"#{self.number}: {self.scan}, slice {s.slice_index + 1}, {s.kind}, r = {s.radius_m * 100:.1f} cm"
 
 
-def _span(points: np.ndarray) -> float:
-    return float(np.ptp(points[:, :2], axis=0).max()) if len(points) else 0.0
+def _box(points: np.ndarray) -> tuple[tuple[float, float], tuple[float, float]]:
+    if not len(points):
+        return (0.0, 0.0), (0.0, 0.0)
+    lo, hi = points[:, :2].min(axis=0), points[:, :2].max(axis=0)
+    return (float(lo[0]), float(lo[1])), (float(hi[0]), float(hi[1]))
 
 
 def fit_rows(snap: Snapshot, t: int, sl: SliceResult, sec: SectionsResult, ref: Any, tgt: Any,
              show_rejected: bool) -> tuple[list[FitRow], int]:
     """The fits worth listing, accepted first (then rejected, when asked), each by slice and radius;
     and how many arcs have no fit to show (too few points, failed, or skipped: no NaN rows)."""
-    spans: dict[int, float] = {}  # per slice: the horizontal extent of both scans' points in it
+    boxes: dict[int, Any] = {}  # per slice: the horizontal extent of both scans' points in it
 
-    def span(k: int) -> float:
-        if k not in spans:
+    def box(k: int) -> Any:
+        if k not in boxes:
             parts = [ref.points[sl.ref_indices[k]]] if k < len(sl.ref_indices) else []
             if k < len(sl.tgt_indices) and len(sl.tgt_indices[k]):
                 parts.append(apply_transform(sec.T_ref_target, tgt.points[sl.tgt_indices[k]]))
-            spans[k] = _span(np.concatenate(parts)) if parts else 0.0
-        return spans[k]
+            boxes[k] = _box(np.concatenate(parts)) if parts else _box(np.empty((0, 3)))
+        return boxes[k]
 
     rows: list[FitRow] = []
     hidden = 0
@@ -164,21 +167,30 @@ def fit_rows(snap: Snapshot, t: int, sl: SliceResult, sec: SectionsResult, ref: 
                     continue
                 if not plausible and not show_rejected:
                     continue
-                rows.append(FitRow(0, snap.scans[i].name, i, s, span(s.slice_index)))
-    rows = [FitRow(k + 1, r.scan, r.scan_index, r.section, r.slice_span_m) for k, r in enumerate(rows)]
+                rows.append(FitRow(0, snap.scans[i].name, i, s, box(s.slice_index)))
+    rows = [FitRow(k + 1, r.scan, r.scan_index, r.section, r.slice_box) for k, r in enumerate(rows)]
     return rows, hidden
 
 
-#: A fit is drawn when its diameter is at most this many times its slice's extent (plus `SPAN_SLACK_M`):
-#: the scans see only part of a stem, so a true section can be a little wider than its points.
-SPAN_FACTOR = 1.25
-SPAN_SLACK_M = 0.05
+#: A fit is drawn only when its circle stays within its slice's points, give or take this fraction
+#: of the slice's extent plus `SLACK_M`: the scans see only part of a stem, so a true section may
+#: reach a little beyond its points; a circle of metres fitted to a nearly straight arc does not.
+SLACK_FRACTION = 0.1
+SLACK_M = 0.05
+
+
+def within(centre_xy: np.ndarray, radius_m: float, lo: np.ndarray, hi: np.ndarray) -> bool:
+    """Whether a circle lies within the box lo..hi widened by the slack."""
+    pad = SLACK_FRACTION * float(np.max(hi - lo)) + SLACK_M
+    c = np.asarray(centre_xy, dtype=float)
+    return bool(radius_m > 0 and np.all(c - radius_m >= lo - pad) and np.all(c + radius_m <= hi + pad))
 
 
 def drawable(row: FitRow) -> bool:
     """A fit is drawn only when it is no larger than the slice it came from: a circle fitted to an
     almost straight arc can have a radius of kilometres and would hide the tree."""
-    return 0 < 2.0 * row.section.radius_m <= SPAN_FACTOR * row.slice_span_m + SPAN_SLACK_M
+    lo, hi = (np.asarray(v, dtype=float) for v in row.slice_box)
+    return within(row.section.centre_m[:2], row.section.radius_m, lo, hi)
 
 
 def section_mesh(section: Any, thickness_m: float, grow: float = 1.0) -> trimesh.Trimesh:

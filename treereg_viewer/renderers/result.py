@@ -68,8 +68,8 @@ def branch_rings(scene: viser.SceneApi, root: str, ev: Any, color: tuple[int, in
     for b in rows:
         axis = np.asarray(b.axis, dtype=float)
         for c in b.ref_centres_m:
-            ring = trimesh.creation.annulus(r_min=b.radius_m * 1.15, r_max=b.radius_m * 1.15 + 0.012, height=0.01,
-                                            segment=np.stack([c - axis * 0.005, c + axis * 0.005]), sections=40)
+            ring = trimesh.creation.annulus(r_min=b.radius_m * 1.15, r_max=b.radius_m * 1.15 + 0.025, height=0.025,
+                                            segment=np.stack([c - axis * 0.0125, c + axis * 0.0125]), sections=40)
             faces.append(ring.faces + sum(len(v) for v in verts))
             verts.append(ring.vertices)
     ref = np.concatenate([b.ref_centres_m for b in rows]).astype(np.float32)

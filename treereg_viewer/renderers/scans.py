@@ -127,7 +127,7 @@ def draw_scan_layer(scene: viser.SceneApi, snap: Snapshot, view: ViewState,
         if see_through(view) and prep is not None and getattr(prep, "ok", False):
             # Gaussian splats blend: half-transparent discs of about the point size.
             n = len(idx)
-            sigma = view.point_size / 3.0
+            sigma = view.point_size  # world-sized: much smaller and a distant tree renders below a pixel
             rgb = np.broadcast_to(np.asarray(colors, np.float32).reshape(-1, 3) / 255.0, (n, 3))
             handles.append(scene.add_gaussian_splats(
                 f"{node}/points", centers=pts[idx].astype(np.float32),

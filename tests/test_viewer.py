@@ -673,13 +673,14 @@ def test_the_tour_sets_stage_and_panel_and_ends(env):
     v.tour_go(0)
     _idle(app)
     assert app.view.stage == "prepare" and v.tour.card.visible and "step 1 of" in v.tour.card.content
+    assert {"/tour/tree0", "/tour/tree1", "/tour/tree2"} <= _nodes(server)  # each station's tree named
     v.tour_go(7)  # the fine step: the cross-section, coarse and fine side by side
     _idle(app)
     assert app.view.stage == "fine" and app.view.panel == "section" and app.view.section_poses == "Coarse and fine"
     assert "/tour/label" in _nodes(server)
     v.tour.nav.value = "End tour"
     _idle(app)
-    assert not v.tour.card.visible and app.view.tour_step is None and "/tour/label" not in _nodes(server)
+    assert not v.tour.card.visible and app.view.tour_step is None and not any(n.startswith("/tour/") for n in _nodes(server))
     app.set_view(panel="stage")
     _idle(app)
 

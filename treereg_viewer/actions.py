@@ -45,3 +45,22 @@ class AppActions(Protocol):
     def load_params(self, params: Params, source: str, note: str = "") -> None: ...
 
     def send_file(self, client: Any, filename: str, data: bytes) -> None: ...
+
+
+class AppHost(Protocol):
+    """The shared app as a viewer sees it (`app.TreeregApp` implements it): the computation and its
+    caches, the exports folder, who presents, and the downloads."""
+
+    controller: Controller
+    out_dir: Path | None
+    derived: Any
+    server: Any
+    presenter: Any
+
+    def set_presenter(self, viewer: Any, on: bool) -> None: ...
+
+    def broadcast(self, presenter: Any) -> None: ...
+
+    def camera_moved(self, presenter: Any, cam: Any) -> None: ...
+
+    def send_file(self, client: Any, filename: str, data: bytes) -> None: ...

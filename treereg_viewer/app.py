@@ -99,8 +99,16 @@ class TreeregApp:
         if v is not None:
             v.close()
             if self.presenter is None:
-                for o in others:
-                    o.show_presenter(None)
+                self._tell(others, None)
+
+    @staticmethod
+    def _tell(viewers: list[Viewer], presenter: Viewer | None) -> None:
+        """Tell each viewer who presents now; a tab that is closing must not keep the others uninformed."""
+        for o in viewers:
+            try:
+                o.show_presenter(presenter)
+            except Exception:
+                log.exception("could not update a tab's presenter controls")
 
     @property
     def viewers(self) -> list[Viewer]:
@@ -124,15 +132,16 @@ class TreeregApp:
                 return
             presenter = self.presenter
             others = [v for v in self._viewers.values() if v is not viewer]
-        for v in others:
-            v.show_presenter(presenter)
-        viewer.show_presenter(presenter)
+        self._tell([*others, viewer], presenter)
 
     def broadcast(self, presenter: Viewer) -> None:
         """The presenter's view changed: its followers take it over."""
         for v in self.viewers:
             if v is not presenter and v.following:
-                v.follow(presenter)
+                try:
+                    v.follow(presenter)
+                except Exception:  # one closing tab must not stop the others following
+                    log.exception("a follower could not follow")
 
     def camera_moved(self, presenter: Viewer, cam: Any) -> None:
         for v in self.viewers:

@@ -33,7 +33,8 @@ class TourStep:
     camera
         "frame" (what the stage draws) or "trunk" (a close view of the trunk slice).
     highlight
-        What a label in 3-D points at: "scanners", "trunk" or "" (none).
+        What labels in 3-D point at: "trees" (each scan's tree), "trunk" (the cross-section's
+        slice) or "" (none).
     """
 
     stage: str
@@ -53,7 +54,7 @@ STEPS: tuple[TourStep, ...] = (
         "3, … onto scan 1, here from the tree itself instead of targets placed in the forest.",
         "Rotate the view with the mouse: the stations' trees stand apart. In the *Scans* tab, untick a scan to see "
         "what one station saw.",
-        view={"panel": "stage"}, highlight="scanners"),
+        view={"panel": "stage"}, highlight="trees"),
     TourStep(
         "projection", "Rotating projection",
         "Each scan is projected onto a sphere around its scanner into a binary image: a pixel is black when a point "

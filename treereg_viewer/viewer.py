@@ -17,7 +17,7 @@ import threading
 from contextlib import AbstractContextManager
 from dataclasses import fields, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable
+from typing import Any, Callable
 
 import numpy as np
 import viser
@@ -27,6 +27,7 @@ from treereg_core.geometry.picking import nearest_to_ray
 from treereg_core.params import Params
 
 from . import camera
+from .actions import AppHost
 from .controller import Controller, Snapshot
 from .derived import default_height, prepared_scans
 from .drawer import Drawer
@@ -39,9 +40,6 @@ from .stages import STAGE_NAMES, registered, section_available
 from .tour import STEPS, TourPanel
 from .view_panel import ViewPanel
 from .view_state import ViewState
-
-if TYPE_CHECKING:  # the app module imports this one
-    from .app import TreeregApp
 
 log = logging.getLogger(__name__)
 
@@ -72,7 +70,7 @@ class Viewer:
         Groups one redraw's messages (the client's or the server's `atomic`).
     """
 
-    def __init__(self, host: TreeregApp, gui: viser.GuiApi, scene: viser.SceneApi, client: Any | None,
+    def __init__(self, host: AppHost, gui: viser.GuiApi, scene: viser.SceneApi, client: Any | None,
                  atomic: Callable[[], AbstractContextManager[Any]]) -> None:
         self.host = host
         self.controller: Controller = host.controller
@@ -85,6 +83,7 @@ class Viewer:
         self._closed = False
         self.following = False
         self._window_px: int | None = None
+        self._tour_nodes: list[Any] = []
 
         self.panel = ViewPanel(gui, self.set_view, width=PANEL_WIDTH_PX)
         # Docked, not floating: a floating control panel covers the right third of the scene, where
@@ -246,21 +245,16 @@ class Viewer:
         self._look(camera.frame(self.controller.snapshot, self.view.stage))
 
     def _on_camera(self, cam: Any) -> None:
-        # A narrow window: narrower panels, so the 3-D view keeps room between them.
+        # The tab's first report says how wide its 3-D view is, between the two docked panels: a
+        # narrow window (a 1280 x 720 laptop screen) gets narrower panels, so the scene keeps room.
         width = int(getattr(cam, "image_width", 0) or 0)
-        if width:
-            total = width + self.panel.width + (CONTROL_WIDTH_PX if self._window_px is None else 0)
-            self._fit_window(total if self._window_px is None else self._window_px)
+        if width and self._window_px is None:
+            self._window_px = width + self.panel.width + CONTROL_WIDTH_PX
+            if self._window_px < NARROW_WINDOW_PX:
+                self.panel.set_width(NARROW_PANEL_PX)
+                self.gui.main_panel.set_width(NARROW_CONTROL_PX)
         if self.host.presenter is self:
             self.host.camera_moved(self, cam)
-
-    def _fit_window(self, window_px: int) -> None:
-        if self._window_px is not None:
-            return
-        self._window_px = window_px
-        if window_px < NARROW_WINDOW_PX:
-            self.panel.set_width(NARROW_PANEL_PX)
-            self.gui.main_panel.set_width(NARROW_CONTROL_PX)
 
     def follow_camera(self, position: Any, look_at: Any, up: Any) -> None:
         if self.client is None or not self.following:
@@ -380,21 +374,32 @@ class Viewer:
         self._highlight(s.highlight)
 
     def _highlight(self, what: str | None) -> None:
-        """A label in 3-D at what the tour step is about."""
-        try:
-            self.scene.remove_by_name("/tour")
-        except Exception:
-            pass
+        """Labels in 3-D at what the tour step is about."""
+        for h in self._tour_nodes:
+            try:
+                h.remove()
+            except Exception:  # gone with its tab
+                pass
+        self._tour_nodes = []
         if not what:
             return
         snap = self.controller.snapshot
-        if what == "scanners":
-            self.scene.add_label("/tour/label", "▼ the scanners: each scan's origin", position=(0.0, 0.0, 2.4))
+        if what == "trees":
+            # Before registration every scan stands in its own frame: name each tree above its top.
+            prep = snap.output("prepare")
+            for i, scan in enumerate(snap.scans):
+                item = prep.items[i] if prep is not None and i < len(prep.items) else None
+                pts = item.scan.points if getattr(item, "scan", None) is not None else scan.points
+                top = np.array([*np.median(pts[:, :2], axis=0), float(np.quantile(pts[:, 2], 0.995)) + 0.6])
+                self._tour_nodes.append(self.scene.add_label(
+                    f"/tour/tree{i}", f"▼ scan {i + 1}: the tree seen from station {i + 1}",
+                    position=tuple(float(v) for v in top)))
         elif what == "trunk":
             anchor = camera.trunk_anchor(snap, default_height(snap, self.view.target))
             if anchor is not None:
-                self.scene.add_label("/tour/label", "◀ the trunk slice of the cross-section",
-                                     position=tuple(float(v) for v in anchor + np.array([0.0, 0.0, 0.35])))
+                self._tour_nodes.append(self.scene.add_label(
+                    "/tour/label", "◀ the trunk slice of the cross-section",
+                    position=tuple(float(v) for v in anchor + np.array([0.0, 0.0, 0.35]))))
 
     # ---- from the worker ----------------------------------------------------------------------------
     def on_snapshot(self, snap: Snapshot) -> None:

@@ -150,7 +150,7 @@ def draw_scan_layer(scene: viser.SceneApi, snap: Snapshot, view: ViewState,
             elif i == 0:
                 n = len(snap.scans)
                 who = "scanner 1" if n == 1 else f"scanners 1–{n}" if n > 2 else "scanners 1 and 2"
-                handles.append(scene.add_label(f"{node}/station/name", f"{who} (each at the origin of its own scan)",
+                handles.append(scene.add_label(f"{node}/station/name", f"{who} (own origins)",
                                                position=(0.0, 0.0, STATION_LABEL_Z)))
     return handles
 

@@ -392,7 +392,7 @@ class Viewer:
                 pts = item.scan.points if getattr(item, "scan", None) is not None else scan.points
                 top = np.array([*np.median(pts[:, :2], axis=0), float(np.quantile(pts[:, 2], 0.995)) + 0.6])
                 self._tour_nodes.append(self.scene.add_label(
-                    f"/tour/tree{i}", f"▼ scan {i + 1}: the tree seen from station {i + 1}",
+                    f"/tour/tree{i}", f"▼ scan {i + 1}",
                     position=tuple(float(v) for v in top)))
         elif what == "trunk":
             anchor = camera.trunk_anchor(snap, default_height(snap, self.view.target))

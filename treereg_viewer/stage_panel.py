@@ -8,6 +8,8 @@ shared (every tab's inputs show the parameters in force).
 
 from __future__ import annotations
 
+import threading
+
 from typing import Any
 
 import viser
@@ -48,7 +50,9 @@ class StagePanel:
     def __init__(self, gui: viser.GuiApi, app: AppActions) -> None:
         self.app = app
         self.gui = gui
-        self._quiet = False
+        # Set while this panel puts values into its own controls (on the thread doing so only: a
+        # person's change arriving meanwhile on another thread is not swallowed).
+        self._local = threading.local()
         self.status_md = gui.add_markdown("")
         self.selector = gui.add_dropdown("Stage", [label(n) for n in STAGE_NAMES], initial_value=label(STAGE_NAMES[0]),
                                          hint="Pick a stage; its layers are shown, the others hidden (scans stay).")
@@ -87,6 +91,10 @@ class StagePanel:
                         continue
                     with gui.add_folder(f"Parameters: {section}", expand_by_default=True):
                         self.sections[section] = SectionWidgets(gui, section, params, app.on_param_change)
+
+    @property
+    def _quiet(self) -> bool:
+        return getattr(self._local, "quiet", False)
 
     def _set(self, **changes: Any) -> None:
         if not self._quiet:
@@ -132,12 +140,12 @@ class StagePanel:
     # ---- updates from the viewer -----------------------------------------------------------------
     def show_stage(self, name: str) -> None:
         text = label(name)
-        self._quiet = True
+        self._local.quiet = True
         try:
             if self.selector.value != text:
                 self.selector.value = text
         finally:
-            self._quiet = False
+            self._local.quiet = False
         for k, f in self.folders.items():
             f.visible = k == name
 
@@ -145,10 +153,10 @@ class StagePanel:
         """Put the view's choices into the controls (a followed presenter, the tour), without
         reporting them back as changes."""
         c = self.view_controls
-        self._quiet = True
+        self._local.quiet = True
         try:
             self.show_stage(view.stage)
-            self._quiet = True
+            self._local.quiet = True
             if "projection_step" in c and c["projection_step"].value != view.projection_step + 1 \
                     and view.projection_step + 1 <= c["projection_step"].max:
                 c["projection_step"].value = view.projection_step + 1
@@ -168,12 +176,12 @@ class StagePanel:
                     if key.startswith("target") and h.value != pairs[view.target]:
                         h.value = pairs[view.target]
         finally:
-            self._quiet = False
+            self._local.quiet = False
         self.refresh_focus(snap, view)
 
     def refresh_focus(self, snap: Snapshot, view: ViewState) -> None:
         """The "Frame a fit" lists follow the fits tables (their pair and the rejected-fits switch)."""
-        self._quiet = True
+        self._local.quiet = True
         try:
             for name in ("sections", "fine"):
                 h = self.view_controls.get(f"focus_{name}")
@@ -188,7 +196,7 @@ class StagePanel:
                 if h.value != want:
                     h.value = want
         finally:
-            self._quiet = False
+            self._local.quiet = False
 
     @staticmethod
     def _pairs(snap: Snapshot) -> list[str]:
@@ -216,7 +224,7 @@ class StagePanel:
         else:
             self.progress.animated = True
         # Ranges of the view controls follow the results (counted from 1).
-        self._quiet = True
+        self._local.quiet = True
         try:
             proj = snap.output("projection")
             if proj is not None and proj.items:
@@ -226,9 +234,9 @@ class StagePanel:
                     zero = next((k for k, a in enumerate(proj.items[0].angles_deg) if abs(a) < 1e-9), 0)
                     sl.max = n
                     sl.value = min(zero, n - 1) + 1
-                    self._quiet = False
+                    self._local.quiet = False
                     self._set(projection_step=min(zero, n - 1))
-                    self._quiet = True
+                    self._local.quiet = True
             pairs = self._pairs(snap)
             for key, h in self.view_controls.items():
                 if key.startswith("target") and tuple(h.options) != tuple(pairs):
@@ -242,7 +250,7 @@ class StagePanel:
                     sl.max = n
                 sl.disabled = n <= 1
         finally:
-            self._quiet = False
+            self._local.quiet = False
         self.refresh_focus(snap, view)
 
     def show_progress(self, fraction: float, text: str) -> None:

@@ -13,6 +13,8 @@ under the switch).
 
 from __future__ import annotations
 
+import threading
+
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -72,7 +74,9 @@ class ViewPanel:
         self.gui = gui
         self.width = width
         self._set_view = set_view
-        self._quiet = False
+        # Set while this panel puts values into its own controls (on the thread doing so only: a
+        # person's change arriving meanwhile on another thread is not swallowed).
+        self._local = threading.local()
         self._panel = gui.add_panel()
         self._tab = self._panel.add_tab("View", viser.Icon.PHOTO)
         self._captions: list[Any] = []
@@ -103,6 +107,10 @@ class ViewPanel:
         self.poses.on_update(lambda _: self._changed(section_poses=self.poses.value))
         self._branch_options: tuple[str, ...] = (STEM,)
 
+    @property
+    def _quiet(self) -> bool:
+        return getattr(self._local, "quiet", False)
+
     def _changed(self, **changes: Any) -> None:
         if not self._quiet:
             self._set_view(**changes)
@@ -132,7 +140,7 @@ class ViewPanel:
                       height: float | None, branches: list[str]) -> None:
         """Show the switch (when a cross-section can be cut) and, in section mode, its controls at
         the view's values (without reporting them back as changes)."""
-        self._quiet = True
+        self._local.quiet = True
         try:
             self.mode.visible = available
             want_mode = next(k for k, v in MODES.items() if v == view.panel)
@@ -160,7 +168,7 @@ class ViewPanel:
                     if abs(self.height.value - v) > 1e-9:
                         self.height.value = v
         finally:
-            self._quiet = False
+            self._local.quiet = False
 
     # ---- content ----------------------------------------------------------------------------------
     def show(self, content: PanelContent) -> None:

@@ -86,6 +86,11 @@ def test_a_merged_cloud_of_an_unknown_format_is_refused_before_registering(case_
     err = capsys.readouterr().err
     assert "m.xyz" in err and ".las" in err and "Traceback" not in err
     assert not out.exists()
+    code = main(["register", str(d / "scan1.ply"), str(d / "scan2.ply"), "--out", str(out), "--until", "coarse",
+                 "--merged", "/proc/treereg/m.las"])  # a folder nobody can create
+    err = capsys.readouterr().err
+    assert code == 2 and "/proc/treereg/m.las: cannot write the merged cloud" in err and "Traceback" not in err
+    assert not out.exists()  # nothing written when the merged cloud could not be
 
 
 def test_bad_scan_file_is_one_line_naming_it(tmp_path, case_dir, capsys):

@@ -7,7 +7,7 @@ import sys
 import time
 from pathlib import Path
 
-from treereg_core.errors import ConfigError
+from treereg_core.errors import ConfigError, ScanError
 from treereg_core.io.merged import write_merged
 from treereg_core.io.scans import WRITE_EXTENSIONS, extension
 from treereg_core.io.transforms import registration_file, write_exports, write_transforms
@@ -57,9 +57,15 @@ def run(args: argparse.Namespace) -> int:
     tf = registration_file(scans, reg.transforms, params, stage=args.until, metrics=metrics,
                            sources={s.name: str(Path(f).resolve()) for s, f in zip(scans, args.scans)}, seconds=seconds)
     out = Path(args.out)
-    written = write_exports(out.parent, tf, name=out.name) if args.exports else [write_transforms(out, tf)]
+    merged = []
     if args.merged:
-        written.append(write_merged(args.merged, scans, reg.transforms))
+        # Written first: when it cannot be written, the transform file is not written either.
+        try:
+            merged.append(write_merged(args.merged, scans, reg.transforms))
+        except OSError as e:  # one line naming the file, not a traceback
+            raise ScanError(args.merged, f"cannot write the merged cloud ({e.strerror or e})") from None
+    written = write_exports(out.parent, tf, name=out.name) if args.exports else [write_transforms(out, tf)]
+    written += merged
     for name, rows in metrics.items():
         print(f"\n{name} -> {scans[0].name}")
         for r in rows:

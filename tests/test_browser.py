@@ -3,7 +3,9 @@
 Debian's chromium (`/usr/bin/chromium`) through Playwright for Python, no browser download, and an
 offline guard (only http://127.0.0.1 may load). WebGL runs on SwiftShader. One server and one browser
 for the module; the walk-through steps through every stage, changes a parameter and re-runs, uploads
-a bad file, exports transforms.json and checks screenshots' pixels.
+a bad file, downloads exports with one click and checks screenshots' pixels. Then the cross-section
+inspector (separate arcs at the coarse pose, one ring at the fine pose), two tabs with their own
+stages (and one following the other), the fits view's drawn sizes and the guided tour.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import sys
 import time
 from pathlib import Path
 
+import laspy
 import numpy as np
 import pytest
 
@@ -96,12 +99,15 @@ def _open(browser, url, scene=True):
 
     context.route("**/*", guard)
     page = context.new_page()
+    # The machine is shared: SwiftShader and the app compete with other work for two cores.
+    page.set_default_timeout(90_000)
+    playwright_api.expect.set_options(timeout=60_000)
     page.goto(url)
-    playwright_api.expect(page.get_by_role("button", name="Run", exact=True)).to_be_visible(timeout=60_000)
+    playwright_api.expect(page.get_by_role("button", name="Run", exact=True)).to_be_visible(timeout=90_000)
     if scene:
         page.wait_for_function(
             "() => !!window.__viserMutable?.nodeRefFromName['/scans/s2/points'] && "
-            "window.__viserTestpoints.rendererInfo.render.frame > 0", timeout=30_000)
+            "window.__viserTestpoints.rendererInfo.render.frame > 0", timeout=90_000)
     return context, page, blocked
 
 
@@ -139,6 +145,7 @@ def _settle(page, quiet_ms: int = 300, timeout_s: float = 8.0) -> None:
 
 
 def _screenshot(page, name) -> np.ndarray:
+    page.mouse.move(5, 995)  # no tooltip over what is shown
     _settle(page)
     SHOT_DIR.mkdir(parents=True, exist_ok=True)
     return _decode_png(page.screenshot(path=str(SHOT_DIR / f"{name}.png")))
@@ -169,6 +176,12 @@ def _go(page, label):
     page.get_by_role("option", name=label, exact=True).click()
 
 
+def _set_number(page, label, value):
+    box = page.get_by_label(label, exact=True).filter(visible=True)  # several stages may share a label
+    box.fill(str(value))
+    box.press("Enter")
+
+
 def test_walk_through_the_demo(served, browser):
     url, out_dir, url_seconds, t_start = served
     expect = playwright_api.expect
@@ -189,11 +202,18 @@ def test_walk_through_the_demo(served, browser):
     expect(page.get_by_role("heading", name=titles[0])).to_be_visible()
     for k in range(1, len(titles)):
         page.get_by_role("button", name="Next", exact=True).click()
-        expect(page.get_by_role("heading", name=re.compile("^" + re.escape(titles[k]) + "(:|$)"))).to_be_visible(timeout=20_000)
+        # SwiftShader draws the first transparent meshes (the Fits stage) slowly on a busy machine.
+        expect(page.get_by_role("heading", name=re.compile("^" + re.escape(titles[k]) + "(:|$)"))).to_be_visible(timeout=90_000)
         if k == 1:  # the image panel (docked left) shows each scan's projection image in its colour
             panel = _screenshot(page, "stage1_projection")[:, :560]
             for i in range(3):
                 assert _colour_pixels(panel, scan_color(i), tol=40) > 300, f"projection of scan {i + 1} missing"
+            # The slider counts from 1, as the panel's "Step k of n" does.
+            n = re.search(r"Step (\d+) of", page.get_by_text(re.compile(r"Step \d+ of \d+")).first.inner_text())
+            fid = page.locator("label", has_text=re.compile("^Rotation step$")).first.get_attribute("for")
+            slider = page.locator(f"[id='{fid}'] [role=slider]")
+            assert n is not None and slider.get_attribute("aria-valuenow") == n.group(1), n.group(0)
+            assert slider.get_attribute("aria-valuemin") == "1"
         if k == 2:
             expect(page.get_by_text("Similarity", exact=False).first).to_be_visible()
         if k == 8:
@@ -210,15 +230,12 @@ def test_walk_through_the_demo(served, browser):
     # Change a fine-stage parameter and re-run: only fine and evaluation run again.
     _go(page, "9 Fine")
     expect(page.get_by_role("heading", name=re.compile("^9 Fine"))).to_be_visible()
-    box = page.get_by_label("max iterations", exact=True)
-    box.fill("2")
-    box.press("Enter")
-    expect(page.get_by_text(re.compile("Parameters changed: 9 Fine, 10 Verify, 11 Placement, 13 Result must re-run"))).to_be_visible(timeout=10_000)
+    _set_number(page, "max iterations", 2)
+    expect(page.get_by_text(re.compile("Parameters changed: 9 Fine, 10 Verify, 11 Placement, 13 Result must re-run"))).to_be_visible(timeout=60_000)
     t0 = time.perf_counter()
     page.get_by_role("button", name="Run", exact=True).click()
     expect(page.get_by_text(re.compile(r"Ran 9 Fine, 10 Verify, 11 Placement, 13 Result in [\d.]+ s"))).to_be_visible(timeout=60_000)
-    print(f"fine + evaluation re-run seen in the browser after {time.perf_counter() - t0:.1f} s: "
-          f"{page.get_by_text(re.compile('Ran 9 Fine')).first.inner_text()}")
+    print(f"fine + evaluation re-run seen in the browser after {time.perf_counter() - t0:.1f} s")
     lap("parameter changed and re-run")
 
     # A bad upload: a message, nothing else changes.
@@ -228,17 +245,16 @@ def test_walk_through_the_demo(served, browser):
     chooser.value.set_files(files=[{"name": "broken.ply", "mimeType": "application/octet-stream",
                                     "buffer": b"ply\nformat ascii 1.0\nelement vertex 3\nend_header\n1 2\n"}])
     # The message names the file the user picked (not the temporary copy the server read).
-    expect(page.get_by_text(re.compile("Upload rejected — broken.ply: "))).to_be_visible(timeout=15_000)
+    expect(page.get_by_text(re.compile("Upload rejected — broken.ply: "))).to_be_visible(timeout=60_000)
     assert "treereg-upload-" not in page.evaluate("() => document.body.innerText")
     expect(page.get_by_label(re.compile("^4: "))).to_have_count(0)
     _wait_all_done(page, 5_000)  # every stage is still done
     lap("bad upload rejected")
 
-    # Export: download transforms.json and compare with the demo's truth.
+    # Exports: one click starts each download (no link to click in a notification).
     page.get_by_role("tab", name="Files").click()
-    page.get_by_role("button", name="Download transforms.json").click()
-    with page.expect_download() as dl:
-        page.get_by_role("link", name=re.compile("transforms.json")).first.click()
+    with page.expect_download(timeout=60_000) as dl:
+        page.get_by_role("button", name="Download transforms.json").click()
     data = Path(dl.value.path()).read_bytes()
     saved = out_dir / "downloaded_transforms.json"
     saved.write_bytes(data)
@@ -252,26 +268,155 @@ def test_walk_through_the_demo(served, browser):
         rot = rotation_error_deg(tf.matrix(name), truth.matrix(name))
         disp = mean_displacement(tf.matrix(name), truth.matrix(name), pts)
         assert rot < ROT_TOL_DEG and disp < DISP_TOL_M, (name, rot, disp)
-    assert (out_dir / "transforms.json").is_file() and (out_dir / "merged.ply").is_file()  # --out
+    # The merged cloud as LAS: every point carries its scan's number (point_source_id).
+    page.get_by_label("Merged cloud format", exact=True).click()
+    page.get_by_role("option", name="las", exact=True).click()
+    with page.expect_download(timeout=30_000) as dl:
+        page.get_by_role("button", name="Download the merged cloud").click()
+    assert dl.value.suggested_filename == "merged.las"
+    las = laspy.read(dl.value.path())
+    ids = np.asarray(las.point_source_id)
+    assert [int((ids == k + 1).sum()) for k in range(3)] == [len(read_points(demo / n)) for n in truth.names]
+    assert (out_dir / "transforms.json").is_file() and (out_dir / "merged.las").is_file()  # --out
     assert not blocked, f"the page tried to load {blocked}"
-    lap("exported and checked")
+    lap("exported with one click and checked")
     context.close()
 
 
-def test_two_tabs_see_one_state(served, browser):
+def _plot(page, k: int = 0):
+    """The k-th plot in the docked panel, as an image (a screenshot of that element only)."""
+    page.wait_for_timeout(300)
+    el = page.locator(".js-plotly-plot").nth(k)
+    el.scroll_into_view_if_needed()
+    return _decode_png(el.screenshot())
+
+
+def _choose(page, label, option):
+    page.get_by_label(label, exact=True).click()
+    page.get_by_role("option", name=option, exact=True).click()
+
+
+_NODE_SIZE = """(name) => {
+  const o = window.__viserMutable.nodeRefFromName[name];
+  if (!o) return null;
+  o.updateMatrixWorld(true);
+  const lo = [Infinity, Infinity, Infinity], hi = [-Infinity, -Infinity, -Infinity];
+  o.traverse((c) => {
+    const a = c.geometry?.attributes?.position;
+    if (!a) return;
+    const v = c.position.clone();
+    for (let i = 0; i < a.count; i++) {
+      v.fromBufferAttribute(a, i).applyMatrix4(c.matrixWorld);
+      const p = v.toArray();
+      for (let k = 0; k < 3; k++) { lo[k] = Math.min(lo[k], p[k]); hi[k] = Math.max(hi[k], p[k]); }
+    }
+  });
+  return [lo, hi];
+}"""
+
+
+def test_cross_section_and_fits_views(served, browser):
+    """The trunk's cross-section: at the coarse pose the targets' arcs lie off scan 1's circle, at the
+    fine pose they close into one ring; the 2-D view's scan colours move between the two. The fits
+    view draws no giant rejected shapes."""
+    url = served[0]
+    expect = playwright_api.expect
+    context, page, _ = _open(browser, url)
+    _close_toast(page)
+    _wait_all_done(page)
+    _go(page, "8 Fine")
+    _choose(page, "Show", "Cross-section")
+    expect(page.get_by_role("heading", name=re.compile("^Cross-section at z = "))).to_be_visible(timeout=60_000)
+    text = page.evaluate("() => document.body.innerText")
+    assert re.search(r"Coarse: separate arcs", text) and re.search(r"Fine: one ring", text), text[:2000]
+    _screenshot(page, "cross_section_coarse_fine")
+    both = _plot(page, 0)
+    masks = {}
+    for pose in ("Coarse", "Fine"):
+        _choose(page, "Registration", pose)
+        expect(page.locator(".gtitle, .annotation-text").filter(has_text=re.compile(f"^{pose} ·"))).to_have_count(1, timeout=60_000)
+        img = _plot(page, 0)
+        masks[pose] = [(np.abs(img.astype(int) - np.array(scan_color(i))).max(axis=-1) < 30) for i in range(3)]
+        for i in range(3):
+            assert masks[pose][i].sum() > 100, f"scan {i + 1} in the {pose} cross-section: {masks[pose][i].sum()} px"
+    # The targets' points and circles move between the coarse and the fine pose; the reference stays.
+    for i in (1, 2):
+        a, b = masks["Coarse"][i], masks["Fine"][i]
+        changed = np.logical_xor(a, b).sum() / max(a.sum(), b.sum())
+        assert changed > 0.2, (i, changed)
+    assert both.shape[1] > 300
+    _choose(page, "Show", "Stage details")
+
+    # The fits view: rejected fits hidden by default; shown, none drawn larger than a tree's section.
+    _go(page, "7 Fits")
+    expect(page.get_by_role("heading", name=re.compile("^7 Fits"))).to_be_visible(timeout=60_000)
+    page.wait_for_function("() => !!window.__viserMutable.nodeRefFromName['/sections/ref_fits']", timeout=60_000)
+    nodes = page.evaluate("() => Object.keys(window.__viserMutable.nodeRefFromName)")
+    assert not any(n.endswith("_rejected") for n in nodes)  # hidden by default
+    page.get_by_label("Show rejected fits", exact=True).check()
+    page.wait_for_function("() => Object.keys(window.__viserMutable.nodeRefFromName).some(n => n.endsWith('_rejected'))",
+                           timeout=60_000)
+    # Every drawn fit lies within the sliced points it was fitted to, give or take a metre (a circle
+    # of 51 m or 3.8 km fitted to a nearly straight arc would reach far beyond them).
+    names = page.evaluate("() => Object.keys(window.__viserMutable.nodeRefFromName)")
+    sliced = [np.array(page.evaluate(_NODE_SIZE, n)) for n in names if re.fullmatch(r"/sections/(ref|tgt)\d+", n)]
+    lo = np.min([b[0] for b in sliced], axis=0) - 1.0
+    hi = np.max([b[1] for b in sliced], axis=0) + 1.0
+    drawn = 0
+    for name in ("/sections/ref_fits", "/sections/tgt_fits", "/sections/ref_rejected", "/sections/tgt_rejected"):
+        box = page.evaluate(_NODE_SIZE, name)
+        if box is None:
+            continue
+        assert np.all(np.array(box[0]) >= lo) and np.all(np.array(box[1]) <= hi), (name, box, lo, hi)
+        drawn += 1
+    assert drawn >= 3
+    table = page.evaluate("() => document.body.innerText")
+    assert "nan" not in table.split("7 Fits", 1)[-1].lower().split("parameters: fitting")[0]
+    context.close()
+
+
+def test_two_tabs_keep_their_own_stage_and_follow_a_presenter(served, browser):
     url = served[0]
     expect = playwright_api.expect
     lap = _Laps()
     ctx1, page1, _ = _open(browser, url, scene=False)
-    lap("tab 1 open")
     ctx2, page2, _ = _open(browser, url, scene=False)
-    lap("tab 2 open")
-    page1.get_by_label("Stage", exact=True).click()
-    lap("tab 1 dropdown open")
-    page1.get_by_role("option", name="4 Coarse", exact=True).click()  # one tab steps; the other follows
-    lap("tab 1 stepped")
-    expect(page2.get_by_role("heading", name=re.compile("^4 Coarse"))).to_be_visible(timeout=30_000)
-    expect(page2.get_by_label("Stage", exact=True)).to_have_value("4 Coarse")
+    lap("two tabs open")
+    _go(page1, "4 Coarse")
+    expect(page1.get_by_role("heading", name=re.compile("^4 Coarse"))).to_be_visible(timeout=60_000)
+    page2.wait_for_timeout(500)
+    expect(page2.get_by_label("Stage", exact=True)).to_have_value("1 Scans")  # its own stage
+    _go(page2, "7 Arcs")
+    expect(page2.get_by_role("heading", name=re.compile("^7 Arcs"))).to_be_visible(timeout=60_000)
+    expect(page1.get_by_label("Stage", exact=True)).to_have_value("4 Coarse")
+    lap("each tab on its own stage")
+    # Tab 1 presents: tab 2 follows its stage until it unticks "Follow the presenter".
+    page1.get_by_role("tab", name="Teach").click()
+    page1.get_by_label("Others follow me", exact=True).check()
+    expect(page2.get_by_label("Stage", exact=True)).to_have_value("4 Coarse", timeout=60_000)
+    expect(page2.get_by_label("Follow the presenter", exact=True)).to_be_checked()
+    page1.get_by_role("button", name="Next", exact=True).click()
+    expect(page2.get_by_label("Stage", exact=True)).to_have_value("5 Hypotheses", timeout=60_000)
+    # The camera follows too: tab 1 frames its view elsewhere, tab 2's camera goes there.
+    cam = "() => window.__viserMutable.camera.position.toArray()"
+    before = np.array(page2.evaluate(cam))
+    box = page1.locator("canvas").first.bounding_box()
+    page1.mouse.move(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
+    page1.mouse.down()
+    page1.mouse.move(box["x"] + box["width"] / 2 + 120, box["y"] + box["height"] / 2 + 30, steps=8)
+    page1.mouse.up()
+    page1.wait_for_timeout(1000)
+    there = page1.evaluate(cam)
+    assert np.linalg.norm(np.array(there) - before) > 0.5  # tab 1's camera moved
+    # ... and tab 2's camera arrives where tab 1's stopped.
+    page2.wait_for_function(f"(b) => {{ const p = ({cam})(); return Math.hypot(p[0]-b[0], p[1]-b[1], p[2]-b[2]) < 0.05; }}",
+                            arg=there, timeout=60_000)
+    page2.get_by_label("Follow the presenter", exact=True).uncheck()
+    page1.get_by_role("button", name="Next", exact=True).click()
+    expect(page1.get_by_label("Stage", exact=True)).to_have_value("6 Slices")
+    page2.wait_for_timeout(800)
+    expect(page2.get_by_label("Stage", exact=True)).to_have_value("5 Hypotheses")
+    lap("followed, then on its own again")
     ctx1.close()
     ctx2.close()
 
@@ -302,10 +447,31 @@ def test_a_scan_of_another_tree_is_marked_unverified_with_the_reason(served, bro
     _screenshot(page, "wrong_tree_upload")
     expect(page.get_by_text(re.compile(r"other_tree\.ply is (unverified|failed): "))).to_be_visible()
     page.get_by_role("tab", name="Files").click()
-    page.get_by_role("button", name="Download transforms.json").click()
-    with page.expect_download() as dl:
-        page.get_by_role("link", name=re.compile("transforms.json")).first.click()
+    with page.expect_download(timeout=60_000) as dl:
+        page.get_by_role("button", name="Download transforms.json").click()
     doc = json.loads(Path(dl.value.path()).read_text())
     assert "other_tree.ply" not in doc["transforms"] and doc["quality"]["scans"]["other_tree.ply"]["verdict"] != "verified"
     expect(page.get_by_text(re.compile(r"Not exported: other_tree\.ply"))).to_be_visible()
+    context.close()
+
+
+def test_the_tour_walks_the_stages(served, browser):
+    """Teach tab → Start the tour: each step sets the stage and says why and what to try."""
+    url = served[0]
+    expect = playwright_api.expect
+    context, page, _ = _open(browser, url)
+    _close_toast(page)
+    _wait_all_done(page)
+    page.get_by_role("tab", name="Teach").click()
+    page.get_by_role("button", name="Start the tour", exact=True).click()
+    for k, (stage, title) in enumerate((("1 Scans", "One tree, several stations"), ("2 Projection", "Rotating projection"),
+                                        ("3 Matching", "Matching the most similar views"))):
+        expect(page.get_by_role("heading", name=re.compile(f"Tour · step {k + 1} of \\d+: {title}"))).to_be_visible(timeout=60_000)
+        expect(page.get_by_label("Stage", exact=True)).to_have_value(stage)
+        expect(page.get_by_text("Try:", exact=False).first).to_be_visible()
+        _screenshot(page, f"tour_step{k + 1}")
+        page.get_by_role("button", name="Next ▶", exact=True).click()
+    expect(page.get_by_role("heading", name=re.compile("Tour · step 4 of"))).to_be_visible(timeout=60_000)
+    page.get_by_role("button", name="End tour", exact=True).click()
+    expect(page.get_by_role("heading", name=re.compile("Tour · step"))).to_have_count(0)
     context.close()

@@ -6,7 +6,9 @@ import numpy as np
 import pytest
 
 from treereg_cli.main import main
-from treereg_core.geometry.rigid import mean_displacement, rotation_error_deg
+import laspy
+
+from treereg_core.geometry.rigid import apply_transform, mean_displacement, rotation_error_deg
 from treereg_core.simulate.cases import benchmark_cases, write_case
 from treereg_core.io.transforms import parse_cloudcompare_matrix, read_transforms
 
@@ -23,7 +25,8 @@ def test_register_writes_transforms_close_to_truth(case_dir, tmp_path, capsys):
     d, case = case_dir
     out = tmp_path / "res" / "transforms.json"
     scans = [str(d / n) for n in case.names]
-    assert main(["register", *scans, "--out", str(out), "--exports"]) == 0
+    merged = tmp_path / "res" / "merged.las"
+    assert main(["register", *scans, "--out", str(out), "--exports", "--merged", str(merged)]) == 0
     tf = read_transforms(out)
     assert tf.reference == "scan1.ply"
     assert tf.params["fine"]["max_iterations"] >= 1  # the parameters used are recorded
@@ -31,9 +34,17 @@ def test_register_writes_transforms_close_to_truth(case_dir, tmp_path, capsys):
         T = tf.matrix(scan.name)
         assert rotation_error_deg(T, T_true) < 0.5
         assert mean_displacement(T, T_true, scan.points) < 0.03
-        cc = (out.parent / f"{scan.name[:-4]}.cloudcompare.txt").read_text()
+        cc = (out.parent / f"transforms.{scan.name[:-4]}.cloudcompare.txt").read_text()
         assert np.allclose(parse_cloudcompare_matrix(cc), T)
     assert "scan2.ply" in json.dumps(tf.extra["metrics"])
+    # The merged cloud: every scan's points in the reference frame, each with its scan's number.
+    las = laspy.read(merged)
+    ids = np.asarray(las.point_source_id)
+    assert [int((ids == k + 1).sum()) for k in range(len(case.scans))] == [s.n_points for s in case.scans]
+    xyz = np.c_[las.x, las.y, las.z]
+    for k, (scan, T_true) in enumerate(zip(case.scans, case.T_ref_scan)):
+        true = apply_transform(T_true, scan.points)
+        assert np.abs(xyz[ids == k + 1] - true).mean() < 0.03
 
     capsys.readouterr()
     assert main(["evaluate", str(out), "--truth", str(d / "truth.json")]) == 0
@@ -69,6 +80,21 @@ def test_a_registration_that_fails_exits_1_and_writes_nothing(case_dir, tmp_path
     err = capsys.readouterr().err
     assert "registration failed" in err and "at least 1000 are needed" in err
     assert not out.exists()
+
+
+def test_a_merged_cloud_of_an_unknown_format_is_refused_before_registering(case_dir, tmp_path, capsys):
+    d, _ = case_dir
+    out = tmp_path / "t.json"
+    code = main(["register", str(d / "scan1.ply"), str(d / "scan2.ply"), "--out", str(out), "--merged", str(tmp_path / "m.xyz")])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert "m.xyz" in err and ".las" in err and "Traceback" not in err
+    assert not out.exists()
+    code = main(["register", str(d / "scan1.ply"), str(d / "scan2.ply"), "--out", str(out), "--until", "coarse",
+                 "--merged", "/proc/treereg/m.las"])  # a folder nobody can create
+    err = capsys.readouterr().err
+    assert code == 2 and "/proc/treereg/m.las: cannot write the merged cloud" in err and "Traceback" not in err
+    assert not out.exists()  # nothing written when the merged cloud could not be
 
 
 def test_bad_scan_file_is_one_line_naming_it(tmp_path, case_dir, capsys):

@@ -274,3 +274,31 @@ def test_extension_handles_case_and_gzip():
     assert tio.extension("A.PLY") == ".ply"
     assert tio.extension("x/scan.v2.XYZ.gz") == ".xyz.gz"
     assert tio.extension("noext") == ""
+
+
+def test_merged_cloud_carries_each_points_scan_number(tmp_path):
+    """PLY: a `scan_id` vertex property; LAS: `point_source_id`; unregistered scans left out."""
+    import laspy
+
+    from treereg_core.io.merged import merged_cloud, write_merged
+    from treereg_core.scan import Scan
+
+    rng = np.random.default_rng(3)
+    scans = [Scan.from_points(rng.normal(size=(n, 3)) + [5, 0, 2], name=f"s{k + 1}.ply", angular_step_deg=(0.1, 0.1))
+             for k, n in enumerate((400, 300, 200))]
+    T = np.eye(4)
+    T[:3, 3] = [1.0, 2.0, 3.0]
+    transforms = {"s1.ply": np.eye(4), "s3.ply": T}  # s2 did not register
+    pts, ids = merged_cloud(scans, transforms)
+    assert len(pts) == 600 and set(np.unique(ids)) == {1, 3}
+    np.testing.assert_allclose(pts[ids == 3], scans[2].points + [1.0, 2.0, 3.0])
+    las = laspy.read(write_merged(tmp_path / "m.las", scans, transforms))
+    np.testing.assert_array_equal(np.asarray(las.point_source_id), ids)
+    np.testing.assert_allclose(np.c_[las.x, las.y, las.z], pts, atol=1e-4)
+    ply = write_merged(tmp_path / "m.ply", scans, transforms)
+    head, body = ply.read_bytes().split(b"end_header\n", 1)
+    assert b"property ushort scan_id" in head
+    rec = np.frombuffer(body, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("scan_id", "<u2")])
+    np.testing.assert_array_equal(rec["scan_id"], ids)
+    np.testing.assert_allclose(np.c_[rec["x"], rec["y"], rec["z"]], pts, atol=1e-5)
+    np.testing.assert_allclose(read_points(ply), pts, atol=1e-5)  # our reader still reads it

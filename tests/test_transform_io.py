@@ -175,22 +175,34 @@ def test_exports_write_every_scan(tmp_path, tf):
     written = write_exports(tmp_path / "out", tf)
     names = [p.name for p in written]
     assert names == ["transforms.json",
-                     "scan1.cloudcompare.txt", "scan1.pdal.txt",
-                     "scan2.cloudcompare.txt", "scan2.pdal.txt",
-                     "scan3.cloudcompare.txt", "scan3.pdal.txt"]
+                     "transforms.scan1.cloudcompare.txt", "transforms.scan1.pdal.txt",
+                     "transforms.scan2.cloudcompare.txt", "transforms.scan2.pdal.txt",
+                     "transforms.scan3.cloudcompare.txt", "transforms.scan3.pdal.txt"]
     out = tmp_path / "out"
-    np.testing.assert_array_equal(parse_cloudcompare_matrix((out / "scan1.cloudcompare.txt").read_text()), np.eye(4))
+    np.testing.assert_array_equal(parse_cloudcompare_matrix((out / "transforms.scan1.cloudcompare.txt").read_text()),
+                                  np.eye(4))
     for name in ("scan2", "scan3"):
         T = tf.transforms[f"{name}.ply"]
-        np.testing.assert_array_equal(parse_cloudcompare_matrix((out / f"{name}.cloudcompare.txt").read_text()), T)
-        np.testing.assert_array_equal(parse_pdal_matrix((out / f"{name}.pdal.txt").read_text()), T)
+        np.testing.assert_array_equal(parse_cloudcompare_matrix((out / f"transforms.{name}.cloudcompare.txt").read_text()), T)
+        np.testing.assert_array_equal(parse_pdal_matrix((out / f"transforms.{name}.pdal.txt").read_text()), T)
     assert not [p for p in out.iterdir() if p.name.endswith(".tmp")]
+
+
+def test_two_cases_in_one_folder_keep_their_matrices(tmp_path, tf):
+    """Each case's matrices are named after its transform file: a second case overwrites nothing."""
+    other = TransformFile(reference="scan1.ply", transforms={"scan2.ply": random_rigid(11)})
+    write_exports(tmp_path, tf, name="caseA.json")
+    write_exports(tmp_path, other, name="caseB.json")
+    a = parse_cloudcompare_matrix((tmp_path / "caseA.scan2.cloudcompare.txt").read_text())
+    b = parse_cloudcompare_matrix((tmp_path / "caseB.scan2.cloudcompare.txt").read_text())
+    np.testing.assert_array_equal(a, tf.transforms["scan2.ply"])
+    np.testing.assert_array_equal(b, other.transforms["scan2.ply"])
 
 
 def test_exports_keep_names_apart_when_stems_clash(tmp_path):
     tf = TransformFile(reference="a.ply", transforms={"b.ply": np.eye(4), "b.las": random_rigid(2)})
     names = {p.name for p in write_exports(tmp_path, tf, name="reg.json")}
-    assert {"reg.json", "a.cloudcompare.txt", "b.ply.cloudcompare.txt", "b.las.pdal.txt"} <= names
+    assert {"reg.json", "reg.a.cloudcompare.txt", "reg.b.ply.cloudcompare.txt", "reg.b.las.pdal.txt"} <= names
 
 
 def test_failed_write_keeps_the_previous_file(tmp_path, tf):

@@ -102,9 +102,16 @@ def test_app_runs_every_stage_and_matches_truth(env, case):
         assert f"/scans/s{i}/points" in _nodes(server)
     assert "✗" not in app.stages.status_md.content and "○" not in app.stages.status_md.content
     assert "⚠" not in app.stages.status_md.content  # the demo registers: nothing to warn about
-    # Before registration all scanners sit at one point: their names must not print over each other.
-    heights = [server.scene._handle_from_node_name[f"/scans/s{i}/station/name"].position[2] for i in range(3)]
-    assert len(set(np.round(heights, 3))) == 3
+    # Before registration all scanners sit at one point: one label names them all (names printed over
+    # each other could not be read); registered, each scanner is named at its own station.
+    nodes = _nodes(server)
+    assert "/scans/s0/station/name" in nodes and "/scans/s1/station/name" not in nodes
+    assert "scanners 1–3" in server.scene._handle_from_node_name["/scans/s0/station/name"].text
+    app.select_stage("coarse")
+    _idle(app)
+    assert all(f"/scans/s{i}/station/name" in _nodes(server) for i in range(3))
+    app.select_stage("prepare")
+    _idle(app)
 
 
 def test_the_apps_stages_are_the_pipelines():
@@ -298,7 +305,7 @@ def test_export_files_match_truth(env, case, tmp_path):
     names = {p.name for p in tmp_path.iterdir()}
     stems = [Path(s.name).stem for s in case.scans]
     assert {"transforms.json", "params.json", "merged.ply"} <= names
-    assert all(f"{st}.cloudcompare.txt" in names and f"{st}.pdal.txt" in names for st in stems)
+    assert all(f"transforms.{st}.cloudcompare.txt" in names and f"transforms.{st}.pdal.txt" in names for st in stems)
     tf = read_transforms(tmp_path / "transforms.json")
     assert tf.reference == case.scans[0].name
     assert json.loads((tmp_path / "transforms.json").read_text())["params"]["fine"]["max_iterations"] == \
@@ -309,6 +316,16 @@ def test_export_files_match_truth(env, case, tmp_path):
         assert mean_displacement(tf.matrix(scan.name), truth[scan.name], scan.points) < DISP_TOL_M
     merged = read_points(tmp_path / "merged.ply")
     assert len(merged) == sum(s.n_points for s in case.scans)
+    # Each point says which scan it came from (PLY property scan_id; 1 = the reference).
+    head, body = (tmp_path / "merged.ply").read_bytes().split(b"end_header\n", 1)
+    assert b"property ushort scan_id" in head
+    ids = np.frombuffer(body, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("scan_id", "<u2")])["scan_id"]
+    assert [int((ids == k + 1).sum()) for k in range(len(case.scans))] == [s.n_points for s in case.scans]
+    # The merged cloud alone, one click.
+    app.send_file = lambda client, name, data: sent.append((name, data))
+    app.files.download_cloud.value = True
+    del app.send_file
+    assert sent[-1][0] == "merged.ply" and sent[-1][1] == (tmp_path / "merged.ply").read_bytes()
     assert "Exported the transforms of 3 scans." in app.files.export_md.content
     assert json.loads((tmp_path / "transforms.json").read_text())["quality"]["scans"]["scan3.ply"]["verdict"] == "verified"
 
@@ -559,3 +576,142 @@ def test_view_serves_on_loopback_only(tmp_path):
     finally:
         proc.terminate()
         proc.wait(10)
+
+
+def test_cross_section_of_the_trunk_separate_arcs_at_coarse_one_ring_at_fine(env, case):
+    """The inspector on the demo's trunk: the targets' stem sections lie centimetres off scan 1's at
+    the coarse pose and within millimetres at the fine pose; a second look costs no computation."""
+    server, app = env
+    app.select_stage("fine")
+    app.set_view(panel="section", section_height=None, branch=None, section_poses="Coarse and fine")
+    _idle(app)
+    cs = app.drawer.section
+    assert cs is not None and [p.pose for p in cs.poses] == ["coarse", "fine"]
+    coarse, fine = cs.pose("coarse"), cs.pose("fine")
+    assert coarse.spread_m(1) > 0.01 and fine.spread_m(1) < 0.005, (coarse.offsets_m[1], fine.offsets_m[1])
+    assert app.panel.title.startswith("### Cross-section at z = ")
+    assert "Coarse: separate arcs" in app.panel.text and "Fine: one ring" in app.panel.text
+    assert len([p for p in app.panel.plots if p.visible]) == 3  # top view, unrolled ring, Fig. 6 raster
+    assert "/section/cut" in _nodes(server)  # where the cut lies, in 3-D
+    computed = app.derived.computed
+    app.set_view(panel="stage")
+    app.set_view(panel="section")
+    _idle(app)
+    assert app.derived.computed == computed  # cached, shared by every tab
+    app.set_view(panel="stage")
+    _idle(app)
+
+
+def test_a_click_on_the_stem_picks_the_cross_sections_height(env):
+    server, app = env
+    app.select_stage("slices")
+    app.set_view(panel="stage")
+    _idle(app)
+    ref = app.controller.snapshot.output("prepare").items[0].scan.points
+    target = ref[np.argmin(np.abs(ref[:, 2] - 1.5))]
+    origin = target + np.array([-8.0, -8.0, 2.0])
+    app.viewer.pick(origin, target - origin)
+    _idle(app)
+    assert app.view.panel == "section" and abs(app.view.section_height - 1.5) < 0.15
+    app.set_view(panel="stage")
+    _idle(app)
+
+
+def test_fits_hide_rejected_ones_and_never_draw_one_larger_than_its_slice(env):
+    server, app = env
+    app.select_stage("sections")
+    app.set_view(show_rejected=False)
+    _idle(app)
+    assert not any(n.endswith("_rejected") for n in _nodes(server))
+    rows_table = app.panel.table
+    assert "nan" not in rows_table and "rejected fit" in rows_table  # counted, not listed
+    app.set_view(show_rejected=True)
+    _idle(app)
+    assert any(n.endswith("_rejected") for n in _nodes(server))
+    # Every drawn fit lies within the sliced points it was fitted to (give or take a metre): a circle
+    # of 51 m or 3.8 km fitted to a nearly straight arc would reach far beyond them.
+    handles = server.scene._handle_from_node_name
+    sliced = np.concatenate([np.asarray(h.points, float) for n, h in handles.items()
+                             if n.startswith(("/sections/ref", "/sections/tgt")) and n[-1].isdigit()])
+    lo, hi = sliced.min(axis=0) - 1.0, sliced.max(axis=0) + 1.0
+    drawn = 0
+    for name in ("/sections/ref_fits", "/sections/tgt_fits", "/sections/ref_rejected", "/sections/tgt_rejected"):
+        h = handles.get(name)
+        if h is not None:
+            v = np.asarray(h.vertices, float)
+            assert np.all(v >= lo) and np.all(v <= hi), (name, v.min(axis=0), v.max(axis=0), lo, hi)
+            drawn += 1
+    assert drawn >= 3
+    # The table: accepted first, numbered from 1, no NaN; picking a row frames it and cuts there.
+    rows = [line for line in app.panel.table.splitlines() if line.startswith("| ") and "| yes |" in line or "| no:" in line]
+    assert rows and "| yes |" in rows[0]
+    options = app.stages.view_controls["focus_sections"].options
+    assert options[0] == "(none)" and options[1].startswith("#1: ")
+    app.stages.view_controls["focus_sections"].value = options[1]
+    _idle(app)
+    assert app.view.focus_section == 0 and "/sections/focus" in _nodes(server)
+    assert app.view.section_height is not None
+    app.set_view(show_rejected=False, focus_section=None, section_height=None)
+    _idle(app)
+
+
+def test_result_colours_by_residual_and_shows_the_pose_chosen(env, case):
+    server, app = env
+    app.select_stage("evaluation")
+    app.stages.view_controls["result_pose"].value = "ICP"  # the button group's click
+    _idle(app)
+    T = app.controller.snapshot.output("icp").items[0].T_ref_target
+    assert np.allclose(app.drawer._scan_frames[1].position, T[:3, 3], atol=1e-6)
+    assert any(n.startswith("/evaluation/label") for n in _nodes(server))  # the evaluated branches, named
+    app.stages.view_controls["result_colour"].value = "Distance to the other scans"
+    _idle(app)
+    cols = np.asarray(server.scene._handle_from_node_name["/scans/s1/points"].colors).reshape(-1, 3)
+    assert len(np.unique(cols, axis=0)) > 20  # a colour map, not one scan colour
+    assert app.panel.images[0].visible  # its colour bar
+    app.stages.view_controls["result_colour"].value = "Scan colours, see-through"
+    _idle(app)
+    assert type(server.scene._handle_from_node_name["/scans/s1/points"]).__name__ == "GaussianSplatHandle"
+    app.stages.view_controls["result_colour"].value = "Scan colours"
+    app.stages.view_controls["result_pose"].value = "Final"  # back to the joint placement (the default)
+    _idle(app)
+    T = app.controller.snapshot.output("graph").items[1].T_ref_scan
+    assert np.allclose(app.drawer._scan_frames[1].position, T[:3, 3], atol=1e-6)
+    assert "final (joint placement)" in app.panel.text
+
+
+def test_the_tour_sets_stage_and_panel_and_ends(env):
+    from treereg_viewer.tour import STEPS
+
+    server, app = env
+    v = app.viewer
+    assert [s.stage for s in STEPS] == list(STAGE_NAMES)  # every stage, in order
+    assert all(s.why.count(". ") + 1 >= 2 and s.try_this for s in STEPS)
+    v.tour_go(0)
+    _idle(app)
+    assert app.view.stage == "prepare" and v.tour.card.visible and "step 1 of" in v.tour.card.content
+    assert {"/tour/tree0", "/tour/tree1", "/tour/tree2"} <= _nodes(server)  # each station's tree named
+    v.tour_go(STAGE_NAMES.index("fine"))  # the fine step: the cross-section, coarse and fine side by side
+    _idle(app)
+    assert app.view.stage == "fine" and app.view.panel == "section" and app.view.section_poses == "Coarse and fine"
+    assert "/tour/label" in _nodes(server)
+    v.tour.nav.value = "End tour"
+    _idle(app)
+    assert not v.tour.card.visible and app.view.tour_step is None and not any(n.startswith("/tour/") for n in _nodes(server))
+    app.set_view(panel="stage")
+    _idle(app)
+
+
+def test_a_run_publishes_each_stage_as_it_finishes(small_app):
+    """A tab on the Arcs stage sees its new arcs before fine and evaluation have run."""
+    app = small_app
+    ctl = app.controller
+    app.stages.run_button.value = True
+    _idle(app)
+    seen = []
+    ctl.subscribe(lambda snap: seen.append((snap.status("arcs"), snap.status("fine"), snap.status("evaluation"))))
+    app.select_stage("arcs")
+    app.stages.sections["arcs"].handles["min_points"].value = 30
+    app.stages.run_button.value = True
+    _idle(app)
+    assert ("done", "stale", "stale") in seen or ("done", "running", "stale") in seen, seen
+    assert ctl.snapshot.status("evaluation") == "done"

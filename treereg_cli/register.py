@@ -11,8 +11,10 @@ import sys
 import time
 from pathlib import Path
 
-from treereg_core.errors import ConfigError
+from treereg_core.errors import ConfigError, ScanError
 from treereg_core.io.e57 import write_registered_e57
+from treereg_core.io.merged import write_merged
+from treereg_core.io.scans import WRITE_EXTENSIONS, extension
 from treereg_core.io.transforms import registration_file, write_exports, write_transforms
 from treereg_core.pipeline import register
 from treereg_core.verify.report import quality_report, verdict_lines
@@ -41,14 +43,22 @@ def add(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--keep-unverified", action="store_true",
                    help="also write the best guesses of unverified scans into \"transforms\" (marked in \"quality\")")
     add_param_args(p)
-    p.add_argument("--exports", action="store_true", help="also write CloudCompare and PDAL matrix files and "
-                   "registered.e57 beside --out")
+    p.add_argument("--exports", action="store_true",
+                   help="also write CloudCompare and PDAL matrix files beside --out, named after it "
+                   "(<out>.<scan>.cloudcompare.txt, <out>.<scan>.pdal.txt), and registered.e57")
     p.add_argument("--e57", metavar="FILE", help="also write the registered scans as one multi-scan E57 (each scan "
                    "with its estimated pose: CloudCompare and other E57 readers open it registered)")
+    p.add_argument("--merged", metavar="FILE",
+                   help="also write the merged registered cloud (.ply, .las or .laz), each point tagged with "
+                   "its scan's number (PLY property scan_id, LAS point_source_id; 1 = the reference)")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.merged and extension(args.merged) not in WRITE_EXTENSIONS:
+        # Said before minutes of registration, not after.
+        raise ConfigError(f"{args.merged}: the merged cloud is written as {', '.join(WRITE_EXTENSIONS)}; "
+                          f"not {extension(args.merged) or '(no extension)'!r}")
     params = load_params(args)
     scans = read_scans(args.scans, params, args.scanner_position)
     if len(scans) < 2:
@@ -68,10 +78,19 @@ def run(args: argparse.Namespace) -> int:
                            sources={s.name: str(s.source.resolve()) if s.source.exists() else str(s.source) for s in scans},
                            seconds=seconds)
     out = Path(args.out)
+    merged = []
+    if args.merged:
+        # Written first: when it cannot be written, the transform file is not written either.
+        try:
+            # The same scans as "transforms": unverified guesses only with --keep-unverified.
+            merged.append(write_merged(args.merged, scans, tf.transforms))
+        except OSError as e:  # one line naming the file, not a traceback
+            raise ScanError(args.merged, f"cannot write the merged cloud ({e.strerror or e})") from None
     written = write_exports(out.parent, tf, name=out.name) if args.exports else [write_transforms(out, tf)]
     e57 = Path(args.e57) if args.e57 else (out.parent / "registered.e57" if args.exports else None)
     if e57 is not None:
         written.append(write_registered_e57(e57, scans, tf))
+    written += merged
     for name, rows in metrics.items():
         print(f"\n{name}" if " -> " in name else f"\n{name} -> {scans[0].name}")
         for r in rows:

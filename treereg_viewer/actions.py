@@ -1,6 +1,7 @@
-"""What the panels may ask of the app: a narrow interface, so no panel holds (or imports) the app.
+"""What the panels may ask of their viewer: a narrow interface, so no panel holds (or imports) the app.
 
-`TreeregApp` implements it; a panel receives it at construction and calls only these.
+`viewer.Viewer` (one per browser tab) implements it; a panel receives it at construction and calls
+only these.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from .view_state import ViewState
 
 
 class AppActions(Protocol):
-    """The app as the panels see it."""
+    """A viewer as its panels see it."""
 
     controller: Controller
     out_dir: Path | None
@@ -37,8 +38,29 @@ class AppActions(Protocol):
 
     def set_scan_visible(self, name: str, visible: bool) -> None: ...
 
+    def focus_section(self, stage: str, row_label: str) -> None: ...
+
     def on_param_change(self, section: str, name: str, value: Any) -> str | None: ...
 
     def load_params(self, params: Params, source: str, note: str = "") -> None: ...
+
+    def send_file(self, client: Any, filename: str, data: bytes) -> None: ...
+
+
+class AppHost(Protocol):
+    """The shared app as a viewer sees it (`app.TreeregApp` implements it): the computation and its
+    caches, the exports folder, who presents, and the downloads."""
+
+    controller: Controller
+    out_dir: Path | None
+    derived: Any
+    server: Any
+    presenter: Any
+
+    def set_presenter(self, viewer: Any, on: bool) -> None: ...
+
+    def broadcast(self, presenter: Any) -> None: ...
+
+    def camera_moved(self, presenter: Any, cam: Any) -> None: ...
 
     def send_file(self, client: Any, filename: str, data: bytes) -> None: ...

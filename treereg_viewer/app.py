@@ -1,14 +1,21 @@
-"""treereg's browser app: the server, theme and layout, and the glue between GUI, controller and
-drawer.
+"""treereg's browser app: the server, the shared state, and one viewer per browser tab.
 
-Layout: on the right the control panel (stage selector, Previous/Next, Run, progress, messages;
-tabs "Stage" with one folder per stage, "Scans", "Files"); on the left a wide docked panel with the
-current stage's images, plots and tables; the 3-D scene in the middle. Callbacks only record what
-changed (parameters go to the `Controller`, display choices to the `ViewState`); the pipeline runs
-on the controller's worker and drawing on the `Drawer`'s thread.
+Shared by every tab: the `Controller` (scans, parameters, the pipeline on its worker thread and the
+results it publishes), the `Derived` cache (cross-sections and residuals computed on demand), the
+exports folder and who presents. Per tab, a `viewer.Viewer`: its own stage, pair, sliders,
+cross-section and camera, GUI and scene, and drawing thread.
+
+Layout of a tab: on the right the control panel (stage selector, Previous/Next, Run, progress,
+messages; tabs "Stage" with one folder per stage, "Scans", "Files", "Teach"); on the left a wide
+docked panel with the current stage's images, plots and tables, or the cross-section; the 3-D
+scene in the middle.
 
     server = viser.ViserServer(host="127.0.0.1", port=0)
-    app = TreeregApp(server, Controller(scans, params, truth))
+    app = TreeregApp(server, Controller(scans, params, truth), tabs="each")
+
+With `tabs="shared"` (the default: scripts and tests without a browser) there is one viewer, on
+the server's own GUI and scene, and every tab sees it; `app.viewer` is that viewer and the app
+passes its panels (`app.stages`, `app.panel`, ...) through.
 """
 
 from __future__ import annotations
@@ -16,34 +23,23 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
-import numpy as np
 import viser
-
-from treereg_core.errors import ConfigError
-from treereg_core.params import Params
 
 from . import camera
 from .controller import Controller, Snapshot
-from .drawer import Drawer
-from .export_panel import ExportPanel
-from .scan_panel import ScanPanel
-from .stage_panel import StagePanel
-from .stages import STAGE_NAMES, registered
-from .view_panel import ViewPanel
+from .derived import Derived
+from .stages import STAGE_NAMES
 from .view_state import ViewState
+from .viewer import Viewer
 
 log = logging.getLogger(__name__)
 
-#: Width of the docked control panel (viser's "large" control width).
-CONTROL_WIDTH_PX = 400
-
 
 class TreeregApp:
-    """The app on one viser server. Every browser tab sees the same GUI and the same state.
+    """The app on one viewer server.
 
     Parameters
     ----------
@@ -55,139 +51,125 @@ class TreeregApp:
         When given, exports are also written there.
     autorun
         Run the whole pipeline in the background as soon as the app is up.
+    tabs
+        "each": every browser tab gets its own viewer (what `treereg view` serves); "shared": one
+        viewer on the server's own GUI and scene, seen by every tab (scripts, tests without a browser).
     """
 
     def __init__(self, server: viser.ViserServer, controller: Controller, out_dir: Path | None = None,
-                 autorun: bool = True) -> None:
+                 autorun: bool = True, tabs: Literal["each", "shared"] = "shared") -> None:
         self.server = server
         self.controller = controller
         self.out_dir = Path(out_dir) if out_dir is not None else None
-        self._view_lock = threading.Lock()
-        self._view = ViewState()
-        self._last_progress = 0.0
+        self.derived = Derived()
+        self.tabs = tabs
+        self._lock = threading.Lock()
+        self._viewers: dict[int | None, Viewer] = {}
+        self.presenter: Viewer | None = None
 
         server.gui.configure_theme(show_share_button=False, control_width="large", brand_color=(30, 140, 60),
                                    titlebar_content=None)
         server.scene.set_up_direction("+z")
-        self.panel = ViewPanel(server)
-        # Docked, not floating: a floating control panel covers the right third of the scene, where
-        # the trees of the other scans stand; docked, the scene is the free space between the panels.
-        server.gui.main_panel.dock_right()
-        server.gui.main_panel.set_width(CONTROL_WIDTH_PX)
-        gui = server.gui
-        gui.add_markdown("**treereg** · marker-free registration of single-tree TLS scans (rotating projection, "
-                         "then stem and branch centres)")
-        self.stages = StagePanel(gui, self)
-        tabs = gui.add_tab_group()
-        with tabs.add_tab("Stage", viser.Icon.LIST_NUMBERS):
-            self.stages.build_folders(gui)
-        with tabs.add_tab("Scans", viser.Icon.TREE):
-            self.scans = ScanPanel(gui, self)
-        with tabs.add_tab("Files", viser.Icon.FILE_EXPORT):
-            self.files = ExportPanel(gui, self)
-
-        self.drawer = Drawer(server, self.panel, lambda: controller.snapshot, lambda: self.view,
-                             on_error=lambda msg: controller.note(msg, error=True))
+        self._place_camera(controller.snapshot)
         controller.subscribe(self._on_snapshot)
         controller.subscribe_progress(self._on_progress)
-        self._on_snapshot(controller.snapshot)
-        self._place_camera(controller.snapshot)
+        if tabs == "shared":
+            self._viewers[None] = Viewer(self, server.gui, server.scene, None, server.atomic)
+        else:
+            server.on_client_connect(self._connect)
+            server.on_client_disconnect(self._disconnect)
         if autorun and len(controller.snapshot.scans) >= 2:
             controller.request_run(STAGE_NAMES[-1])
 
-    # ---- view state ------------------------------------------------------------------------------
+    # ---- viewers ------------------------------------------------------------------------------------
+    def _connect(self, client: viser.ClientHandle) -> None:
+        v = Viewer(self, client.gui, client.scene, client, client.atomic)
+        with self._lock:
+            self._viewers[client.client_id] = v
+            presenter = self.presenter
+        if presenter is not None:  # a tab joining a class follows the presenter from the start
+            v.show_presenter(presenter)
+
+    def _disconnect(self, client: viser.ClientHandle) -> None:
+        with self._lock:
+            v = self._viewers.pop(client.client_id, None)
+            if v is not None and self.presenter is v:
+                self.presenter = None
+            others = list(self._viewers.values())
+        if v is not None:
+            v.close()
+            if self.presenter is None:
+                self._tell(others, None)
+
+    @staticmethod
+    def _tell(viewers: list[Viewer], presenter: Viewer | None) -> None:
+        """Tell each viewer who presents now; a tab that is closing must not keep the others uninformed."""
+        for o in viewers:
+            try:
+                o.show_presenter(presenter)
+            except Exception:
+                log.exception("could not update a tab's presenter controls")
+
     @property
-    def view(self) -> ViewState:
-        return self._view
+    def viewers(self) -> list[Viewer]:
+        with self._lock:
+            return list(self._viewers.values())
 
-    def set_view(self, **changes: Any) -> None:
-        """Record display choices and ask for a redraw (callbacks call this; it returns at once)."""
-        with self._view_lock:
-            self._view = replace(self._view, **changes)
-        self.drawer.request()
+    def viewer_of(self, client_id: int | None) -> Viewer | None:
+        with self._lock:
+            return self._viewers.get(client_id)
 
-    def select_stage(self, name: str) -> None:
-        before = self.view.stage
-        self.set_view(stage=name)
-        if registered(before) != registered(name):
-            # Between the scattered scans (own frames) and the registered tree the content moves:
-            # follow it. Within a group the camera stays where the user put it.
-            self.frame_view()
-        self.stages.show_stage(name)
-        snap = self.controller.snapshot
-        self.stages.show_snapshot(snap, name)
-        if self.stages.auto_run.value and snap.status(name) == "stale" and len(snap.scans) >= 2 \
-                and not any(snap.status(s) == "failed" for s in STAGE_NAMES[: STAGE_NAMES.index(name)]):
-            self.controller.request_run(name)
+    # ---- presenting -------------------------------------------------------------------------------
+    def set_presenter(self, viewer: Viewer, on: bool) -> None:
+        """`viewer` starts (or stops) presenting: every other tab follows it until it unticks
+        "Follow the presenter"."""
+        with self._lock:
+            if on:
+                self.presenter = viewer
+            elif self.presenter is viewer:
+                self.presenter = None
+            else:
+                return
+            presenter = self.presenter
+            others = [v for v in self._viewers.values() if v is not viewer]
+        self._tell([*others, viewer], presenter)
 
-    def step_stage(self, delta: int) -> None:
-        i = int(np.clip(STAGE_NAMES.index(self.view.stage) + delta, 0, len(STAGE_NAMES) - 1))
-        self.select_stage(STAGE_NAMES[i])
+    def broadcast(self, presenter: Viewer) -> None:
+        """The presenter's view changed: its followers take it over."""
+        for v in self.viewers:
+            if v is not presenter and v.following:
+                try:
+                    v.follow(presenter)
+                except Exception:  # one closing tab must not stop the others following
+                    log.exception("a follower could not follow")
 
-    def select_target(self, label: str) -> None:
-        snap = self.controller.snapshot
-        labels = [f"{s.name} → {snap.scans[0].name}" for s in snap.scans[1:]]
-        if label in labels:
-            self.set_view(target=labels.index(label), match_pair=0)
-            for key, h in self.stages.view_controls.items():
-                if key.startswith("target") and h.value != label:
-                    h.value = label
+    def camera_moved(self, presenter: Viewer, cam: Any) -> None:
+        for v in self.viewers:
+            if v is not presenter and v.following:
+                v.follow_camera(cam.position, cam.look_at, cam.up_direction)
 
-    def set_scan_visible(self, name: str, visible: bool) -> None:
-        hidden = set(self.view.hidden_scans)
-        (hidden.discard if visible else hidden.add)(name)
-        self.set_view(hidden_scans=frozenset(hidden))
-
-    # ---- actions ---------------------------------------------------------------------------------
-    def run_current(self) -> None:
-        """Run: bring this stage and the ones after it up to date, reusing earlier results.
-
-        Stale stages run; when nothing from here on is stale, this stage is re-run (and so are the
-        later ones, which depend on it).
-        """
-        snap = self.controller.snapshot
-        stage = self.view.stage
-        later = STAGE_NAMES[STAGE_NAMES.index(stage):]
-        anything_stale = any(snap.status(s) != "done" for s in later) or self.controller.params != snap.params
-        self.controller.request_run(STAGE_NAMES[-1], rerun_from=None if anything_stale else stage)
-
-    def on_param_change(self, section: str, name: str, value: Any) -> str | None:
-        try:
-            self.controller.set_param(section, name, value)
-        except ConfigError as e:
-            self.controller.note(str(e), error=True)
-            self.stages.sections[section].sync(self.controller.params)  # show what is in force
-            return str(e)
-        return None
-
-    def load_params(self, params: Params, source: str, note: str = "") -> None:
-        self.controller.set_params(params)
-        self.stages.sync_params(params)
-        self.controller.note(f"Parameters from {source} in force; press Run to apply them. {note}".rstrip())
-
+    # ---- shared services -----------------------------------------------------------------------------
     def send_file(self, client: Any, filename: str, data: bytes) -> None:
-        """A browser download for the tab that asked (all tabs when there is no client, as in tests)."""
+        """A browser download that starts at once (no link to click) for the tab that asked (all tabs
+        when there is no client, as in tests)."""
         target = client if client is not None else self.server
-        target.send_file_download(filename, data)
+        target.send_file_download(filename, data, save_immediately=True)
 
     def close(self) -> None:
         self.controller.close()
-        self.drawer.close()
+        for v in self.viewers:
+            v.close()
 
-    # ---- from the worker ----------------------------------------------------------------------
     def _on_snapshot(self, snap: Snapshot) -> None:
-        self.stages.show_snapshot(snap, self.view.stage)
-        self.scans.show_snapshot(snap)
-        if not snap.busy:
-            self.stages.progress_text.content = ""
-        self.drawer.request()
+        for v in self.viewers:
+            try:
+                v.on_snapshot(snap)
+            except Exception:  # one tab's GUI failing must not stop the others
+                log.exception("viewer update failed")
 
     def _on_progress(self, fraction: float, text: str) -> None:
-        now = time.perf_counter()
-        if fraction < 1.0 and now - self._last_progress < 0.1:  # ~10 updates a second are plenty
-            return
-        self._last_progress = now
-        self.stages.show_progress(fraction, text)
+        for v in self.viewers:
+            v.on_progress(fraction, text)
 
     def _place_camera(self, snap: Snapshot) -> None:
         """The camera a new browser tab starts with (and "Reset View" returns to): the Scans stage's view."""
@@ -198,26 +180,56 @@ class TreeregApp:
         self.server.initial_camera.look_at = pose.look_at
         self.server.initial_camera.up = (0.0, 0.0, 1.0)
 
+    # ---- the one viewer of tabs="shared" (scripts and tests drive it through the app) ----------------
+    @property
+    def viewer(self) -> Viewer:
+        v = self.viewer_of(None)
+        if v is None:
+            raise AttributeError("this app has a viewer per browser tab (tabs='each'): use app.viewers")
+        return v
+
+    @property
+    def view(self) -> ViewState:
+        return self.viewer.view
+
+    @property
+    def stages(self) -> Any:
+        return self.viewer.stages
+
+    @property
+    def scans(self) -> Any:
+        return self.viewer.scans
+
+    @property
+    def files(self) -> Any:
+        return self.viewer.files
+
+    @property
+    def panel(self) -> Any:
+        return self.viewer.panel
+
+    @property
+    def drawer(self) -> Any:
+        return self.viewer.drawer
+
+    def set_view(self, **changes: Any) -> None:
+        self.viewer.set_view(**changes)
+
+    def select_stage(self, name: str) -> None:
+        self.viewer.select_stage(name)
+
+    def step_stage(self, delta: int) -> None:
+        self.viewer.step_stage(delta)
+
     def frame_view(self) -> None:
-        """Point every tab's camera at what the current stage draws (the "Frame the view" button)."""
-        pose = camera.frame(self.controller.snapshot, self.view.stage)
-        if pose is None:
-            return
-        for client in self.server.get_clients().values():
-            try:
-                with client.atomic():
-                    # viser moves look_at along with position: set position first, then look_at.
-                    client.camera.position = pose.position
-                    client.camera.look_at = pose.look_at
-            except (AssertionError, ValueError):  # a tab that has not reported its camera yet
-                log.debug("camera of client %s not ready", client.client_id)
+        self.viewer.frame_view()
 
 
 def serve(controller: Controller, host: str = "127.0.0.1", port: int = 8080, out_dir: Path | None = None) -> None:
     """Start the server and the app, print the URL (tests read it), block until Ctrl-C."""
     t0 = time.perf_counter()
     server = viser.ViserServer(host=host, port=port, verbose=False)
-    app = TreeregApp(server, controller, out_dir=out_dir)
+    app = TreeregApp(server, controller, out_dir=out_dir, tabs="each")
     url = f"http://{host}:{server.get_port()}/"
     print(f"treereg view: {url}  (app ready in {time.perf_counter() - t0:.1f} s; Ctrl-C to stop)", flush=True)
     try:

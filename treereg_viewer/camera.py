@@ -68,3 +68,29 @@ def frame(snap: Snapshot, stage: str) -> CameraPose | None:
             break
         dist *= 1.1
     return CameraPose(tuple(float(v) for v in pos), tuple(float(v) for v in look))
+
+
+def frame_point(snap: Snapshot, centre: np.ndarray, radius_m: float) -> CameraPose:
+    """A close view of one spot (a fitted section): from the reference scanner's side, slightly from
+    above, far enough to see the spot and a little around it."""
+    centre = np.asarray(centre, dtype=float)
+    tree = snap.scans[0].points.mean(axis=0) if snap.scans else np.array([1.0, 0.0, 0.0])
+    d = tree[:2] / (np.linalg.norm(tree[:2]) or 1.0)
+    e = np.radians(ELEVATION_DEG * 2)
+    back = np.array([-d[0] * np.cos(e), -d[1] * np.cos(e), np.sin(e)])
+    dist = max(1.0, 10.0 * float(radius_m))
+    return CameraPose(tuple(float(v) for v in centre + back * dist), tuple(float(v) for v in centre))
+
+
+def trunk_anchor(snap: Snapshot, height_m: float | None) -> np.ndarray | None:
+    """A point on the reference's stem at `height_m` (where the tour points and looks): the middle of
+    the reference's points within 10 cm of that height. None without prepared scans."""
+    prep = snap.output("prepare")
+    if height_m is None or prep is None or not prep.items or getattr(prep.items[0], "scan", None) is None:
+        return None
+    pts = prep.items[0].scan.points
+    near = pts[np.abs(pts[:, 2] - height_m) <= 0.1]
+    if len(near) == 0:
+        return None
+    xy = np.median(near[:, :2], axis=0)
+    return np.array([xy[0], xy[1], float(height_m)])

@@ -345,7 +345,7 @@ class Controller:
             pipe.invalidate(rerun_from)
         todo = [s for s in STAGES[: STAGES.index(until) + 1] if pipe.output(s) is None]
         t0 = time.perf_counter()
-        running = {"stage": todo[0] if todo else None}
+        running = {"stage": todo[0] if todo else None, "k": 0}
         self._publish(busy=True, running=running["stage"], message="Running…" if todo else "")
 
         def progress(fraction: float, text: str) -> None:
@@ -353,11 +353,27 @@ class Controller:
             if stage in STAGES and stage != running["stage"]:
                 running["stage"] = stage
                 self._publish(busy=True, running=stage, message=f"Running {label(stage)}…")
+            overall = (running["k"] + min(max(fraction, 0.0), 1.0)) / max(len(todo), 1)
             for fn in self._progress_listeners:
-                fn(fraction, text)
+                fn(overall if fraction < 1.0 else min(1.0, (running["k"] + 1) / max(len(todo), 1)), text)
 
+        last = None
         try:
-            last = pipe.run(until, progress)
+            # One stage at a time, publishing after each: a tab on an early stage (e.g. Arcs after an
+            # arcs parameter changed) sees its result while the later stages still run.
+            for k, name in enumerate(todo):
+                running["k"] = k
+                if pipe.output(name) is not None:
+                    continue
+                last = pipe.run(name, progress)
+                if pipe.output(name) is None:  # an earlier stage failed for every item: nothing more runs
+                    break
+                nxt = next((s for s in todo[k + 1:] if pipe.output(s) is None), None)
+                if nxt is not None:
+                    running["stage"] = nxt
+                    self._publish(busy=True, running=nxt, message=f"Running {label(nxt)}…")
+            if last is None or last.stage != until:
+                last = pipe.output(until) or last
         except Exception as e:
             # The stage that raised is the first one still without an output.
             stage = next((s for s in todo if pipe.output(s) is None), running["stage"] or until)

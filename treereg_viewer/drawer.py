@@ -1,9 +1,12 @@
-"""The drawing thread: turns the latest Snapshot and ViewState into scene nodes and panel content.
+"""One viewer's drawing thread: turns the latest Snapshot and that viewer's ViewState into scene
+nodes and panel content.
 
 Separate from the pipeline worker, so stepping through stages and moving sliders stays quick while
 a stage re-runs. Requests are coalesced: many slider moves give one redraw of the latest state.
 Each layer remembers the key (result identity + the view choices it depends on) it was drawn with
-and is redrawn only when that key changes. All updates of one redraw go in one `server.atomic()`.
+and is redrawn only when that key changes. All updates of one redraw go in one `atomic()` block of
+the viewer's connection. Every browser tab has its own Drawer on its own scene; the shared
+`Derived` cache keeps tabs from computing the same cross-section twice.
 """
 
 from __future__ import annotations
@@ -11,6 +14,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from contextlib import AbstractContextManager
 from typing import Any, Callable
 
 import viser
@@ -19,10 +23,12 @@ from treereg_core.stage import Skipped
 from treereg_core.stages import stage as core_stage
 
 from .controller import Snapshot
+from .derived import Derived, default_height, evaluated_branches, height_range
 from .renderers import RENDERERS, Renderer
+from .renderers import cross_section
 from .renderers.common import item_message, not_ready_text, render_metrics, target_index, title
-from .renderers.scans import apply_poses, context_only, draw_scan_layer, scan_poses, scans_shown
-from .stages import STAGE_NAMES
+from .renderers.scans import apply_poses, draw_scan_layer, residual_mode, scan_layer_key, scan_poses, scans_shown
+from .stages import STAGE_NAMES, section_available
 from .view_panel import PanelContent, ViewPanel
 from .view_state import ViewState
 
@@ -30,6 +36,8 @@ log = logging.getLogger(__name__)
 
 #: Stages without a renderer of their own show their metrics.
 _GENERIC = Renderer(render_metrics, ("target",))
+#: The view choices the cross-section depends on.
+SECTION_FIELDS = ("section_height", "section_thickness", "section_poses", "branch", "target", "show_rejected")
 
 
 def render_stage(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> tuple[list[Any], PanelContent]:
@@ -52,16 +60,20 @@ class Drawer:
 
     def __init__(
         self,
-        server: viser.ViserServer,
+        scene: viser.SceneApi,
+        atomic: Callable[[], AbstractContextManager[Any]],
         panel: ViewPanel,
         get_snapshot: Callable[[], Snapshot],
         get_view: Callable[[], ViewState],
+        derived: Derived,
         on_error: Callable[[str], None] | None = None,
     ) -> None:
-        self.server = server
+        self.scene = scene
         self.panel = panel
+        self._atomic = atomic
         self._get_snapshot = get_snapshot
         self._get_view = get_view
+        self.derived = derived
         self._on_error = on_error or (lambda msg: None)
         self._cond = threading.Condition()
         self._dirty = False
@@ -70,9 +82,10 @@ class Drawer:
         self._keys: dict[str, Any] = {}
         self._handles: dict[str, list[Any]] = {}
         self._scan_frames: dict[int, Any] = {}
+        self._stage_content: PanelContent | None = None
         self.draws = 0  # number of completed redraws (tests wait on it)
         self.last_seconds = 0.0
-        scene = server.scene
+        self.section: Any = None  # the cross-section shown last (tests read it)
         self._groups = {name: scene.add_frame(f"/{name}", show_axes=False, visible=False) for name in STAGE_NAMES}
         self._thread = threading.Thread(target=self._loop, name="treereg-drawer", daemon=True)
         self._thread.start()
@@ -125,15 +138,24 @@ class Drawer:
 
     def draw(self, snap: Snapshot, view: ViewState) -> None:
         """Bring the scene and the panel up to date with `snap` and `view`."""
-        scene = self.server.scene
-        with self.server.atomic():
+        scene = self.scene
+        # On-demand results (residuals, the cross-section) are computed before the atomic block:
+        # the connection's other messages are not held back meanwhile.
+        residuals = (self.derived.residuals(snap, view.result_pose, view.max_points, view.residual_max_m)
+                     if residual_mode(view) else None)
+        sectioning = section_available(snap, view.stage) and view.panel == "section"
+        branch = None
+        cs = None
+        if sectioning:
+            cs = self.derived.cross_section(snap, view)
+            branches = evaluated_branches(snap, view.target)
+            branch = branches[view.branch] if view.branch is not None and view.branch < len(branches) else None
+        with self._atomic():
             # The scan layer: points change only with the scans, preparation and display options.
-            prep = snap.output("prepare")
-            key = (tuple(id(s) for s in snap.scans), id(prep), view.stage == "prepare", context_only(view), view.point_size,
-                   view.max_points, view.show_stations)
+            key = scan_layer_key(snap, view)
             if self._keys.get("scans") != key:
                 self._replace("scans", [])
-                self._handles["scans"] = draw_scan_layer(scene, snap, view)
+                self._handles["scans"] = draw_scan_layer(scene, snap, view, residuals)
                 self._scan_frames = {
                     i: h for i, h in enumerate(h for h in self._handles["scans"] if _is_scan_frame(h))
                 }
@@ -149,17 +171,35 @@ class Drawer:
             # Drawn anew when its output or an earlier one (its inputs, the poses it draws at) changed,
             # or a view choice it uses.
             upto = STAGE_NAMES[: STAGE_NAMES.index(name) + 1]
-            key = (tuple(id(snap.outputs.get(n)) for n in upto), snap.running == name, len(snap.scans),
+            key = (name, tuple(id(snap.outputs.get(n)) for n in upto), snap.running == name, len(snap.scans),
                    tuple(getattr(view, f) for f in fields))
-            if self._keys.get(name) != key or self._keys.get("panel") != name:
-                self._replace(name, [])
+            stage_changed = self._keys.get("stage") != key
+            if stage_changed:
+                self._replace("stage", [])
                 handles, content = render_stage(scene, f"/{name}", snap, view)
-                self._handles[name] = handles
-                self._keys[name] = key
-                self.panel.show(content)
-                self._keys["panel"] = name
+                self._handles["stage"] = handles
+                self._keys["stage"] = key
+                self._stage_content = content
             for k, g in self._groups.items():
                 g.visible = k == name
+            # The cross-section: its 3-D marker and, in section mode, the panel.
+            key = (id(cs), None if branch is None else branch.index, view.show_rejected, sectioning)
+            if self._keys.get("section") != key:
+                self._replace("section", [])
+                self._handles["section"] = cross_section.draw_marker(scene, "/section", cs, branch) if sectioning else []
+                self._keys["section"] = key
+            panel_key = ("section", key) if sectioning else ("stage", self._keys["stage"])
+            if self._keys.get("panel") != panel_key:
+                content = cross_section.render(snap, view, cs, branch) if sectioning else self._stage_content
+                self.panel.show(content)
+                self._keys["panel"] = panel_key
+                self.section = cs if sectioning else None
+            rng = height_range(snap) if sectioning else None
+            self.panel.show_controls(
+                view, section_available(snap, view.stage), rng,
+                view.section_height if view.section_height is not None else default_height(snap, view.target),
+                [f"Branch {b.index + 1} (z = {b.height_m:.2f} m, r = {b.radius_m * 100:.1f} cm)"
+                 for b in evaluated_branches(snap, view.target)])
 
     def _replace(self, layer: str, handles: list[Any]) -> None:
         # Remove the old nodes first: a new node may reuse an old name.

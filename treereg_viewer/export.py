@@ -17,9 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from treereg_core import params as P
-from treereg_core.geometry.rigid import apply_transform
 from treereg_core.io.atomic import write_bytes_atomic
-from treereg_core.io.scans import write_scan
+from treereg_core.io.merged import write_merged
 from treereg_core.io.transforms import TransformFile, registration_file, write_exports
 from treereg_core.verify.report import quality_report
 
@@ -57,15 +56,11 @@ def transform_file(snap: Snapshot, keep_unverified: bool = False) -> tuple[Trans
     return tf, stage
 
 
-def merged_points(snap: Snapshot, transforms: dict[str, np.ndarray]) -> np.ndarray:
-    """Every scan's points (as loaded, ground included) in the reference frame."""
-    parts = [apply_transform(transforms[s.name], s.points) for s in snap.scans if s.name in transforms]
-    return np.concatenate(parts, axis=0)
-
-
 def export_bundle(snap: Snapshot, cloud_format: str = "ply", keep_unverified: bool = False) -> ExportBundle:
     """transforms.json (with the parameters used and per-pair metrics), CloudCompare and PDAL
-    matrices per scan, params.json, and the merged registered cloud (`merged.<ply|las>`)."""
+    matrices per scan (`transforms.<scan>.cloudcompare.txt`, ...), params.json, and the merged
+    registered cloud (`merged.<ply|las>`, every scan's points as loaded, ground included, each
+    tagged with its scan's number: PLY `scan_id`, LAS `point_source_id`)."""
     if cloud_format not in ("ply", "las", "laz"):
         raise ExportError(f"merged cloud format must be ply, las or laz, not {cloud_format!r}")
     tf, stage = transform_file(snap, keep_unverified)
@@ -73,8 +68,7 @@ def export_bundle(snap: Snapshot, cloud_format: str = "ply", keep_unverified: bo
     with tempfile.TemporaryDirectory(prefix="treereg-export-") as tmp:
         for path in write_exports(tmp, tf):
             files[path.name] = path.read_bytes()
-        # float32 PLY: half the size, about a micrometre at tree distances.
-        cloud = write_scan(Path(tmp) / f"merged.{cloud_format}", merged_points(snap, tf.transforms), dtype="float32")
+        cloud = write_merged(Path(tmp) / f"merged.{cloud_format}", snap.scans, tf.transforms)
         files[cloud.name] = cloud.read_bytes()
     files["params.json"] = (json.dumps(P.to_dict(snap.params), indent=2) + "\n").encode()
     return ExportBundle(stage, dict(tf.transforms), files)

@@ -27,17 +27,21 @@ class ExportPanel:
             gui.add_markdown(
                 "The transforms `T_ref_scan` of the latest run (fine where it ran, else coarse) with the "
                 "parameters used; CloudCompare matrix text per scan; the PDAL matrix string; the merged "
-                f"registered cloud.{where}"
+                f"registered cloud, each point tagged with its scan. A click starts the download.{where}"
             )
-            self.cloud_format = gui.add_dropdown("Merged cloud format", ("ply", "las"), initial_value="ply")
+            self.cloud_format = gui.add_dropdown("Merged cloud format", ("ply", "las"), initial_value="ply",
+                                                 hint="Each point carries its scan's number: PLY property scan_id, "
+                                                 "LAS point_source_id (1 = the reference).")
             self.keep_unverified = gui.add_checkbox(
                 "Include unverified best guesses", False,
-                hint="Unverified scans are left out of transforms.json's \"transforms\" (listed under \"unverified\" with "
-                     "the reasons); tick this to export their best guesses too, marked as such.")
+                hint="Unverified scans are left out of transforms.json's \"transforms\" and the merged cloud (listed "
+                     "under \"unverified\" with the reasons); tick this to export their best guesses too, marked as such.")
             self.download_transforms = gui.add_button("Download transforms.json", icon=viser.Icon.DOWNLOAD)
+            self.download_cloud = gui.add_button("Download the merged cloud", icon=viser.Icon.DOWNLOAD)
             self.download_all = gui.add_button("Download all exports (zip)", icon=viser.Icon.FILE_ZIP)
             self.export_md = gui.add_markdown("")
         self.download_transforms.on_click(lambda e: self._download(e.client, only="transforms.json"))
+        self.download_cloud.on_click(lambda e: self._download(e.client, only=f"merged.{self.cloud_format.value}"))
         self.download_all.on_click(lambda e: self._download(e.client, only=None))
         with gui.add_folder("Parameters"):
             # Started with `--preset paper` (or a config equal to a preset): show that preset.

@@ -46,3 +46,27 @@ def categorical(labels: np.ndarray) -> np.ndarray:
 
 def hex_color(rgb: tuple[int, int, int]) -> str:
     return "#{:02x}{:02x}{:02x}".format(*rgb)
+
+
+#: Points without a residual (seen by their scan alone, or not registered under the pose shown).
+NO_RESIDUAL = (215, 215, 215)
+#: The residual colour map, from 0 to its top: dark blue, teal, green, yellow, red (a perceptually
+#: ordered ramp, as viridis ends in yellow; red marks the top and beyond).
+_RAMP = np.array([(40, 30, 120), (30, 120, 160), (40, 170, 90), (240, 210, 30), (215, 40, 40)], dtype=float)
+
+
+def residual_colors(distances_m: np.ndarray, max_m: float) -> np.ndarray:
+    """N x 3 uint8: each distance on the ramp from 0 to `max_m` (beyond: the top colour), NaN grey."""
+    d = np.asarray(distances_m, dtype=float)
+    t = np.clip(np.nan_to_num(d / max(max_m, 1e-9), nan=0.0), 0.0, 1.0) * (len(_RAMP) - 1)
+    lo = np.minimum(np.floor(t).astype(int), len(_RAMP) - 2)
+    f = (t - lo)[:, None]
+    out = (_RAMP[lo] * (1 - f) + _RAMP[lo + 1] * f).astype(np.uint8)
+    out[~np.isfinite(d)] = NO_RESIDUAL
+    return out
+
+
+def residual_legend(max_m: float, width: int = 360, height: int = 14) -> np.ndarray:
+    """The colour bar of `residual_colors` from 0 to `max_m`, as an image for the panel."""
+    bar = residual_colors(np.linspace(0.0, max_m, width), max_m)
+    return np.ascontiguousarray(np.repeat(bar[None, :, :], height, axis=0))

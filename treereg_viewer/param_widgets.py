@@ -33,7 +33,8 @@ def field_label(fld: dataclasses.Field) -> str:
             break
     unit = fld.metadata.get("unit") or ""
     text = name.replace("_", " ")
-    return f"{text} ({unit})" if unit else text
+    # "min points", not "min points (points)": a unit the name already says is not repeated.
+    return f"{text} ({unit})" if unit and unit not in text.split() else text
 
 
 def field_hint(fld: dataclasses.Field) -> str:

@@ -19,7 +19,8 @@ class ScanPanel:
         self.app = app
         self.gui = gui
         v = app.view
-        self.point_size = gui.add_slider("Point size (m)", 0.005, 0.2, 0.005, v.point_size)
+        self.point_size = gui.add_slider("Point size (m)", 0.005, 0.1, 0.005, v.point_size,
+                                         hint="Small points let the scans' colours mix where they overlap.")
         self.max_points = gui.add_number("Points shown per scan", v.max_points, min=1000, max=2_000_000, step=1000,
                                          hint="Display subsampling only; every stage uses all points.")
         self.stations = gui.add_checkbox("Show scanner stations", v.show_stations)

@@ -8,6 +8,7 @@ A stage the app has no entry for is still shown (its metrics as a table), with t
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 from treereg_core.stages import STAGES, Stage
 
@@ -25,7 +26,9 @@ class StageView:
         How the scan layer is drawn: "full", "faded" (the stage's own drawing is the subject) or
         "hidden" (points would hide fitted surfaces).
     controls
-        View controls the stage's folder gets ("target", "projection_step", "match_pair", "show_icp").
+        View controls the stage's folder gets ("target", "projection_step", "match_pair", "fits" (show
+        rejected fits, frame a fit), "hypothesis" (pick a coarse hypothesis by hand), "result"
+        (registration shown, colour by)).
     explanation
         What the stage does and why, in a few sentences (the paper's sections cited).
     """
@@ -61,7 +64,9 @@ VIEWS: dict[str, StageView] = {
         "of each). Each kept match gives a tie point: the centroid of the scan's points in that pixel's "
         "(α, β) cell, rotation undone (2.1.4). The paper's β check (4.1) drops a match whose elevation "
         "difference |β₁ − β₂| lies outside the mean ± one standard deviation of all matches: a crown point "
-        "must match a crown point. Rejected matches are drawn in grey.",
+        "must match a crown point; its rejected matches are drawn in grey. treereg's default leaves the β check "
+        "off (matching.beta_check) and lets RANSAC at the coarse stage reject wrong matches instead, so grey "
+        "matches appear here only with the check on (e.g. the paper preset, Files tab).",
     ),
     "coarse": StageView(
         "coarse",
@@ -93,15 +98,15 @@ VIEWS: dict[str, StageView] = {
         "(paper: c = 3, 2.2.2); connected components give the arcs, coloured one per component.",
     ),
     "sections": StageView(
-        "hypothesis", scans="hidden",
+        "hypothesis", scans="hidden", controls=("target", "fits"),
         explanation="The trunk in the lowest slice is fitted with a Taubin circle, the other sections with least-squares "
         "cylinders (2.2.3); the circle centre, and on each cylinder axis its start and the point one unit "
-        "further up, are the tie points, joined here to their partners in the other scan (at the coarse "
-        "pose). Grey fits failed a plausibility check, e.g. the paper's rule that a section is no wider "
-        "than the one below it (4.2).",
+        "further up, are the tie points, joined here to their partners in the other scan (at the pose "
+        "the hypotheses stage chose). Fits that fail a plausibility check, e.g. the paper's rule that a section is no wider "
+        "than the one below it (4.2), are not used; tick *Show rejected fits* to see them in grey.",
     ),
     "fine": StageView(
-        "fine", scans="hidden",
+        "fine", scans="hidden", controls=("target", "fits"),
         explanation="An SVD over the tie points gives the paper's fine transform; treereg's default (fine.method = "
         "joint) instead fits each pair of corresponding sections as one cylinder together with the pose, "
         "re-slices at the new pose and repeats. Directions the sections fix only weakly come from the "
@@ -131,12 +136,14 @@ VIEWS: dict[str, StageView] = {
         "branch, so the nearest point is often the wrong one.",
     ),
     "evaluation": StageView(
-        "final", controls=("target", "show_icp"),
+        "final", controls=("target", "result"),
         explanation="The final overlay. The paper judges a registration by its branches: in three layers of each "
         "corresponding branch, cylinder axes are fitted in both scans and the distances between centre "
-        "points at equal height averaged, d̄ (eq. 8, 3.3). ICP from the coarse result is shown beside it, "
+        "points at equal height averaged, d̄ (eq. 8, 3.3), here for each pair's own fine transform. The targets "
+        "are drawn at their final (joint) placement unless you pick another. ICP from the coarse result is shown beside it, "
         "as the paper compares. When a truth.json comes with the scans (the demo, simulated cases), the "
-        "errors against it are listed first; ⚠ marks a registration that failed.",
+        "errors against it are listed first; ⚠ marks a registration that failed. Colour the points by their "
+        "distance to the other scans to see where the scans agree.",
     ),
 }
 
@@ -144,6 +151,10 @@ VIEWS: dict[str, StageView] = {
 def view_of(name: str) -> StageView:
     """The app's view of stage `name` (defaults for a stage without an entry)."""
     return VIEWS.get(name, StageView())
+
+
+#: The stage whose output holds each pose's transforms.
+POSE_STAGE = {"coarse": "coarse", "hypothesis": "hypotheses", "fine": "fine", "icp": "icp", "final": "graph"}
 
 
 #: The app's stages: exactly the pipeline's, in run order.
@@ -168,3 +179,9 @@ def by_label(text: str) -> str:
 def registered(name: str) -> bool:
     """Whether the scans are drawn over the reference (a pose exists) rather than scattered in their frames."""
     return view_of(name).pose is not None
+
+
+def section_available(snap: Any, name: str) -> bool:
+    """Whether the cross-section inspector can be shown on stage `name`: the scans are registered
+    there and a coarse registration exists to cut."""
+    return registered(name) and snap.output("coarse") is not None and len(snap.scans) >= 2

@@ -1,22 +1,46 @@
-"""The wide panel docked on the left: images, plots and tables of the current stage.
+"""The wide panel docked on the left: the current stage's images, plots and tables, or the
+cross-section inspector.
 
 The control panel is about 345 px wide, too narrow for projection images and plots, so they live
 in a panel of their own (viser 1.1 `add_panel` + `dock_left`). A renderer describes what it wants
 shown as a `PanelContent`; `ViewPanel.show` puts it there. Elements are made once and updated or
 hidden: re-creating GUI elements would make the panel jump.
+
+At the top, from the Coarse stage on, a switch between the stage's details and the cross-section
+inspector (a slab of every scan at a height, or a branch's evaluation layers; its controls sit
+under the switch).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Any
+import threading
+
+from dataclasses import dataclass
+from typing import Any, Callable
 
 import numpy as np
 import viser
 
+from .view_state import SECTION_POSES, ViewState
+
 #: At most this many images and plots per stage.
 MAX_IMAGES = 2
-MAX_PLOTS = 2
+MAX_PLOTS = 3
+#: Tables in the panel: a little room between columns, and a horizontal scrollbar when a table is
+#: wider than the panel (several targets) instead of clipped columns.
+TABLE_CSS = ("<style>.treereg-tables {overflow-x: auto; max-width: 100%;} "
+             ".treereg-tables td, .treereg-tables th {padding: 2px 10px 2px 0 !important; white-space: nowrap;} "
+             ".treereg-tables td:last-child {white-space: normal;}</style>")
+
+
+def scrolling(markdown: str) -> str:
+    """Markdown whose tables scroll sideways in the panel rather than clip (see `TABLE_CSS`)."""
+    return f'<div class="treereg-tables">\n\n{markdown}\n\n</div>' if "|" in markdown else markdown
+
+
+#: The switch's two faces.
+MODES = {"Stage details": "stage", "Cross-section": "section"}
+STEM = "Stem (pick a height)"
 
 
 def plot_aspect(width_over_height: float) -> float:
@@ -40,50 +64,117 @@ class PanelContent:
     table: str = ""
 
 
-@dataclass
 class ViewPanel:
-    """The docked panel and its reusable elements."""
+    """The docked panel of one viewer and its reusable elements.
 
-    server: viser.ViserServer
-    width: int = 560
-    _panel: Any = field(init=False)
-    _title: Any = field(init=False)
-    _text: Any = field(init=False)
-    _captions: list[Any] = field(init=False, default_factory=list)
-    _images: list[Any] = field(init=False, default_factory=list)
-    _plots: list[Any] = field(init=False, default_factory=list)
-    _table: Any = field(init=False)
+    `set_view(**changes)` records the inspector's control changes in the viewer's ViewState.
+    """
 
-    def __post_init__(self) -> None:
-        gui = self.server.gui
+    def __init__(self, gui: viser.GuiApi, set_view: Callable[..., None], width: int = 560) -> None:
+        self.gui = gui
+        self.width = width
+        self._set_view = set_view
+        # Set while this panel puts values into its own controls (on the thread doing so only: a
+        # person's change arriving meanwhile on another thread is not swallowed).
+        self._local = threading.local()
         self._panel = gui.add_panel()
-        self._tab = self._panel.add_tab("Stage view", viser.Icon.PHOTO)
+        self._tab = self._panel.add_tab("View", viser.Icon.PHOTO)
+        self._captions: list[Any] = []
+        self._images: list[Any] = []
+        self._plots: list[Any] = []
         with self._tab:
-            self._title = gui.add_markdown("### Scans", order=0)
-            self._text = gui.add_markdown("", order=1)
+            self.mode = gui.add_dropdown("Show", tuple(MODES), initial_value="Stage details", order=0, visible=False,
+                                         hint="The current stage's details, or a cross-section of the registered scans.")
+            self.section_of = gui.add_dropdown("Section of", (STEM,), order=0.1, visible=False,
+                                               hint="The stem at a height, or a branch the Result stage evaluated.")
+            self.height = gui.add_slider("Height (m)", -1.0, 10.0, 0.01, 0.0, order=0.2, visible=False,
+                                         hint="Height of the slab (reference frame). Or click the tree in 3-D.")
+            self.poses = gui.add_dropdown("Registration", tuple(SECTION_POSES), initial_value="Coarse and fine",
+                                          order=0.3, visible=False, hint="Which registrations to cut, side by side.")
+            gui.add_markdown(TABLE_CSS, order=0.05)
+            self._title = gui.add_markdown("### Scans", order=1)
+            self._text = gui.add_markdown("", order=2)
             blank = np.full((8, 8, 3), 255, np.uint8)
             for k in range(MAX_IMAGES):
-                self._captions.append(gui.add_markdown("", visible=False, order=2 + 2 * k))
-                self._images.append(gui.add_image(blank, format="png", visible=False, order=3 + 2 * k))
+                self._captions.append(gui.add_markdown("", visible=False, order=3 + 2 * k))
+                self._images.append(gui.add_image(blank, format="png", visible=False, order=4 + 2 * k))
             self._table = gui.add_markdown("", order=20)
         self._panel.dock_left()
-        self._panel.set_width(self.width)
+        self._panel.set_width(width)
+        self.mode.on_update(lambda _: self._changed(panel=MODES[self.mode.value]))
+        self.section_of.on_update(lambda _: self._changed(branch=self._branch_choice()))
+        self.height.on_update(lambda _: self._changed(section_height=float(self.height.value), branch=None))
+        self.poses.on_update(lambda _: self._changed(section_poses=self.poses.value))
+        self._branch_options: tuple[str, ...] = (STEM,)
+
+    @property
+    def _quiet(self) -> bool:
+        return getattr(self._local, "quiet", False)
+
+    def _changed(self, **changes: Any) -> None:
+        if not self._quiet:
+            self._set_view(**changes)
+
+    def _branch_choice(self) -> int | None:
+        v = self.section_of.value
+        return None if v == STEM or v not in self._branch_options else self._branch_options.index(v) - 1
+
+    def set_width(self, width: int) -> None:
+        if width != self.width:
+            self.width = width
+            self._panel.set_width(width)
 
     def _ensure_plots(self) -> None:
-        # Made on first use: the first plot sends plotly's 3 MB script to every browser, which
-        # would otherwise delay the first view of the scans by about two seconds.
+        # Made on first use: the first plot sends plotly's 3 MB script to the browser, which would
+        # otherwise delay the first view of the scans by about two seconds.
         if self._plots:
             return
         import plotly.graph_objects as go
 
         with self._tab:
             for k in range(MAX_PLOTS):
-                self._plots.append(self.server.gui.add_plotly(go.Figure(), aspect=plot_aspect(1.6), visible=False, order=10 + k))
+                self._plots.append(self.gui.add_plotly(go.Figure(), aspect=plot_aspect(1.6), visible=False, order=10 + k))
 
+    # ---- the inspector's controls -----------------------------------------------------------------
+    def show_controls(self, view: ViewState, available: bool, height_range: tuple[float, float] | None,
+                      height: float | None, branches: list[str]) -> None:
+        """Show the switch (when a cross-section can be cut) and, in section mode, its controls at
+        the view's values (without reporting them back as changes)."""
+        self._local.quiet = True
+        try:
+            self.mode.visible = available
+            want_mode = next(k for k, v in MODES.items() if v == view.panel)
+            if self.mode.value != want_mode:
+                self.mode.value = want_mode
+            section = available and view.panel == "section"
+            options = (STEM, *branches)
+            if options != self._branch_options:
+                self._branch_options = options
+                self.section_of.options = options
+            want = STEM if view.branch is None or view.branch + 1 >= len(options) else options[view.branch + 1]
+            if self.section_of.value != want:
+                self.section_of.value = want
+            self.section_of.visible = section
+            self.poses.visible = section
+            if self.poses.value != view.section_poses:
+                self.poses.value = view.section_poses
+            self.height.visible = section and view.branch is None
+            if height_range is not None:
+                lo, hi = round(height_range[0], 2), round(height_range[1], 2)
+                if (self.height.min, self.height.max) != (lo, hi):
+                    self.height.min, self.height.max = lo, hi
+                if height is not None:
+                    v = float(np.clip(round(height, 2), lo, hi))
+                    if abs(self.height.value - v) > 1e-9:
+                        self.height.value = v
+        finally:
+            self._local.quiet = False
+
+    # ---- content ----------------------------------------------------------------------------------
     def show(self, content: PanelContent) -> None:
-        """Replace the panel's content (call inside `server.atomic()` with the scene updates)."""
+        """Replace the panel's content (call inside the viewer's `atomic()` with the scene updates)."""
         self._title.content = f"### {content.title}"
-        self._text.content = content.text
+        self._text.content = scrolling(content.text)
         for k, (cap, img) in enumerate(zip(self._captions, self._images)):
             if k < len(content.images):
                 arr, caption = content.images[k]
@@ -104,7 +195,7 @@ class ViewPanel:
                 plot.visible = True
             else:
                 plot.visible = False
-        self._table.content = content.table
+        self._table.content = scrolling(content.table)
 
     @property
     def images(self) -> list[Any]:
@@ -118,6 +209,10 @@ class ViewPanel:
     @property
     def title(self) -> str:
         return self._title.content
+
+    @property
+    def text(self) -> str:
+        return self._text.content
 
     @property
     def table(self) -> str:

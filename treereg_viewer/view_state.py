@@ -1,24 +1,45 @@
-"""What the user chose to look at (not what the pipeline computed): stage, display options.
+"""What one viewer (a browser tab) chose to look at — not what the pipeline computed.
 
-Frozen, replaced as a whole: the drawing thread reads one consistent value without a lock.
+Every tab has its own `ViewState`: its stage, pair, sliders, display options and cross-section;
+the computation and its results are shared. Frozen, replaced as a whole: the drawing thread reads
+one consistent value without a lock.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+#: What the cross-section shows: one registration, or several side by side.
+SECTION_POSES = {
+    "Coarse and fine": ("coarse", "fine"),
+    "Coarse": ("coarse",),
+    "Fine": ("fine",),
+    "ICP": ("icp",),
+    "All three": ("coarse", "fine", "icp"),
+}
+
 
 @dataclass(frozen=True)
 class ViewState:
-    """Display choices shared by every browser tab."""
+    """One viewer's display choices."""
 
     stage: str = "prepare"  # a pipeline stage name
-    point_size: float = 0.04
+    point_size: float = 0.02
     max_points: int = 40_000  # per scan, for display only
     hidden_scans: frozenset[str] = field(default_factory=frozenset)
     show_stations: bool = True
-    projection_step: int = 0  # index into the rotation sequence
+    projection_step: int = 0  # index into the rotation sequence (shown 1-based)
     projection_3d: bool = False  # also show the rotated cloud in 3-D
-    target: int = 0  # which target scan (0 = the second scan) the matching/coarse/fine views detail
-    match_pair: int = 0  # which chosen image pair of that target's matching
-    show_icp: bool = False  # Result stage: show the ICP pose instead of the fine one
+    target: int = 0  # which target scan (0 = the second scan) the stage details
+    match_pair: int = 0  # which chosen image pair of that target's matching (shown 1-based)
+    result_pose: str = "final"  # Result stage: the targets at their "final" (joint), "fine", "coarse" or "icp" pose
+    result_colour: str = "scan"  # Result stage: "scan" colours or "residual" (distance to the other scans)
+    residual_max_m: float = 0.02  # the residual colour map's top
+    show_rejected: bool = False  # Fits and Fine: also draw the fits judged implausible
+    focus_section: int | None = None  # Fits and Fine: the table row (0-based) picked to look at
+    panel: str = "stage"  # the docked panel shows "stage" details or the "section" inspector
+    section_height: float | None = None  # cross-section height (m, reference frame); None = the trunk slice
+    section_thickness: float | None = None  # slab thickness (m); None = the slicing thickness in force
+    section_poses: str = "Coarse and fine"  # a key of SECTION_POSES
+    branch: int | None = None  # cross-section of an evaluated branch (its index) instead of the stem
+    tour_step: int | None = None  # the guided tour's step, when the tour is on

@@ -45,7 +45,8 @@ class BranchError:
     Attributes
     ----------
     index
-        Branch number (the order in which branches were found, bottom to top).
+        Branch number: its place among the branches found in the reference (bottom to top), the same
+        in the evaluation of every transform.
     height_m
         Height of the branch's middle layer (reference frame).
     radius_m
@@ -57,6 +58,9 @@ class BranchError:
         mapped by the evaluated transform), reference frame.
     distances_m
         d_i per layer.
+    point_m, axis
+        The branch as found in the reference: a point of its axis at the middle layer's height and
+        the unit axis direction (where its cross-sections are seen from).
     """
 
     index: int
@@ -66,6 +70,8 @@ class BranchError:
     ref_centres_m: np.ndarray
     tgt_centres_m: np.ndarray
     distances_m: np.ndarray
+    point_m: np.ndarray
+    axis: np.ndarray
 
     @property
     def mean_m(self) -> float:
@@ -163,9 +169,48 @@ def find_branches(ref: Scan, *, evaluation: EvaluationParams) -> list[CylinderFi
     return found
 
 
+@dataclass(frozen=True)
+class ReferenceLayer:
+    """One evaluation layer of a branch in the reference: its height, the branch axis point there and
+    the reference's cylinder fit (None when the layer has too few points or the fit does not
+    describe the branch)."""
+
+    z_m: float
+    centre: np.ndarray
+    fit: CylinderFit | None
+
+
+def reference_layers(ref: Scan, branches: list[CylinderFit], *, evaluation: EvaluationParams) -> list[list[ReferenceLayer]]:
+    """The reference's side of every branch's layers (paper 3.3: three layers per branch, a cylinder
+    fitted to each). They depend on the reference alone: fitted once for all transforms evaluated."""
+    p = evaluation
+    z = ref.points[:, 2]
+    order = np.argsort(z, kind="stable")
+    zs = z[order]
+    half = p.layer_thickness_m / 2.0
+    offsets = (np.arange(p.layers) - (p.layers - 1) / 2.0) * p.layer_spacing_m
+    out = []
+    for b in branches:
+        lays = []
+        for dz in offsets:
+            zl = float(b.point_m[2] + dz)
+            centre = b.point_at_z(zl)
+            ir = _slab(zs, order, zl, half)
+            ir = ir[_near_axis(ref.points[ir], centre, b.axis, b.radius_m + p.margin_m)]
+            fit = None
+            if len(ir) >= _MIN_LAYER_POINTS:
+                fr = fit_cylinder(ref.points[ir], axis_hint=b.axis)
+                if _usable(fr, p) and _same_branch(fr, b, centre, p.margin_m):
+                    fit = fr
+            lays.append(ReferenceLayer(zl, centre, fit))
+        out.append(lays)
+    return out
+
+
 def evaluate_pair(ref: Scan, tgt: Scan, T_ref_target: np.ndarray, *, evaluation: EvaluationParams,
                   T_true: np.ndarray | None = None,
-                  branches: list[CylinderFit] | None = None) -> EvaluationResult:
+                  branches: list[CylinderFit] | None = None,
+                  ref_layers: list[list[ReferenceLayer]] | None = None) -> EvaluationResult:
     """The paper's branch-centre error of `T_ref_target`, and errors against `T_true` when given.
 
     Parameters
@@ -181,6 +226,9 @@ def evaluate_pair(ref: Scan, tgt: Scan, T_ref_target: np.ndarray, *, evaluation:
     branches
         `find_branches(ref, evaluation=...)`, when the caller evaluates several transforms against the same
         reference (they depend on the reference alone); found here when None.
+    ref_layers
+        `reference_layers(ref, branches, ...)` likewise (the reference's layer fits, the same for
+        every transform evaluated).
 
     Returns
     -------
@@ -195,36 +243,35 @@ def evaluate_pair(ref: Scan, tgt: Scan, T_ref_target: np.ndarray, *, evaluation:
         disp = mean_displacement(T, T_true, tgt.points)
     branches = find_branches(ref, evaluation=p) if branches is None else branches
     tgt_sel = apply_transform(T_sel, tgt.points)
-    z_ref, z_tgt = ref.points[:, 2], tgt_sel[:, 2]
-    o_ref, o_tgt = np.argsort(z_ref, kind="stable"), np.argsort(z_tgt, kind="stable")
-    zs_ref, zs_tgt = z_ref[o_ref], z_tgt[o_tgt]
+    z_tgt = tgt_sel[:, 2]
+    o_tgt = np.argsort(z_tgt, kind="stable")
+    zs_tgt = z_tgt[o_tgt]
     half = p.layer_thickness_m / 2.0
-    offsets = (np.arange(p.layers) - (p.layers - 1) / 2.0) * p.layer_spacing_m
     out: list[BranchError] = []
-    for b in branches:
+    layers = reference_layers(ref, branches, evaluation=p) if ref_layers is None else ref_layers
+    for number, (b, b_layers) in enumerate(zip(branches, layers)):
         zs_l, rc, tc = [], [], []
         reach = b.radius_m + p.margin_m
-        for dz in offsets:
-            zl = b.point_m[2] + dz
-            centre = b.point_at_z(zl)
-            ir = _slab(zs_ref, o_ref, zl, half)
-            ir = ir[_near_axis(ref.points[ir], centre, b.axis, reach)]
+        for lay in b_layers:
+            if lay.fit is None:  # the reference's layer is unusable: nothing to compare with
+                continue
+            zl, centre = lay.z_m, lay.centre
             it = _slab(zs_tgt, o_tgt, zl, half)
             it = it[_near_axis(tgt_sel[it], centre, b.axis, reach)]
-            if len(ir) < _MIN_LAYER_POINTS or len(it) < _MIN_LAYER_POINTS:
+            if len(it) < _MIN_LAYER_POINTS:
                 continue
-            fr = fit_cylinder(ref.points[ir], axis_hint=b.axis)
             ft = fit_cylinder(apply_transform(T, tgt.points[it]), axis_hint=b.axis)
-            if not (_usable(fr, p) and _usable(ft, p) and _same_branch(fr, b, centre, p.margin_m)
-                    and _same_branch(ft, b, centre, p.margin_m + p.gate_m)):
+            if not (_usable(ft, p) and _same_branch(ft, b, centre, p.margin_m + p.gate_m)):
                 continue
             zs_l.append(zl)
-            rc.append(fr.point_at_z(zl))
+            rc.append(lay.fit.point_at_z(zl))
             tc.append(ft.point_at_z(zl))
         if zs_l:
             rc_a, tc_a = np.array(rc), np.array(tc)
-            out.append(BranchError(len(out), float(b.point_m[2]), float(b.radius_m), np.array(zs_l), rc_a, tc_a,
-                                   np.linalg.norm(rc_a - tc_a, axis=1)))
+            # Numbered as found (not as kept): branch k is the same branch in every transform's result.
+            out.append(BranchError(number, float(b.point_m[2]), float(b.radius_m), np.array(zs_l), rc_a, tc_a,
+                                   np.linalg.norm(rc_a - tc_a, axis=1), np.asarray(b.point_m, float),
+                                   np.asarray(b.axis, float)))
     d = np.concatenate([b.distances_m for b in out]) if out else np.empty(0)
     mean_d = float(d.mean()) if len(d) else float("nan")
     metrics = [

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -10,7 +11,7 @@ from ..fine.fitting import CylinderFit
 from ..params import EvaluationParams
 from ..results import Metric
 from ..scan import Scan
-from .branches import EvaluationResult, evaluate_pair
+from .branches import EvaluationResult, evaluate_pair, find_branches, reference_layers
 from .icp import IcpResult
 
 
@@ -38,15 +39,37 @@ class PairReport:
         return out
 
 
+#: The last reference's layer fits: (reference, branches, parameters, layers). The fits depend on
+#: those three alone and are the same for every transform and every target evaluated against that
+#: reference, so the targets of one run share them (the evaluation stage passes the same branches).
+_last_layers: tuple[Scan, list[CylinderFit], EvaluationParams, list] | None = None
+_layers_lock = threading.Lock()
+
+
+def _reference_layers(ref: Scan, branches: list[CylinderFit], evaluation: EvaluationParams) -> list:
+    global _last_layers
+    with _layers_lock:
+        last = _last_layers
+    if last is not None and last[0] is ref and last[1] is branches and last[2] == evaluation:
+        return last[3]
+    layers = reference_layers(ref, branches, evaluation=evaluation)
+    with _layers_lock:
+        _last_layers = (ref, branches, evaluation, layers)
+    return layers
+
+
 def evaluate_registration(ref: Scan, tgt: Scan, T_coarse: np.ndarray, T_fine: np.ndarray, icp: IcpResult | None, *,
                           evaluation: EvaluationParams, T_true: np.ndarray | None = None,
                           branches: list[CylinderFit] | None = None) -> PairReport:
     """The paper's evaluation of the coarse, fine and ICP transforms of `tgt` onto `ref`."""
-    ev_c = evaluate_pair(ref, tgt, T_coarse, evaluation=evaluation, T_true=T_true, branches=branches)
-    ev_f = evaluate_pair(ref, tgt, T_fine, evaluation=evaluation, T_true=T_true, branches=branches)
+    branches = find_branches(ref, evaluation=evaluation) if branches is None else branches
+    layers = _reference_layers(ref, branches, evaluation)
+    kw = dict(evaluation=evaluation, T_true=T_true, branches=branches, ref_layers=layers)
+    ev_c = evaluate_pair(ref, tgt, T_coarse, **kw)
+    ev_f = evaluate_pair(ref, tgt, T_fine, **kw)
     ev_i = None
     if icp is not None and icp.ran:
-        ev_i = evaluate_pair(ref, tgt, icp.T_ref_target, evaluation=evaluation, T_true=T_true, branches=branches)
+        ev_i = evaluate_pair(ref, tgt, icp.T_ref_target, **kw)
     rows: list[Metric] = []
     for label, ev in (("coarse", ev_c), ("fine", ev_f), ("ICP", ev_i)):
         if ev is not None:

@@ -75,6 +75,21 @@ def _relative_azimuth(alpha: np.ndarray) -> np.ndarray:
     return _wrap_deg(alpha - mean)
 
 
+def angular_cells(scan: Scan, indices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The (column, row) raster cell of each point of `indices` in the scan's own angular grid:
+    one cell per angular step, azimuth relative to the points' circular mean (the raster the arcs
+    are separated on, paper Fig. 6)."""
+    idx = np.asarray(indices, dtype=np.int64)
+    phi, varphi = scan.angular_step_deg
+    alpha = _relative_azimuth(scan.azimuth_deg[idx])
+    beta = scan.elevation_deg[idx]
+    # Rounding (not flooring) keeps a regular grid's points one cell apart even when their angles
+    # carry floating-point error of either sign.
+    col = np.rint((alpha - alpha.min()) / phi).astype(np.int64)
+    row = np.rint((beta - beta.min()) / varphi).astype(np.int64)
+    return col, row
+
+
 def _label_cells(col: np.ndarray, row: np.ndarray, h: int) -> np.ndarray:
     """Connected-component label of each (col, row) cell on a dilated raster; labels from 1."""
     c0, r0 = col.min(), row.min()
@@ -147,13 +162,7 @@ def separate_arcs(scan: Scan, indices: np.ndarray, p: ArcParams) -> ArcResult:
     if len(idx) == 0:
         return ArcResult(False, "the slice holds no points of this scan", (Metric("arcs", "", 0),),
                          idx, np.empty(0, dtype=np.int64), 0)
-    phi, varphi = scan.angular_step_deg
-    alpha = _relative_azimuth(scan.azimuth_deg[idx])
-    beta = scan.elevation_deg[idx]
-    # One raster cell per angular step. Rounding (not flooring) keeps a regular grid's points one
-    # cell apart even when their angles carry floating-point error of either sign.
-    col = np.rint((alpha - alpha.min()) / phi).astype(np.int64)
-    row = np.rint((beta - beta.min()) / varphi).astype(np.int64)
+    col, row = angular_cells(scan, idx)
     raw = _label_raster(col, row, p.connectivity)
     if p.max_range_jump_m is not None:
         raw = _split_by_range(raw, np.linalg.norm(scan.points[idx], axis=1), p.max_range_jump_m)

@@ -393,35 +393,51 @@ def unfitted_section(n_points: int, slice_index: int, arc: int, height_m: float,
                    False, reason)
 
 
-def check_taper(sections: list[Section], tolerance: float, gate_m: float) -> list[Section]:
-    """Paper 4.2: drop a section whose radius exceeds that of the part below it on the same stem.
-
-    The part below is the plausible section of the next lower slice whose centre is nearest to
-    this section's axis extended down to that slice (within `gate_m` plus the radius). A section
-    is dropped when its radius exceeds the one below by more than the fraction `tolerance`
-    (paper: 0). Sections without a part below are kept.
-    """
-    out = list(sections)
+def parts_below(sections: list[Section], gate_m: float) -> dict[int, int]:
+    """Paper 4.2's "part below": for each plausible section, the index of the plausible section of
+    the next lower slice whose centre is nearest to this section's axis extended down to that
+    slice, when it lies within `gate_m` plus the radius (sections without one are left out)."""
     by_slice: dict[int, list[int]] = {}
-    for i, s in enumerate(out):
+    for i, s in enumerate(sections):
         by_slice.setdefault(s.slice_index, []).append(i)
     levels = sorted(by_slice)
+    found: dict[int, int] = {}
     for lo_lvl, hi_lvl in zip(levels[:-1], levels[1:]):
-        below = [i for i in by_slice[lo_lvl] if out[i].plausible]
+        below = [i for i in by_slice[lo_lvl] if sections[i].plausible]
         if not below:
             continue
-        cb = np.array([out[i].centre_m for i in below])
+        cb = np.array([sections[i].centre_m for i in below])
+        h = sections[below[0]].height_m
         for i in by_slice[hi_lvl]:
-            s = out[i]
+            s = sections[i]
             if not s.plausible:
                 continue
-            h = out[below[0]].height_m
             a = s.axis
             pred = s.centre_m + a * (h - s.height_m) / a[2] if a[2] > 0.2 else s.centre_m
             d = np.linalg.norm((cb - pred)[:, :2], axis=1)
             j = int(np.argmin(d))
-            if d[j] <= gate_m + s.radius_m and s.radius_m > out[below[j]].radius_m * (1.0 + tolerance):
+            if d[j] <= gate_m + s.radius_m:
+                found[i] = below[j]
+    return found
+
+
+def check_taper(sections: list[Section], tolerance: float, gate_m: float) -> list[Section]:
+    """Paper 4.2: drop a section whose radius exceeds that of the part below it on the same stem.
+
+    The part below is found by `parts_below`. A section is dropped when its radius exceeds the one
+    below by more than the fraction `tolerance` (paper: 0). Sections without a part below are kept.
+    Levels are judged bottom-up, so a section dropped here no longer serves as the part below.
+    """
+    out = list(sections)
+    levels = sorted({s.slice_index for s in out})
+    for lvl in levels[1:]:
+        # Only this level and the one below matter for this level's verdicts.
+        for i, j in parts_below(out, gate_m).items():
+            s = out[i]
+            if s.slice_index != lvl:
+                continue
+            if s.radius_m > out[j].radius_m * (1.0 + tolerance):
                 out[i] = replace(s, plausible=False,
                                  reason=f"radius {s.radius_m:.3g} m exceeds the part below "
-                                        f"({out[below[j]].radius_m:.3g} m), paper 4.2")
+                                        f"({out[j].radius_m:.3g} m), paper 4.2")
     return out

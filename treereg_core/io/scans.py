@@ -572,7 +572,8 @@ def _first_bad_line(path: Path, gzipped: bool, delimiter: str | None, skip: int)
 
 
 # ---- writing -----------------------------------------------------------------------------------
-def write_scan(path: str | Path, points_or_scan: np.ndarray | Scan, dtype: str = "float64") -> Path:
+def write_scan(path: str | Path, points_or_scan: np.ndarray | Scan, dtype: str = "float64",
+               scan_id: np.ndarray | None = None) -> Path:
     """Write points (or a `Scan`'s points) as PLY (binary little-endian) or LAS/LAZ, atomically.
 
     Parameters
@@ -584,6 +585,10 @@ def write_scan(path: str | Path, points_or_scan: np.ndarray | Scan, dtype: str =
     dtype
         PLY only: "float64" (default, exact) or "float32" (half the size, ~1 um at 10 m).
         LAS/LAZ always store integers at `LAS_SCALE_M` resolution.
+    scan_id
+        Optional N integers 0..65535 saying which scan each point came from (a merged cloud): the
+        PLY gets a `scan_id` vertex property (a scalar field in CloudCompare), LAS/LAZ the
+        standard `point_source_id`.
 
     Returns
     -------
@@ -600,28 +605,44 @@ def write_scan(path: str | Path, points_or_scan: np.ndarray | Scan, dtype: str =
     pts = np.asarray(pts, dtype=np.float64)
     if not np.isfinite(pts).all():
         raise ScanError(str(path), "points to write contain NaN or infinite values")
+    ids = None
+    if scan_id is not None:
+        ids = np.asarray(scan_id)
+        if ids.shape != (len(pts),) or (len(ids) and (ids.min() < 0 or ids.max() > 65535)):
+            raise ValueError(f"scan_id must hold one integer 0..65535 per point, got shape {ids.shape}")
+        ids = ids.astype(np.uint16)
+    tagged = {} if ids is None else {"scan_id": ids}
     if ext == ".ply":
         if dtype not in ("float64", "float32"):
             raise ValueError(f"dtype must be 'float64' or 'float32', got {dtype!r}")
-        write_atomic(path, lambda tmp: _write_ply(tmp, pts, dtype))
+        write_atomic(path, lambda tmp: _write_ply(tmp, pts, dtype, **tagged))
     else:
-        write_atomic(path, lambda tmp: _write_las(tmp, pts, compress=ext == ".laz"))
+        write_atomic(path, lambda tmp: _write_las(tmp, pts, compress=ext == ".laz", **tagged))
     return path
 
 
-def _write_ply(path: Path, pts: np.ndarray, dtype: str) -> None:
+def _write_ply(path: Path, pts: np.ndarray, dtype: str, scan_id: np.ndarray | None = None) -> None:
     ply_type = "double" if dtype == "float64" else "float"
+    fields = [("x", dtype), ("y", dtype), ("z", dtype)]
+    extra = ""
+    if scan_id is not None:
+        fields.append(("scan_id", "uint16"))
+        extra = "property ushort scan_id\n"
     header = (
         "ply\nformat binary_little_endian 1.0\ncomment written by treereg\n"
         f"element vertex {len(pts)}\n"
-        f"property {ply_type} x\nproperty {ply_type} y\nproperty {ply_type} z\nend_header\n"
+        f"property {ply_type} x\nproperty {ply_type} y\nproperty {ply_type} z\n{extra}end_header\n"
     )
+    rec = np.empty(len(pts), dtype=np.dtype([(n, np.dtype(t).newbyteorder("<")) for n, t in fields]))
+    rec["x"], rec["y"], rec["z"] = pts[:, 0], pts[:, 1], pts[:, 2]
+    if scan_id is not None:
+        rec["scan_id"] = scan_id
     with open(path, "wb") as fh:
         fh.write(header.encode("ascii"))
-        fh.write(np.ascontiguousarray(pts, dtype=np.dtype(dtype).newbyteorder("<")).tobytes())
+        fh.write(rec.tobytes())
 
 
-def _write_las(path: Path, pts: np.ndarray, compress: bool) -> None:
+def _write_las(path: Path, pts: np.ndarray, compress: bool, scan_id: np.ndarray | None = None) -> None:
     import laspy
 
     header = laspy.LasHeader(point_format=0, version="1.2")
@@ -630,5 +651,7 @@ def _write_las(path: Path, pts: np.ndarray, compress: bool) -> None:
     header.offsets = np.floor(pts.min(axis=0)) if len(pts) else np.zeros(3)
     las = laspy.LasData(header)
     las.x, las.y, las.z = pts[:, 0], pts[:, 1], pts[:, 2]
+    if scan_id is not None:
+        las.point_source_id = scan_id
     with open(path, "wb") as fh:
         las.write(fh, do_compress=compress, laz_backend=laspy.LazBackend.Lazrs if compress else None)

@@ -269,18 +269,26 @@ def _stems(names: list[str]) -> dict[str, str]:
     return {n: (s if counts[s] == 1 else n) for n, s in stems.items()}
 
 
+def export_names(tf: TransformFile, name: str = DEFAULT_NAME) -> dict[str, tuple[str, str]]:
+    """Per scan, the names of its CloudCompare and PDAL matrix files: `<output stem>.<scan stem>.cloudcompare.txt`
+    and `.pdal.txt`, named after the transform file so that two cases written into one folder do
+    not overwrite each other's matrices."""
+    out = Path(name).stem
+    return {scan: (f"{out}.{stem}.cloudcompare.txt", f"{out}.{stem}.pdal.txt") for scan, stem in _stems(tf.names).items()}
+
+
 def write_exports(out_dir: str | Path, tf: TransformFile, name: str = DEFAULT_NAME) -> list[Path]:
-    """Write transforms.json and, per scan, `<stem>.cloudcompare.txt` and `<stem>.pdal.txt`.
+    """Write `name` (transforms.json) and, per scan, its CloudCompare and PDAL matrix files
+    (`export_names`: e.g. `transforms.scan2.cloudcompare.txt`) into `out_dir`.
 
     The reference gets its (identity) files too, so every scan can be treated the same way.
-    All writes are atomic. Returns the written paths, transforms.json first.
+    All writes are atomic. Returns the written paths, the transform file first.
     """
     out = Path(out_dir)
     written = [write_transforms(out / name, tf)]
-    for scan, stem in _stems(tf.names).items():
+    for scan, (cc_name, pdal_name) in export_names(tf, name).items():
         T = tf.matrix(scan)
-        cc = out / f"{stem}.cloudcompare.txt"
-        pdal = out / f"{stem}.pdal.txt"
+        cc, pdal = out / cc_name, out / pdal_name
         write_text_atomic(cc, cloudcompare_matrix_text(T))
         write_text_atomic(pdal, pdal_matrix_string(T) + "\n")
         written += [cc, pdal]

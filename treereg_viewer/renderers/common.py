@@ -66,9 +66,35 @@ def target_index(snap: Snapshot, name: str, view: ViewState) -> int:
 
 
 def title(name: str, snap: Snapshot | None = None, t: int | None = None) -> str:
-    """A panel heading: '4 Coarse', or '4 Coarse: scan2 → scan1' for a target pair."""
+    """A panel heading: '4 Coarse', or '4 Coarse: scan2 → scan1' for a target pair, followed by the
+    pair's badges (`pair_badges`)."""
     head = label(name)
-    return head if snap is None or t is None else f"{head}: {pair_label(snap, t)}"
+    if snap is None or t is None:
+        return head
+    badges = pair_badges(snap, t)
+    return f"{head}: {pair_label(snap, t)}" + (f" {badges}" if badges else "")
+
+
+#: How a pair's verdict reads in a heading, when a stage result carries one (`verdict`).
+VERDICT_BADGES = {"verified": "✓ verified", "unverified": "? unverified", "failed": "✗ failed"}
+
+
+def pair_badges(snap: Snapshot, t: int) -> str:
+    """Short marks after a pair's name in every stage heading: the latest registration verdict a
+    stage result of this pair carries (an attribute `verdict`: "verified", "unverified",
+    "failed"), latest stage first. Empty when no result carries one."""
+    for name in reversed(("coarse", "fine")):
+        out = snap.output(name)
+        item = out.items[t] if out is not None and t < len(out.items) else None
+        verdict = getattr(item, "verdict", None)
+        if verdict:
+            return f"[{VERDICT_BADGES.get(str(verdict), str(verdict))}]"
+    return ""
+
+
+def plural(n: int, word: str, many: str | None = None) -> str:
+    """'1 arc', '3 arcs', '0 arcs' (`many` for irregular plurals)."""
+    return f"{n} {word if n == 1 else (many or word + 's')}"
 
 
 def pair_scans(snap: Snapshot, k: int) -> tuple[int, int]:

@@ -8,6 +8,7 @@ of both scans should coincide. The target's slice points are mapped by the pose 
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -23,7 +24,7 @@ from ..controller import Snapshot
 from ..palette import GREY, HIGHLIGHT, categorical, scan_color
 from ..view_panel import PanelContent
 from ..view_state import ViewState
-from .common import md_table, metrics_table, pair_label, target_index, title
+from .common import md_table, metrics_table, pair_label, plural, target_index, title
 from .scans import target_pose
 
 
@@ -119,47 +120,119 @@ def render_arcs(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewStat
     return handles, PanelContent(title("arcs", snap, t), text=text, table=table)
 
 
-def section_mesh(section: Any, thickness_m: float) -> trimesh.Trimesh:
-    """A circle as a short vertical ring-cylinder at its slice; a cylinder along its axis."""
+@dataclass(frozen=True)
+class FitRow:
+    """One row of the fits table (and of the "Frame a fit" list): a fitted section worth a look."""
+
+    number: int  # 1-based, as the table shows it
+    scan: str
+    scan_index: int  # 0 = reference
+    section: Any
+    slice_box: tuple[tuple[float, float], tuple[float, float]]  # (min x, min y), (max x, max y) of that slice's points
+
+    @property
+    def label(self) -> str:
+        s = self.section
+        return f"#{self.number}: {self.scan}, slice {s.slice_index + 1}, {s.kind}, r = {s.radius_m * 100:.1f} cm"
+
+
+def _box(points: np.ndarray) -> tuple[tuple[float, float], tuple[float, float]]:
+    if not len(points):
+        return (0.0, 0.0), (0.0, 0.0)
+    lo, hi = points[:, :2].min(axis=0), points[:, :2].max(axis=0)
+    return (float(lo[0]), float(lo[1])), (float(hi[0]), float(hi[1]))
+
+
+def fit_rows(snap: Snapshot, t: int, sl: SliceResult, sec: SectionsResult, ref: Any, tgt: Any,
+             show_rejected: bool) -> tuple[list[FitRow], int]:
+    """The fits worth listing, accepted first (then rejected, when asked), each by slice and radius;
+    and how many arcs have no fit to show (too few points, failed, or skipped: no NaN rows)."""
+    boxes: dict[int, Any] = {}  # per slice: the horizontal extent of both scans' points in it
+
+    def box(k: int) -> Any:
+        if k not in boxes:
+            parts = [ref.points[sl.ref_indices[k]]] if k < len(sl.ref_indices) else []
+            if k < len(sl.tgt_indices) and len(sl.tgt_indices[k]):
+                parts.append(apply_transform(sec.T_ref_target, tgt.points[sl.tgt_indices[k]]))
+            boxes[k] = _box(np.concatenate(parts)) if parts else _box(np.empty((0, 3)))
+        return boxes[k]
+
+    rows: list[FitRow] = []
+    hidden = 0
+    for plausible in (True, False):
+        for secs, i in ((sec.ref.sections, 0), (sec.tgt.sections, t + 1)):
+            for s in sorted((s for s in secs if s.plausible == plausible), key=lambda s: (s.slice_index, -s.radius_m)):
+                if not (s.fit.ok and np.isfinite(s.radius_m) and np.isfinite(s.centre_m).all()):
+                    hidden += plausible is False
+                    continue
+                if not plausible and not show_rejected:
+                    continue
+                rows.append(FitRow(0, snap.scans[i].name, i, s, box(s.slice_index)))
+    rows = [FitRow(k + 1, r.scan, r.scan_index, r.section, r.slice_box) for k, r in enumerate(rows)]
+    return rows, hidden
+
+
+#: A fit is drawn only when its circle stays within its slice's points, give or take this fraction
+#: of the slice's extent plus `SLACK_M`: the scans see only part of a stem, so a true section may
+#: reach a little beyond its points; a circle of metres fitted to a nearly straight arc does not.
+SLACK_FRACTION = 0.1
+SLACK_M = 0.05
+
+
+def within(centre_xy: np.ndarray, radius_m: float, lo: np.ndarray, hi: np.ndarray) -> bool:
+    """Whether a circle lies within the box lo..hi widened by the slack."""
+    pad = SLACK_FRACTION * float(np.max(hi - lo)) + SLACK_M
+    c = np.asarray(centre_xy, dtype=float)
+    return bool(radius_m > 0 and np.all(c - radius_m >= lo - pad) and np.all(c + radius_m <= hi + pad))
+
+
+def drawable(row: FitRow) -> bool:
+    """A fit is drawn only when it is no larger than the slice it came from: a circle fitted to an
+    almost straight arc can have a radius of kilometres and would hide the tree."""
+    lo, hi = (np.asarray(v, dtype=float) for v in row.slice_box)
+    return within(row.section.centre_m[:2], row.section.radius_m, lo, hi)
+
+
+def section_mesh(section: Any, thickness_m: float, grow: float = 1.0) -> trimesh.Trimesh:
+    """A circle as a short vertical ring-cylinder at its slice; a cylinder along its axis (no longer
+    than a few slice thicknesses: a fit describes its slice, not the whole branch)."""
     centre = np.asarray(section.centre_m, dtype=float)
     axis = np.asarray(section.axis, dtype=float)
     axis = axis / (np.linalg.norm(axis) or 1.0)
-    r = float(section.radius_m)
-    length = thickness_m if section.kind == "circle" else max(float(getattr(section.fit, "length_m", thickness_m)), thickness_m)
+    r = float(section.radius_m) * grow
+    length = thickness_m if section.kind == "circle" else \
+        min(max(float(getattr(section.fit, "length_m", thickness_m)), thickness_m), 3.0 * thickness_m)
     seg = np.stack([centre - axis * length / 2, centre + axis * length / 2])
     return trimesh.creation.cylinder(radius=r, segment=seg, sections=32)
 
 
 def _sections_meshes(scene: viser.SceneApi, name: str, sections: list[Any], color: tuple[int, int, int],
-                     thickness_m: float, opacity: float) -> list[Any]:
-    ok = [s for s in sections if np.isfinite(s.radius_m) and s.radius_m > 0 and np.isfinite(s.centre_m).all()]
-    if not ok:
+                     thickness_m: float, opacity: float, grow: float = 1.0) -> list[Any]:
+    if not sections:
         return []
-    mesh = trimesh.util.concatenate([section_mesh(s, thickness_m) for s in ok])
+    mesh = trimesh.util.concatenate([section_mesh(s, thickness_m, grow) for s in sections])
     return [scene.add_mesh_simple(name, mesh.vertices.astype(np.float32), mesh.faces.astype(np.int32),
                                   color=color, opacity=opacity, side="double")]
 
 
 def draw_sections(scene: viser.SceneApi, root: str, snap: Snapshot, t: int, sl: SliceResult, sec: SectionsResult,
-                  ref: Any, tgt: Any, size: float) -> tuple[list[Any], str]:
-    """The fitted sections of both scans (rejected ones grey), the sliced points as context and the
-    tie lines between partners; returns the handles and the table of fits."""
+                  ref: Any, tgt: Any, view: ViewState) -> tuple[list[Any], str, list[FitRow]]:
+    """The fitted sections of both scans (rejected ones grey, only when asked), the sliced points as
+    context and the tie lines between partners; returns the handles, the fits table and its rows."""
     thick = sl.thickness_m
     # The scans are hidden on these stages (points on a fitted surface would hide it): the fitted
     # slices' points stay as context.
-    handles: list[Any] = _slice_points(scene, root, t, sl, sec.T_ref_target, ref, tgt, size)
-    rows = []
-    for who, secs, color, name in (("ref", sec.ref.sections, scan_color(0), snap.scans[0].name),
-                                   ("tgt", sec.tgt.sections, scan_color(t + 1), snap.scans[t + 1].name)):
-        good = [s for s in secs if s.plausible]
-        # Implausible fits are drawn grey, except absurdly large ones that would hide the tree.
-        bad = [s for s in secs if not s.plausible and s.radius_m <= snap.params.fitting.max_radius_m]
-        handles += _sections_meshes(scene, f"{root}/{who}_fits", good, color, thick, 0.55)
+    handles: list[Any] = _slice_points(scene, root, t, sl, sec.T_ref_target, ref, tgt, view.point_size)
+    rows, hidden = fit_rows(snap, t, sl, sec, ref, tgt, view.show_rejected)
+    shown = [r for r in rows if drawable(r)]
+    for who, i in (("ref", 0), ("tgt", t + 1)):
+        good = [r.section for r in shown if r.scan_index == i and r.section.plausible]
+        bad = [r.section for r in shown if r.scan_index == i and not r.section.plausible]
+        handles += _sections_meshes(scene, f"{root}/{who}_fits", good, scan_color(i), thick, 0.55)
         handles += _sections_meshes(scene, f"{root}/{who}_rejected", bad, GREY, thick, 0.3)
-        for s in secs:
-            fit = s.fit
-            rows.append((name, s.slice_index + 1, s.kind, f"{s.radius_m * 100:.1f}", f"{fit.rms_m * 1000:.1f}",
-                         f"{fit.arc_deg:.0f}", "yes" if s.plausible else f"no: {s.reason}"))
+    focus = rows[view.focus_section] if view.focus_section is not None and view.focus_section < len(rows) else None
+    if focus is not None and drawable(focus):
+        handles += _sections_meshes(scene, f"{root}/focus", [focus.section], HIGHLIGHT, thick, 0.9, grow=1.08)
     if len(sec.tie_points_ref):
         segs = np.stack([sec.tie_points_ref, sec.tie_points_tgt], axis=1).astype(np.float32)
         handles.append(scene.add_line_segments(f"{root}/correspondences", segs, HIGHLIGHT, thickness=3.0,
@@ -168,8 +241,35 @@ def draw_sections(scene: viser.SceneApi, root: str, snap: Snapshot, t: int, sl: 
                                              point_size=0.05, point_shape="circle", precision="float32"))
         handles.append(scene.add_point_cloud(f"{root}/ties_tgt", np.asarray(sec.tie_points_tgt), scan_color(t + 1),
                                              point_size=0.05, point_shape="circle", precision="float32"))
-    table = md_table(("scan", "slice", "fit", "radius (cm)", "RMS (mm)", "arc (°)", "plausible"), rows)
-    return handles, table
+    table_rows = []
+    for r in rows:
+        s, fit = r.section, r.section.fit
+        verdict = "yes" if s.plausible else f"no: {s.reason}"
+        if not drawable(r):
+            verdict += " (larger than its slice: not drawn)"
+        mark = "▶ " if focus is r else ""
+        table_rows.append((f"{mark}{r.number}", r.scan, s.slice_index + 1, s.kind, f"{s.radius_m * 100:.1f}",
+                           f"{fit.rms_m * 1000:.1f}", f"{fit.arc_deg:.0f}", verdict))
+    table = md_table(("#", "scan", "slice", "fit", "radius (cm)", "RMS (mm)", "arc (°)", "used"), table_rows)
+    n_bad = sum(not r.section.plausible for r in fit_rows(snap, t, sl, sec, ref, tgt, True)[0])
+    notes = []
+    if not view.show_rejected and n_bad:
+        notes.append(f"{plural(n_bad, 'rejected fit')} hidden (tick *Show rejected fits* to list and draw them).")
+    if hidden:
+        notes.append(f"{plural(hidden, 'arc')} without a usable fit (too few points, or no section of the other "
+                     "scan nearby) not listed.")
+    if notes:
+        table = " ".join(notes) + "\n\n" + table
+    return handles, table, rows
+
+
+def sections_sentence(n_pairs: int, n_ties: int, pose: str) -> str:
+    """'At the coarse pose, 3 corresponding sections give 5 tie points.' — or why there are none."""
+    if n_pairs == 0:
+        return (f"At the {pose} pose no section of the target corresponds to one of the reference, so the sections "
+                "give no tie points.")
+    return (f"At the {pose} pose, {plural(n_pairs, 'corresponding section')} "
+            f"{'gives' if n_pairs == 1 else 'give'} {plural(n_ties, 'tie point')} (yellow lines join partners).")
 
 
 def render_sections(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> tuple[list[Any], PanelContent]:
@@ -177,11 +277,10 @@ def render_sections(scene: viser.SceneApi, root: str, snap: Snapshot, view: View
     sec: SectionsResult = snap.output("sections").items[t]
     sl: SliceResult = snap.output("slices").items[t]
     ref, tgt = _scans(snap, t)
-    handles, table = draw_sections(scene, root, snap, t, sl, sec, ref, tgt, view.point_size)
-    n = sec.n_pairs
-    text = (f"At the coarse pose, {n} corresponding section{'s' if n != 1 else ''} give {len(sec.tie_points_ref)} "
-            "tie points (yellow lines join partners). Grey fits were judged implausible and are not used. Only "
-            "the sliced points are shown with the fits.")
+    handles, table, _ = draw_sections(scene, root, snap, t, sl, sec, ref, tgt, view)
+    text = (sections_sentence(sec.n_pairs, len(sec.tie_points_ref), "coarse") + " Only accepted fits are drawn, in "
+            "their scan's colour; only the sliced points are shown with them. Pick a row under *Frame a fit* (Stage "
+            "tab) or click a fit in 3-D to look at it closely.")
     if sec.message:
         text += f"\n\n{sec.message[0].upper()}{sec.message[1:]}."
     table += "\n\n" + metrics_table({pair_label(snap, t): sec.metrics})
@@ -190,8 +289,12 @@ def render_sections(scene: viser.SceneApi, root: str, snap: Snapshot, view: View
 
 def fine_status(snap: Snapshot, t: int, f: Any) -> str:
     """One sentence: was the fine update kept, after how many iterations, and why not."""
-    verdict = "the fine update was **kept**" if f.accepted else "the coarse transform **stands**"
-    text = f"{pair_label(snap, t)}: {verdict} ({f.iterations} iteration{'s' if f.iterations != 1 else ''})."
+    n = f.iterations
+    if f.accepted:
+        text = (f"{pair_label(snap, t)}: the fine update was **kept** after {plural(n, 'iteration')}." if n else
+                f"{pair_label(snap, t)}: the fine update was **kept**.")
+    else:
+        text = f"{pair_label(snap, t)}: the coarse transform **stands** ({plural(n, 'fine iteration')} tried)."
     if f.message:
         text += f" {f.message[0].upper()}{f.message[1:]}."
     return text
@@ -205,14 +308,33 @@ def render_fine(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewStat
     table = ""
     if f.slices is not None and f.sections is not None:
         ref, tgt = _scans(snap, t)
-        handles, table = draw_sections(scene, root, snap, t, f.slices, f.sections, ref, tgt, view.point_size)
-        text += (f" Shown: the sections at the final pose ({f.sections.n_pairs} corresponding); partners should "
-                 "now coincide.")
+        handles, table, _ = draw_sections(scene, root, snap, t, f.slices, f.sections, ref, tgt, view)
+        n = f.sections.n_pairs
+        text += (f" Shown: the sections at the final pose ({plural(n, 'corresponding pair')}); partners should now "
+                 "coincide. The *Cross-section* view (left panel, top) shows the scans' stem arcs at the coarse "
+                 "and the fine pose side by side.")
     table = metrics_table({pair_label(snap, t): f.metrics}) + ("\n\n" + table if table else "")
     return handles, PanelContent(title("fine", snap, t), text=text, table=table)
 
 
+def focus_rows(snap: Snapshot, stage: str, view: ViewState) -> list[FitRow]:
+    """The rows the fits table of stage `stage` ("sections" or "fine") lists for this view."""
+    out = snap.output(stage)
+    if out is None or not out.items:
+        return []
+    t = target_index(snap, stage, view)
+    item = out.items[t]
+    if stage == "sections":
+        sl, sec = snap.output("slices").items[t], item
+    else:
+        sl, sec = getattr(item, "slices", None), getattr(item, "sections", None)
+    if not getattr(sl, "ok", False) or sec is None or not hasattr(sec, "ref"):
+        return []
+    ref, tgt = _scans(snap, t)
+    return fit_rows(snap, t, sl, sec, ref, tgt, view.show_rejected)[0]
+
+
 SLICES_VIEW_FIELDS = ("target", "point_size")
 ARCS_VIEW_FIELDS = ("target", "point_size")
-SECTIONS_VIEW_FIELDS = ("target", "point_size")
-FINE_VIEW_FIELDS = ("target", "point_size")
+SECTIONS_VIEW_FIELDS = ("target", "point_size", "show_rejected", "focus_section")
+FINE_VIEW_FIELDS = ("target", "point_size", "show_rejected", "focus_section")

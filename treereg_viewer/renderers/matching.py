@@ -20,7 +20,7 @@ from ..drawing import binary_to_rgb, display_xy, draw_lines, draw_markers, fit_f
 from ..palette import HIGHLIGHT, KEPT, REJECTED, scan_color
 from ..view_panel import PanelContent
 from ..view_state import ViewState
-from .common import item_message, metrics_table, pair_label, target_index, title
+from .common import item_message, metrics_table, pair_label, plural, target_index, title
 
 
 def similarity_figure(match: Any, angles_ref: tuple[float, ...], angles_tgt: tuple[float, ...], current: int,
@@ -86,13 +86,19 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
         pair = m.pairs[k]
         img = matches_image(pair, seq_ref.images[pair.i], seq_tgt.images[pair.j], scan_color(0), scan_color(t + 1))
         n_kept = int(np.count_nonzero(pair.kept))
+        if snap.params.matching.beta_check or n_kept < len(pair.kept):
+            verdict = (f"{n_kept} of {plural(len(pair.kept), 'match', 'matches')} kept (green), "
+                       f"{len(pair.kept) - n_kept} rejected by the β check (grey).")
+        else:  # nothing is grey: say so, and where wrong matches are caught instead
+            verdict = (f"{plural(n_kept, 'match', 'matches')}, all kept (green): the β check is off "
+                       "(matching.beta_check); 4 Coarse rejects wrong ties by RANSAC instead.")
         images.append((img, (
             f"Image pair {k + 1} of {len(m.pairs)}: {ref_name} at θ = {pair.angle_ref_deg:+.0f}° (left), "
-            f"{tgt_name} at θ = {pair.angle_tgt_deg:+.0f}° (right); {n_kept} of {len(pair.kept)} matches kept "
-            f"(green), {len(pair.kept) - n_kept} rejected by the β check (grey)."
+            f"{tgt_name} at θ = {pair.angle_tgt_deg:+.0f}° (right); {verdict}"
         )))
-    texts.append(f"{m.n_ties} tie points from {len(m.pairs)} image pairs. In 3-D: the tie points of the pair shown "
-                 "below, each in its own scan's frame, joined to its partner (the scans are not registered yet).")
+    texts.append(f"{plural(m.n_ties, 'tie point')} from {plural(len(m.pairs), 'image pair')}. In 3-D: the tie points "
+                 "of the pair shown below, each in its own scan's frame, joined to its partner (the scans are not "
+                 "registered yet).")
     handles: list[Any] = []
     if m.n_ties and m.pairs:
         # The tie points of the image pair shown in the panel (all pairs' ties would hide the trees).

@@ -1,9 +1,11 @@
 """The Result stage: PairReport (an EvaluationResult each for coarse, fine and ICP)
 
-The scan layer shows the final overlay (fine, or ICP when chosen). The panel: per target, the
-paper's evaluation (mean branch-centre distance d̄, eq. 8) for coarse, fine and ICP side by side,
-with the errors against truth when the case has a truth.json; a plot of the per-branch errors; the
-per-branch table.
+The scan layer shows the targets at the registration chosen (coarse, fine or ICP), in the scans'
+colours or coloured by each point's distance to the other scans' surface (the residual a person
+judges a registration by; computed by treereg_core, see `derived.Derived.residuals`). The panel:
+the paper's evaluation (mean branch-centre distance d̄, eq. 8) of coarse, fine and ICP side by
+side, with the errors against truth when the case has a truth.json; a plot of the per-branch
+errors; the per-branch table. In 3-D: each evaluated branch layer as a ring, with its number.
 """
 
 from __future__ import annotations
@@ -12,11 +14,12 @@ from typing import Any
 
 import numpy as np
 import plotly.graph_objects as go
+import trimesh
 import viser
 
 from ..checks import TRUTH_DISP_M, TRUTH_ROT_DEG, truth_rows, truth_warnings
 from ..controller import Snapshot
-from ..palette import scan_color
+from ..palette import HIGHLIGHT, residual_legend, scan_color
 from ..view_panel import PanelContent
 from ..view_state import ViewState
 from .common import md_table, metrics_table, pair_label, target_index, title
@@ -40,7 +43,7 @@ def branch_figure(evs: dict[str, Any], target: str) -> go.Figure | None:
             continue
         any_rows = True
         fig.add_trace(go.Bar(
-            x=[f"{b.index + 1}" for b in rows], y=[b.mean_m * 100.0 for b in rows], name=label,
+            x=[f"{b.index + 1}" for b in rows], y=[b.mean_m * 1000.0 for b in rows], name=label,
             marker_color=METHOD_COLORS.get(label),
             hovertext=[f"branch {b.index + 1} at {b.height_m:.2f} m, r = {b.radius_m * 100:.1f} cm" for b in rows],
         ))
@@ -50,25 +53,48 @@ def branch_figure(evs: dict[str, Any], target: str) -> go.Figure | None:
     fig.update_layout(barmode="group", margin=dict(l=50, r=10, t=30, b=70),
                       legend=dict(orientation="h", x=0.5, xanchor="center", y=-0.3, yanchor="top"),
                       title=dict(text=f"{target}: mean centre distance per branch (eq. 8)", font=dict(size=12)),
-                      xaxis_title="branch (bottom to top)", yaxis_title="d̄ (cm)", xaxis_type="category")
+                      xaxis_title="branch (bottom to top)", yaxis_title="d̄ (mm)", xaxis_type="category")
     return fig
 
 
-def _branch_lines(scene: viser.SceneApi, root: str, ev: Any, color: tuple[int, int, int]) -> list[Any]:
-    """The evaluated layer centres of each branch in both scans, joined (the d_i of eq. 8)."""
+def branch_rings(scene: viser.SceneApi, root: str, ev: Any, color: tuple[int, int, int]) -> list[Any]:
+    """The evaluated branches, visible: a yellow ring around the branch at each evaluated layer, the
+    reference's and the target's layer centres, the segments joining them (the d_i of eq. 8, often
+    only millimetres long) and the branch's number."""
     rows = [b for b in branch_rows(ev) if len(b.distances_m)]
     if not rows:
         return []
+    verts, faces = [], []
+    for b in rows:
+        axis = np.asarray(b.axis, dtype=float)
+        for c in b.ref_centres_m:
+            ring = trimesh.creation.annulus(r_min=b.radius_m * 1.15, r_max=b.radius_m * 1.15 + 0.025, height=0.025,
+                                            segment=np.stack([c - axis * 0.0125, c + axis * 0.0125]), sections=40)
+            faces.append(ring.faces + sum(len(v) for v in verts))
+            verts.append(ring.vertices)
     ref = np.concatenate([b.ref_centres_m for b in rows]).astype(np.float32)
     tgt = np.concatenate([b.tgt_centres_m for b in rows]).astype(np.float32)
-    return [
-        scene.add_line_segments(f"{root}/d", np.stack([ref, tgt], axis=1), (250, 200, 0), thickness=3.0,
+    handles = [
+        scene.add_mesh_simple(f"{root}/branches", np.concatenate(verts).astype(np.float32),
+                              np.concatenate(faces).astype(np.int32), color=HIGHLIGHT, opacity=0.95, side="double"),
+        scene.add_line_segments(f"{root}/d", np.stack([ref, tgt], axis=1), HIGHLIGHT, thickness=3.0,
                                 thickness_units="screen"),
-        scene.add_point_cloud(f"{root}/ref_centres", ref, scan_color(0), point_size=0.06, point_shape="circle",
+        scene.add_point_cloud(f"{root}/ref_centres", ref, scan_color(0), point_size=0.02, point_shape="circle",
                               precision="float32"),
-        scene.add_point_cloud(f"{root}/tgt_centres", tgt, color, point_size=0.06, point_shape="circle",
+        scene.add_point_cloud(f"{root}/tgt_centres", tgt, color, point_size=0.02, point_shape="circle",
                               precision="float32"),
     ]
+    for b in rows:
+        top = b.ref_centres_m[-1]
+        handles.append(scene.add_label(f"{root}/label{b.index}", f"branch {b.index + 1}: d̄ {b.mean_m * 1000:.1f} mm",
+                                       position=tuple(float(v) for v in top + np.array([0.0, 0.0, b.radius_m + 0.08]))))
+    return handles
+
+
+#: Registrations as the Result stage names them (pose key -> the evaluation's method name). The
+#: branches are evaluated per pair, so the final (joint) placement shows the pair's fine evaluation.
+METHOD_OF_POSE = {"coarse": "coarse", "fine": "fine", "final": "fine", "icp": "ICP"}
+POSE_NAMES = {"coarse": "coarse", "fine": "pairwise fine", "final": "final (joint placement)", "icp": "ICP"}
 
 
 def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> tuple[list[Any], PanelContent]:
@@ -76,8 +102,10 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
     t = target_index(snap, "evaluation", view)
     report = out.items[t]
     evs = report.by_method()
-    pose = "ICP" if view.show_icp and report.icp is not None else "fine"
-    shown_at = "ICP" if pose == "ICP" else "final (joint placement)"
+    method = METHOD_OF_POSE.get(view.result_pose, "fine")
+    if method not in evs:
+        method = "fine"
+    shown_at = POSE_NAMES.get(view.result_pose, view.result_pose)
     text = f"Targets shown at their **{shown_at}** pose. "
     fine = snap.output("fine")
     notes = []
@@ -89,7 +117,15 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
         text += "Errors against truth come from the case's `truth.json`."
     else:
         text += "No truth is known for these scans: the paper's branch measure d̄ is the yardstick."
-    text += " Yellow segments in 3-D join the centre points of the evaluated branch layers (the dᵢ of eq. 8)."
+    text += (" Yellow rings in 3-D mark the evaluated branch layers, labelled with their mean centre distance d̄; "
+             "pick a branch under *Section of* in the cross-section view to see its layers.")
+    images = []
+    if view.result_colour == "residual":
+        text += (f"\n\nEach point is coloured by its distance to the other scans' surface (0 to "
+                 f"{view.residual_max_m * 1000:.0f} mm and beyond); light grey: no other scan's point within "
+                 f"{max(30, 1.5 * view.residual_max_m * 1000):.0f} mm (seen by its own scan only).")
+        images.append((residual_legend(view.residual_max_m),
+                       f"0 mm — {view.residual_max_m * 1000 / 2:.0f} mm — {view.residual_max_m * 1000:.0f} mm and more"))
     truth = truth_rows(snap)
     if truth:  # the analyst's first question, answered above the plot
         text += "\n\n" + md_table(
@@ -106,24 +142,20 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
     fig = branch_figure(evs, pair_label(snap, t))
     if fig is not None:
         plots.append((fig, 1.6))
-    # One column per registration of each target: the paper's Table 2 layout.
-    columns = {}
-    for k, rep in enumerate(out.items):
-        if not rep.ok:
-            continue
-        for label, ev in rep.by_method().items():
-            columns[f"{rep.target} {label}"] = ev.metrics
-    table = metrics_table(columns)
+    # One row per metric, one column per registration of the chosen target (the paper's Table 2 layout).
+    columns = {label: ev.metrics for label, ev in evs.items()}
+    table = metrics_table(columns) if report.ok else ""
     rows = []
     for label, ev in evs.items():
         for b in branch_rows(ev):
-            d = ", ".join(f"{x * 100:.1f}" for x in b.distances_m)
-            rows.append((label, b.index + 1, f"{b.height_m:.2f}", f"{b.radius_m * 100:.1f}", d, f"{b.mean_m * 100:.2f}"))
+            d = ", ".join(f"{x * 1000:.1f}" for x in b.distances_m)
+            rows.append((label, b.index + 1, f"{b.height_m:.2f}", f"{b.radius_m * 100:.1f}", d, f"{b.mean_m * 1000:.1f}"))
     if rows:
-        table += "\n\n" + md_table(("registration", "branch", "height (m)", "radius (cm)", "d₁…dₙ (cm)", "d̄ (cm)"), rows)
-    shown = report.icp if pose == "ICP" else report.fine
-    handles = _branch_lines(scene, root, shown, scan_color(t + 1)) if shown is not None else []
-    return handles, PanelContent(title("evaluation", snap, t), text=text, plots=tuple(plots), table=table)
+        table += "\n\n" + md_table(("registration", "branch", "height (m)", "radius (cm)", "d₁…dₙ (mm)", "d̄ (mm)"), rows)
+    shown = evs.get(method)
+    handles = branch_rings(scene, root, shown, scan_color(t + 1)) if shown is not None else []
+    return handles, PanelContent(title("evaluation", snap, t), text=text, images=tuple(images), plots=tuple(plots),
+                                 table=table)
 
 
-VIEW_FIELDS = ("target", "show_icp")
+VIEW_FIELDS = ("target", "result_pose", "result_colour", "residual_max_m")

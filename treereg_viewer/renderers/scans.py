@@ -13,8 +13,8 @@ import numpy as np
 import viser
 
 from ..controller import Snapshot
-from ..palette import GREY, scan_color
-from ..stages import view_of
+from ..palette import GREY, NO_RESIDUAL, residual_colors, scan_color
+from ..stages import POSE_STAGE, registered, view_of
 from ..view_panel import PanelContent
 from ..view_state import ViewState
 from .common import display_subset, md_table, not_ready_text, pose_kwargs, title
@@ -27,9 +27,10 @@ def scan_node(i: int) -> str:
     return f"/scans/s{i}"
 
 
-def station_label_height(i: int) -> float:
-    """Height (m, above its scanner) of scan `i`'s name: one line apart per scan."""
-    return 1.3 + 0.5 * i
+#: Opacity of a see-through scan's points.
+SEE_THROUGH_OPACITY = 0.45
+#: Height (m, above its scanner) of a scanner's name.
+STATION_LABEL_Z = 1.3
 
 
 def target_pose(snap: Snapshot, pose: str | None, k: int) -> np.ndarray | None:
@@ -51,12 +52,28 @@ def target_pose(snap: Snapshot, pose: str | None, k: int) -> np.ndarray | None:
     return None
 
 
+def stage_pose(view: ViewState) -> str | None:
+    """The registration the current stage shows the targets at (the Result stage: the view's choice)."""
+    if view.stage == "evaluation":
+        return view.result_pose
+    return view_of(view.stage).pose
+
+
+def see_through(view: ViewState) -> bool:
+    """The Result stage draws the scans see-through (half-transparent splats): where they overlap,
+    both colours show, so no scan hides another."""
+    return view.stage == "evaluation" and view.result_colour == "seethrough"
+
+
+def residual_mode(view: ViewState) -> bool:
+    """The Result stage colours each point by its distance to the other scans' surface."""
+    return view.stage == "evaluation" and view.result_colour == "residual"
+
+
 def scan_poses(snap: Snapshot, view: ViewState) -> list[np.ndarray]:
     """The pose of every scan on the current stage: its `T_ref_scan` for the stage's pose (see
     `stages.StageView.pose`), or the identity (each scan in its own scanner frame)."""
-    pose = view_of(view.stage).pose
-    if view.stage == "evaluation" and view.show_icp:
-        pose = "icp"
+    pose = stage_pose(view)
     poses = [np.eye(4) for _ in snap.scans]
     for k in range(1, len(snap.scans)):
         T = target_pose(snap, pose, k - 1)
@@ -75,10 +92,22 @@ def scans_shown(view: ViewState) -> bool:
     return view_of(view.stage).scans != "hidden"
 
 
-def draw_scan_layer(scene: viser.SceneApi, snap: Snapshot, view: ViewState) -> list[Any]:
-    """Every scan's points in its colour (ground grey on stage 0), its station axes and name."""
+def scan_layer_key(snap: Snapshot, view: ViewState) -> tuple[Any, ...]:
+    """What the scan layer's points depend on (it is redrawn only when this changes)."""
+    residual = ((view.result_pose, view.residual_max_m, id(snap.output(POSE_STAGE.get(view.result_pose, view.result_pose))))
+                if residual_mode(view) else None)
+    return (tuple(id(s) for s in snap.scans), id(snap.output("prepare")), view.stage == "prepare", context_only(view),
+            view.point_size, view.max_points, view.show_stations, registered(view.stage), residual, see_through(view))
+
+
+def draw_scan_layer(scene: viser.SceneApi, snap: Snapshot, view: ViewState,
+                    residuals: list[np.ndarray] | None = None) -> list[Any]:
+    """Every scan's points in its colour (ground grey on stage 1) or, given `residuals` (per scan,
+    the distances of its displayed points to the other scans), coloured by distance; its station
+    axes and name."""
     handles: list[Any] = []
     prepared = snap.output("prepare")
+    apart = not registered(view.stage)
     for i, scan in enumerate(snap.scans):
         prep = prepared.items[i] if prepared is not None and i < len(prepared.items) else None
         color = np.array(scan_color(i), dtype=np.uint8)
@@ -96,21 +125,41 @@ def draw_scan_layer(scene: viser.SceneApi, snap: Snapshot, view: ViewState) -> l
             pts = prep.scan.points
             idx = display_subset(len(pts), view.max_points, seed=i)
             colors = color
+            if residuals is not None and i < len(residuals) and len(residuals[i]) == len(idx):
+                colors = residual_colors(residuals[i], view.residual_max_m)
+            elif residuals is not None:
+                colors = np.array(NO_RESIDUAL, dtype=np.uint8)  # not registered under this pose
         node = scan_node(i)
         visible = scan.name not in view.hidden_scans
         handles.append(scene.add_frame(node, show_axes=False, visible=visible))
-        handles.append(
-            scene.add_point_cloud(
-                f"{node}/points", pts[idx], colors, point_size=view.point_size,
-                point_shape="circle", precision="float32",
+        if see_through(view) and prep is not None and getattr(prep, "ok", False):
+            # Gaussian splats blend: half-transparent discs of about the point size.
+            n = len(idx)
+            sigma = view.point_size  # world-sized: much smaller and a distant tree renders below a pixel
+            rgb = np.broadcast_to(np.asarray(colors, np.float32).reshape(-1, 3) / 255.0, (n, 3))
+            handles.append(scene.add_gaussian_splats(
+                f"{node}/points", centers=pts[idx].astype(np.float32),
+                covariances=np.broadcast_to(np.eye(3, dtype=np.float32) * sigma * sigma, (n, 3, 3)).copy(),
+                rgbs=np.ascontiguousarray(rgb), opacities=np.full((n, 1), SEE_THROUGH_OPACITY, np.float32)))
+        else:
+            handles.append(
+                scene.add_point_cloud(
+                    f"{node}/points", pts[idx], colors, point_size=view.point_size,
+                    point_shape="circle", precision="float32",
+                )
             )
-        )
         if view.show_stations:
             handles.append(scene.add_frame(f"{node}/station", axes_length=1.0, axes_radius=0.04))
             # Before registration every scanner sits at the origin of its own frame, i.e. at the same
-            # point on screen: stack the names so they do not print over each other.
-            handles.append(scene.add_label(f"{node}/station/name", f"{i + 1}: {scan.name}",
-                                           position=(0.0, 0.0, station_label_height(i))))
+            # point on screen: one label names them all instead of names printed over each other.
+            if not apart:
+                handles.append(scene.add_label(f"{node}/station/name", f"scanner {i + 1}: {scan.name}",
+                                               position=(0.0, 0.0, STATION_LABEL_Z)))
+            elif i == 0:
+                n = len(snap.scans)
+                who = "scanner 1" if n == 1 else f"scanners 1–{n}" if n > 2 else "scanners 1 and 2"
+                handles.append(scene.add_label(f"{node}/station/name", f"{who} (own origins)",
+                                               position=(0.0, 0.0, STATION_LABEL_Z)))
     return handles
 
 

@@ -163,6 +163,12 @@ def _wait_all_done(page, timeout_ms=120_000):
         "!/[○…✗]/.test(e.textContent) && /1 Scans/.test(e.textContent))", timeout=timeout_ms)
 
 
+def _param_input(page, label):
+    """The text input of a parameter (viser's text inputs are not tied to their label element)."""
+    return page.locator("label", has_text=re.compile(f"^{re.escape(label)}$")).locator(
+        "xpath=ancestor::div[.//input][1]//input").first
+
+
 def _go(page, label):
     """Pick a stage in the selector, like a user."""
     page.get_by_label("Stage", exact=True).click()
@@ -208,7 +214,7 @@ def test_walk_through_the_demo(served, browser):
     # Change a fine-stage parameter and re-run: only fine and evaluation run again.
     _go(page, "8 Fine")
     expect(page.get_by_role("heading", name=re.compile("^8 Fine"))).to_be_visible()
-    box = page.get_by_label("max iterations", exact=True)
+    box = _param_input(page, "max iterations")
     box.fill("2")
     box.press("Enter")
     expect(page.get_by_text(re.compile("Parameters changed: 8 Fine, 10 Result must re-run"))).to_be_visible(timeout=10_000)

@@ -6,6 +6,7 @@ import argparse
 import json
 
 from treereg_core import params as P
+from treereg_core.io.atomic import check_output_file
 
 from .common import load_params
 
@@ -24,6 +25,8 @@ def add(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.out:
+        check_output_file(args.out)
     params = load_params(args)
     if args.explain:
         for sec in P.SECTIONS:

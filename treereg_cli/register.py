@@ -8,7 +8,8 @@ import time
 from pathlib import Path
 
 from treereg_core.errors import ConfigError
-from treereg_core.io.transforms import registration_file, write_exports, write_transforms
+from treereg_core.io.atomic import check_output_file
+from treereg_core.io.transforms import export_paths, registration_file, write_exports, write_transforms
 from treereg_core.pipeline import register
 
 from .common import add_param_args, load_params, read_scans
@@ -33,6 +34,11 @@ def add(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     if len(args.scans) < 2:
         raise ConfigError("register needs at least two scans (the first is the reference)")
+    out = Path(args.out)
+    # Where the results go is checked before anything is read or computed.
+    names = [Path(f).name for f in args.scans]
+    for path in (export_paths(out.parent, names, out.name) if args.exports else [out]):
+        check_output_file(path)
     params = load_params(args)
     scans = read_scans(args.scans, params)
     t0 = time.perf_counter()
@@ -45,7 +51,6 @@ def run(args: argparse.Namespace) -> int:
     metrics = reg.pipeline.pair_metrics()
     tf = registration_file(scans, reg.transforms, params, stage=args.until, metrics=metrics,
                            sources={s.name: str(Path(f).resolve()) for s, f in zip(scans, args.scans)}, seconds=seconds)
-    out = Path(args.out)
     written = write_exports(out.parent, tf, name=out.name) if args.exports else [write_transforms(out, tf)]
     for name, rows in metrics.items():
         print(f"\n{name} -> {scans[0].name}")

@@ -14,6 +14,7 @@ import numpy as np
 
 from .prepare.angular_step import estimate_angular_step
 from .errors import ScanError
+from .params import ANGULAR_STEP_RANGE_DEG
 
 #: Fewer points than this cannot be registered meaningfully (and cannot estimate a grid).
 MIN_POINTS = 100
@@ -53,8 +54,10 @@ class Scan:
         object.__setattr__(self, "azimuth_deg", alpha)
         object.__setattr__(self, "elevation_deg", beta)
         h, v = (float(s) for s in self.angular_step_deg)
-        if not (h > 0 and v > 0):
-            raise ScanError(self.label, f"angular steps must be positive, got {self.angular_step_deg}")
+        lo, hi = ANGULAR_STEP_RANGE_DEG
+        if not (lo <= h <= hi and lo <= v <= hi):
+            raise ScanError(self.label, f"angular steps {h:g} x {v:g} deg are outside the allowed range "
+                                        f"({lo:g} to {hi:g} deg)")
         object.__setattr__(self, "angular_step_deg", (h, v))
 
     @property
@@ -91,7 +94,17 @@ class Scan:
             try:
                 angular_step_deg = estimate_angular_step(alpha, beta)
             except ValueError as e:
-                raise ScanError(label, f"cannot estimate the angular step: {e}") from None
+                raise ScanError(label, f"cannot estimate the angular step: {e}; give it with --angular-step "
+                                       "(the instrument's steps in degrees)") from None
+            lo, hi = ANGULAR_STEP_RANGE_DEG
+            if not all(lo <= float(s) <= hi for s in angular_step_deg):
+                # Points not on a scanner's grid (a cloud merged from several stations, a resampled or
+                # georeferenced file) give absurd steps: say so rather than compute with them.
+                h, v = (float(s) for s in angular_step_deg)
+                raise ScanError(label, f"the angular step estimated from the points, {h:.2g} x {v:.2g} deg, is "
+                                       f"outside {lo:g} to {hi:g} deg, so the points do not look like one "
+                                       "station's scan in its own frame; give the instrument's steps with "
+                                       "--angular-step")
         return cls(
             points=pts,
             name=name,
@@ -99,6 +112,11 @@ class Scan:
             source=src,
             step_estimated=estimated,
         )
+
+    def with_angular_step(self, angular_step_deg: tuple[float, float]) -> "Scan":
+        """The same station with the instrument's steps given (not estimated)."""
+        return Scan(points=self.points, name=self.name, angular_step_deg=tuple(angular_step_deg),  # type: ignore[arg-type]
+                    source=self.source, step_estimated=False)
 
     def with_points(self, points: np.ndarray, name: str | None = None) -> "Scan":
         """The same station (steps, source) with other points, e.g. after cropping or ground removal."""

@@ -11,6 +11,7 @@ from typing import Any, Protocol
 from treereg_core.params import Params
 
 from .controller import Controller
+from .uploads import UploadReceiver
 from .view_state import ViewState
 
 
@@ -19,6 +20,8 @@ class AppActions(Protocol):
 
     controller: Controller
     out_dir: Path | None
+    uploads: UploadReceiver
+    max_upload_bytes: int
 
     @property
     def view(self) -> ViewState: ...
@@ -36,6 +39,8 @@ class AppActions(Protocol):
     def select_target(self, label: str) -> None: ...
 
     def set_scan_visible(self, name: str, visible: bool) -> None: ...
+
+    def flush_edits(self) -> None: ...
 
     def on_param_change(self, section: str, name: str, value: Any) -> str | None: ...
 

@@ -13,7 +13,9 @@ on the controller's worker and drawing on the `Drawer`'s thread.
 
 from __future__ import annotations
 
+import ipaddress
 import logging
+import sys
 import threading
 import time
 from dataclasses import replace
@@ -24,6 +26,7 @@ import numpy as np
 import viser
 
 from treereg_core.errors import ConfigError
+from treereg_core.limits import format_bytes
 from treereg_core.params import Params
 
 from . import camera
@@ -34,12 +37,15 @@ from .scan_panel import ScanPanel
 from .stage_panel import StagePanel
 from .stages import STAGE_NAMES, registered
 from .view_panel import ViewPanel
+from .uploads import UploadReceiver
 from .view_state import ViewState
 
 log = logging.getLogger(__name__)
 
 #: Width of the docked control panel (viser's "large" control width).
 CONTROL_WIDTH_PX = 400
+#: Largest scan file a browser may upload unless the app is told otherwise.
+MAX_UPLOAD_BYTES = 1024 * 1000 * 1000
 
 
 class TreeregApp:
@@ -55,13 +61,18 @@ class TreeregApp:
         When given, exports are also written there.
     autorun
         Run the whole pipeline in the background as soon as the app is up.
+    max_upload_bytes
+        Largest scan file a browser may upload (uploads stream to a temporary file).
     """
 
     def __init__(self, server: viser.ViserServer, controller: Controller, out_dir: Path | None = None,
-                 autorun: bool = True) -> None:
+                 autorun: bool = True, max_upload_bytes: int = MAX_UPLOAD_BYTES) -> None:
         self.server = server
         self.controller = controller
         self.out_dir = Path(out_dir) if out_dir is not None else None
+        self.max_upload_bytes = int(max_upload_bytes)
+        self.uploads = UploadReceiver(server, on_message=lambda text, error: controller.note(text, error=error),
+                                      on_progress=lambda text: self.scans.show_receiving(text))
         self._view_lock = threading.Lock()
         self._view = ViewState()
         self._last_progress = 0.0
@@ -145,11 +156,16 @@ class TreeregApp:
         Stale stages run; when nothing from here on is stale, this stage is re-run (and so are the
         later ones, which depend on it).
         """
+        self.flush_edits()
         snap = self.controller.snapshot
         stage = self.view.stage
         later = STAGE_NAMES[STAGE_NAMES.index(stage):]
         anything_stale = any(snap.status(s) != "done" for s in later) or self.controller.params != snap.params
         self.controller.request_run(STAGE_NAMES[-1], rerun_from=None if anything_stale else stage)
+
+    def flush_edits(self) -> None:
+        """Apply parameter values still being typed (see param_widgets.SETTLE_S)."""
+        self.stages.flush_edits()
 
     def on_param_change(self, section: str, name: str, value: Any) -> str | None:
         try:
@@ -173,6 +189,7 @@ class TreeregApp:
     def close(self) -> None:
         self.controller.close()
         self.drawer.close()
+        self.uploads.close()
 
     # ---- from the worker ----------------------------------------------------------------------
     def _on_snapshot(self, snap: Snapshot) -> None:
@@ -213,18 +230,45 @@ class TreeregApp:
                 log.debug("camera of client %s not ready", client.client_id)
 
 
-def serve(controller: Controller, host: str = "127.0.0.1", port: int = 8080, out_dir: Path | None = None) -> None:
-    """Start the server and the app, print the URL (tests read it), block until Ctrl-C."""
+def exposure_warning(host: str, port: int, out_dir: Path | None, max_upload_bytes: int) -> str | None:
+    """What binding `host` exposes, when it is more than this machine (None for loopback addresses)."""
+    try:
+        loopback = host == "localhost" or ipaddress.ip_address(host).is_loopback
+    except ValueError:  # a host name
+        loopback = False
+    if loopback:
+        return None
+    writes = f", and write exports into {out_dir}" if out_dir is not None else ""
+    return (f"treereg view: warning: --host {host} lets anyone who can reach this machine on port {port} use the "
+            f"app: see the scans, upload files of up to {format_bytes(max_upload_bytes)} to it, run "
+            f"registrations{writes}. There is no login; use --host 127.0.0.1 unless this network is trusted.")
+
+
+def serve(controller: Controller, host: str = "127.0.0.1", port: int = 8080, out_dir: Path | None = None,
+          max_upload_bytes: int = MAX_UPLOAD_BYTES) -> None:
+    """Start the server and the app, print the URL (tests read it), block until Ctrl-C.
+
+    A port in use is an error (`ConfigError`): viser would silently take the next one. `port=0`
+    asks for any free port.
+    """
     t0 = time.perf_counter()
     server = viser.ViserServer(host=host, port=port, verbose=False)
-    app = TreeregApp(server, controller, out_dir=out_dir)
+    if port and server.get_port() != port:
+        server.stop()
+        controller.close()
+        raise ConfigError(f"--port {port}: the port is in use (another treereg view?); choose another port, "
+                          "or --port 0 for any free one")
+    app = TreeregApp(server, controller, out_dir=out_dir, max_upload_bytes=max_upload_bytes)
+    warning = exposure_warning(host, server.get_port(), out_dir, max_upload_bytes)
+    if warning:
+        print(warning, file=sys.stderr, flush=True)
     url = f"http://{host}:{server.get_port()}/"
     print(f"treereg view: {url}  (app ready in {time.perf_counter() - t0:.1f} s; Ctrl-C to stop)", flush=True)
     try:
         while True:
             time.sleep(1.0)
     except KeyboardInterrupt:
-        pass
+        print("treereg view: stopped (Ctrl-C)", flush=True)
     finally:
         app.close()
         server.stop()

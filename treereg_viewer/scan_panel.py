@@ -6,6 +6,8 @@ from typing import Any
 
 import viser
 
+from treereg_core.limits import format_bytes
+
 from .actions import AppActions
 from .controller import Snapshot
 from .palette import scan_color
@@ -30,14 +32,21 @@ class ScanPanel:
         self._checkboxes: list[Any] = []
         self._names: tuple[str, ...] = ()
         self.upload = gui.add_upload_button("Add a scan file", icon=viser.Icon.UPLOAD, mime_type="*/*",
-                                            hint=f"Appends a scan ({SCAN_SUFFIXES}); the first scan stays the reference.")
-        self.upload.on_upload(lambda _: app.controller.add_scan_bytes(self.upload.value.name, self.upload.value.content))
+                                            hint=f"Appends a scan ({SCAN_SUFFIXES}, up to "
+                                                 f"{format_bytes(app.max_upload_bytes)}); the first scan stays the reference.")
+        # Streamed to a temporary file on the server (see uploads.py), then read by the worker.
+        app.uploads.add(self.upload, app.controller.add_scan_file, app.max_upload_bytes, what="scan file")
+        self.receiving = gui.add_markdown("")
         gui.add_markdown("Uploaded scans are registered onto scan 1. A file that cannot be read is "
                          "reported above and changes nothing.")
         # A wrong upload must be undoable without restarting the app.
         self.remove_choice = gui.add_dropdown("Scan to remove", ("(none)",), hint="A target scan (scan 1 is the reference and stays).")
         self.remove_button = gui.add_button("Remove scan", icon=viser.Icon.TRASH, color="gray", disabled=True)
         self.remove_button.on_click(lambda _: self._remove())
+
+    def show_receiving(self, text: str) -> None:
+        """What is being uploaded, and how far (every tab sees it); "" when nothing is."""
+        self.receiving.content = f"*{text}*" if text else ""
 
     def _remove(self) -> None:
         name = self.remove_choice.value

@@ -27,6 +27,8 @@ from .._version import __version__
 from ..errors import ConfigError
 from ..params import Params, to_dict
 from ..scan import Scan
+from . import atomic
+from .json_input import load_json
 from .atomic import write_text_atomic
 
 #: Largest |R^T R - I| entry accepted for the rotation part of a transform.
@@ -177,14 +179,7 @@ def read_transforms(path: str | Path) -> TransformFile:
         rigid 4x4; the message names the file and the key.
     """
     path = Path(path)
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: no such transform file") from None
-    except IsADirectoryError:
-        raise ConfigError(f"{path}: is a directory, not a transform file") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise ConfigError(f"{path}: not valid JSON ({e})") from None
+    data = load_json(path, "transform file")
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: expected a JSON object with 'reference' and 'transforms'")
     for key in ("reference", "transforms"):
@@ -268,22 +263,31 @@ def _stems(names: list[str]) -> dict[str, str]:
     return {n: (s if counts[s] == 1 else n) for n, s in stems.items()}
 
 
+def export_paths(out_dir: str | Path, names: Sequence[str], name: str = DEFAULT_NAME) -> list[Path]:
+    """The files `write_exports` writes for scans `names`: transforms.json first, then per scan
+    `<stem>.cloudcompare.txt` and `<stem>.pdal.txt` (checked before a run, written after it)."""
+    out = Path(out_dir)
+    paths = [out / name]
+    for stem in _stems(list(names)).values():
+        paths += [out / f"{stem}.cloudcompare.txt", out / f"{stem}.pdal.txt"]
+    return paths
+
+
 def write_exports(out_dir: str | Path, tf: TransformFile, name: str = DEFAULT_NAME) -> list[Path]:
     """Write transforms.json and, per scan, `<stem>.cloudcompare.txt` and `<stem>.pdal.txt`.
 
     The reference gets its (identity) files too, so every scan can be treated the same way.
-    All writes are atomic. Returns the written paths, transforms.json first.
+    The files are written as one batch: all of them or, on an error or Ctrl-C, none replace
+    what was there. Returns the written paths (`export_paths`), transforms.json first.
     """
-    out = Path(out_dir)
-    written = [write_transforms(out / name, tf)]
-    for scan, stem in _stems(tf.names).items():
-        T = tf.matrix(scan)
-        cc = out / f"{stem}.cloudcompare.txt"
-        pdal = out / f"{stem}.pdal.txt"
-        write_text_atomic(cc, cloudcompare_matrix_text(T))
-        write_text_atomic(pdal, pdal_matrix_string(T) + "\n")
-        written += [cc, pdal]
-    return written
+    paths = export_paths(out_dir, tf.names, name)
+    with atomic.batch():
+        write_transforms(paths[0], tf)
+        for scan, cc, pdal in zip(tf.names, paths[1::2], paths[2::2]):
+            T = tf.matrix(scan)
+            write_text_atomic(cc, cloudcompare_matrix_text(T))
+            write_text_atomic(pdal, pdal_matrix_string(T) + "\n")
+    return paths
 
 
 def registration_file(scans: Sequence[Scan], transforms: dict[str, np.ndarray], params: Params, *, stage: str,

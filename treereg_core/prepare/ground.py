@@ -137,7 +137,8 @@ def prepare_scan(scan: Scan, *, prepare: PrepareParams) -> PreparedScan:
     Parameters
     ----------
     scan : the station as read.
-    prepare : preparation parameters (ground removal on/off, cell, band, crop radius and heights).
+    prepare : preparation parameters (angular steps when given, ground removal on/off, cell, band, crop
+        radius and heights).
 
     Returns
     -------
@@ -145,6 +146,8 @@ def prepare_scan(scan: Scan, *, prepare: PrepareParams) -> PreparedScan:
     would remain.
     """
     p = prepare
+    if p.angular_step_deg is not None and tuple(p.angular_step_deg) != scan.angular_step_deg:
+        scan = scan.with_angular_step(p.angular_step_deg)  # the instrument's steps, as given, over the estimate
     pts = scan.points
     n = len(pts)
     kept = np.ones(n, dtype=bool)

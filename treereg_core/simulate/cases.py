@@ -25,6 +25,8 @@ from typing import Any
 import numpy as np
 
 from ..errors import ConfigError
+from ..params import ANGULAR_STEP_RANGE_DEG
+from ..io import atomic
 from ..io.cases import TRUTH_NAME
 from ..io.scans import read_points, write_scan
 from ..results import Metric, Progress
@@ -122,9 +124,11 @@ class CaseSpec:
         for name in ("height_range_m", "station_distance_m", "separation_deg", "instrument_height_m"):
             pair(name)
         phi, vphi = self.angular_step_deg
+        step_lo, step_hi = ANGULAR_STEP_RANGE_DEG
         checks = [
             (self.n_stations >= 1, "n_stations: at least one station is needed"),
-            (0.001 <= phi <= 5 and 0.001 <= vphi <= 5, f"angular_step_deg: {self.angular_step_deg} is outside 0.001-5 deg"),
+            (all(step_lo <= x <= step_hi for x in (phi, vphi)),
+             f"angular_step_deg: {phi:g} x {vphi:g} deg is outside the allowed range ({step_lo:g} to {step_hi:g} deg)"),
             (self.orders in (1, 2, 3), f"orders: {self.orders} is not 1, 2 or 3"),
             (self.height_m is None or 1.0 <= self.height_m <= 60.0, f"height_m: {self.height_m} is outside 1-60 m"),
             (self.dbh_m is None or 0.02 <= self.dbh_m <= 3.0, f"dbh_m: {self.dbh_m} is outside 0.02-3 m"),
@@ -266,9 +270,22 @@ def write_case(case: SimulatedCase, out_dir: str | Path, dtype: str = "float64",
     """
     out = Path(out_dir)
     say = progress or (lambda f, t: None)
-    for k, scan in enumerate(case.scans):
-        say(k / (len(case.scans) + 1), f"writing {scan.name}")
-        write_scan(out / scan.name, scan.points, dtype=dtype)
+    with atomic.batch():  # all files or, on an error or Ctrl-C, none replace what was there
+        for k, scan in enumerate(case.scans):
+            say(k / (len(case.scans) + 1), f"writing {scan.name}")
+            write_scan(out / scan.name, scan.points, dtype=dtype)
+        path = _write_truth(case, out)
+    say(1.0, f"wrote {out}")
+    return path
+
+
+def case_paths(out_dir: str | Path, n_stations: int) -> list[Path]:
+    """The files `write_case` writes for `n_stations` scans (checked before simulating)."""
+    out = Path(out_dir)
+    return [out / f"scan{k + 1}.ply" for k in range(n_stations)] + [out / TRUTH_NAME]
+
+
+def _write_truth(case: SimulatedCase, out: Path) -> Path:
     tf = TransformFile(
         reference=case.scans[0].name,
         transforms=case.truth(),
@@ -280,9 +297,7 @@ def write_case(case: SimulatedCase, out_dir: str | Path, dtype: str = "float64",
             "simulation": case.spec.to_dict(),
         },
     )
-    path = write_transforms(out / TRUTH_NAME, tf)
-    say(1.0, f"wrote {out}")
-    return path
+    return write_transforms(out / TRUTH_NAME, tf)
 
 
 def simulate_case(seed: int = 0, n_stations: int = 3, progress: Progress | None = None,

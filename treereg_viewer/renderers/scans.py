@@ -122,7 +122,12 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
     rows = []
     for i, scan in enumerate(snap.scans):
         prep = prepared.items[i] if prepared is not None and i < len(prepared.items) else None
-        phi, vphi = scan.angular_step_deg
+        # The steps in force: the prepared scan's (a given step replaces the estimate), else the
+        # parameter's when one is set and the stage has not run yet, else the scan's own.
+        used = getattr(prep, "scan", None)
+        given = snap.params.prepare.angular_step_deg
+        phi, vphi = used.angular_step_deg if used is not None else given or scan.angular_step_deg
+        estimated = used.step_estimated if used is not None else given is None and scan.step_estimated
         kept = ground = ""
         if prep is not None:
             kept = f"{prep.scan.n_points:,}" if getattr(prep, "scan", None) is not None else ""
@@ -130,7 +135,7 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
                 ground = f"{int(np.count_nonzero(prep.ground_mask)):,}"
         rows.append((
             f"{i + 1}{' (reference)' if i == 0 else ''}", scan.name, f"{scan.n_points:,}",
-            f"{phi:.3g} / {vphi:.3g}{' (est.)' if scan.step_estimated else ''}", kept, ground,
+            f"{phi:.3g} / {vphi:.3g}{' (est.)' if estimated else ''}", kept, ground,
         ))
     table = md_table(("#", "scan", "points", "φ / ϕ (deg)", "kept", "ground"), rows)
     text = not_ready_text(snap, "prepare")

@@ -10,8 +10,8 @@ from typing import Iterator
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from treereg_core.atomic import write_text_atomic  # noqa: E402
-from treereg_core.simulate import SimulatedCase, simulate_case  # noqa: E402
+from treereg_core.io.atomic import write_text_atomic  # noqa: E402
+from treereg_core.simulate.cases import SimulatedCase, simulate_case  # noqa: E402
 
 REAL_TREES = Path(__file__).resolve().parents[2] / "shared" / "data" / "real_trees"
 

@@ -22,8 +22,9 @@ import pytest
 pytestmark = pytest.mark.browser
 
 playwright_api = pytest.importorskip("playwright.sync_api")
-CHROMIUM = "/usr/bin/chromium"
-if not Path(CHROMIUM).exists():
+from conftest import CHROMIUM, CHROMIUM_ARGS  # noqa: E402
+
+if not CHROMIUM.exists():
     pytest.skip(f"{CHROMIUM} is not installed", allow_module_level=True)
 
 from treereg_core.io.scans import read_points  # noqa: E402
@@ -33,11 +34,7 @@ from treereg_core.demo import DEMO_DIR  # noqa: E402
 from treereg_viewer.palette import scan_color  # noqa: E402
 
 REPO = Path(__file__).resolve().parent.parent
-LAUNCH_ARGS = [
-    "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-    "--disable-background-networking", "--disable-component-update", "--disable-sync",
-    "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
-]
+LAUNCH_ARGS = CHROMIUM_ARGS
 ROT_TOL_DEG = 0.5
 DISP_TOL_M = 0.03
 #: Screenshots are saved here for people (and the README) to look at.
@@ -77,7 +74,7 @@ def served(tmp_path_factory):
 @pytest.fixture(scope="module")
 def browser():
     with playwright_api.sync_playwright() as p:
-        b = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=LAUNCH_ARGS)
+        b = p.chromium.launch(executable_path=str(CHROMIUM), headless=True, args=LAUNCH_ARGS)
         yield b
         b.close()
 

@@ -8,6 +8,7 @@ as it was (all writes are atomic). Warnings about input (rows dropped) are print
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import warnings
 
@@ -62,6 +63,9 @@ def main(argv: list[str] | None = None) -> int:
         except KeyboardInterrupt:
             say("interrupted (Ctrl-C); no file was left half-written or replaced by a partial result")
             return 130
+        except BrokenPipeError:  # `treereg params | head`: the reader has all it wanted
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # nothing left to flush at exit
+            return 141  # as a shell reports a command ended by SIGPIPE
 
 
 if __name__ == "__main__":  # pragma: no cover

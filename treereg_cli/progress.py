@@ -37,10 +37,9 @@ class ProgressBar:
         n = int(round(fraction * self.width))
         bar = "#" * n + "-" * (self.width - n)
         line = f"\r{self.label} [{bar}] {fraction * 100:5.1f}% {now - self.t0:6.1f}s {text[:40]:<40}"
+        _open_lines.add(id(self.stream))  # before writing: Ctrl-C may land right after the write
         self.stream.write(line)
         if fraction >= 1.0:
             self.stream.write("\n")
             _open_lines.discard(id(self.stream))
-        else:
-            _open_lines.add(id(self.stream))
         self.stream.flush()

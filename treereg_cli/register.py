@@ -38,7 +38,7 @@ def run(args: argparse.Namespace) -> int:
     # Where the results go is checked before anything is read or computed.
     names = [Path(f).name for f in args.scans]
     for path in (export_paths(out.parent, names, out.name) if args.exports else [out]):
-        check_output_file(path)
+        check_output_file(path, example="transforms.json")
     params = load_params(args)
     scans = read_scans(args.scans, params)
     t0 = time.perf_counter()

@@ -11,9 +11,9 @@ from __future__ import annotations
 
 from .errors import ConfigError
 
-#: The most memory one stage may spend on rasters of one scan (2 GiB of the 24 GB we plan for:
+#: The most memory one stage may spend on rasters of one scan (2 GB of the 24 GB we plan for:
 #: a stage holds a few, and two scans are in memory at once).
-MAX_RASTER_BYTES = 2 * 1024**3
+MAX_RASTER_BYTES = 2_000_000_000
 
 
 class RasterTooLarge(ConfigError):

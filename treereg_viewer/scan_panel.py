@@ -29,7 +29,8 @@ class ScanPanel:
         self.max_points.on_update(lambda _: app.set_view(max_points=int(self.max_points.value)))
         self.stations.on_update(lambda _: app.set_view(show_stations=bool(self.stations.value)))
         self.visibility_folder = gui.add_folder("Show / hide")
-        self._checkboxes: list[Any] = []
+        self._pool: list[Any] = []  # one checkbox per scan index ever shown
+        self._checkboxes: list[Any] = []  # those of the current scans
         self._names: tuple[str, ...] = ()
         self.upload = gui.add_upload_button("Add a scan file", icon=viser.Icon.UPLOAD, mime_type="*/*",
                                             hint=f"Appends a scan ({SCAN_SUFFIXES}, up to "
@@ -62,13 +63,22 @@ class ScanPanel:
         targets = names[1:]
         self.remove_choice.options = targets or ("(none)",)
         self.remove_button.disabled = not targets
-        for cb in self._checkboxes:
-            cb.remove()
-        self._checkboxes = []
+        # Checkboxes are reused, never removed: viser keeps every removal message for the tabs that
+        # open later, so removing and re-adding them on each upload would grow without end.
         with self.visibility_folder:
-            for i, name in enumerate(names):
+            while len(self._pool) < len(names):
+                i = len(self._pool)
                 r, g, b = scan_color(i)
-                cb = self.gui.add_checkbox(f"{i + 1}: {name}", name not in self.app.view.hidden_scans,
-                                           hint=f"scan colour rgb({r}, {g}, {b})")
-                cb.on_update(lambda _, name=name, cb=cb: self.app.set_scan_visible(name, bool(cb.value)))
-                self._checkboxes.append(cb)
+                cb = self.gui.add_checkbox(f"{i + 1}", True, hint=f"scan colour rgb({r}, {g}, {b})")
+                cb.on_update(lambda _, i=i: self._toggled(i))
+                self._pool.append(cb)
+        for i, cb in enumerate(self._pool):
+            if i < len(names):
+                cb.label = f"{i + 1}: {names[i]}"
+                cb.value = names[i] not in self.app.view.hidden_scans
+            cb.visible = i < len(names)
+        self._checkboxes = self._pool[: len(names)]
+
+    def _toggled(self, i: int) -> None:
+        if i < len(self._names):
+            self.app.set_scan_visible(self._names[i], bool(self._pool[i].value))

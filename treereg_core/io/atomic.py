@@ -64,18 +64,19 @@ def _check_can_create_in(folder: Path, label: str) -> None:
     try:
         fd, probe = tempfile.mkstemp(prefix=".treereg-check-", dir=existing)
     except OSError as e:
-        where = "in" if existing == folder else f"the folder {folder} in"
-        raise OutputError(label, f"cannot create {where} {existing} ({_reason(e)})") from None
+        what = "a file" if existing == folder else f"the folder {folder}"
+        raise OutputError(label, f"cannot create {what} in {existing} ({_reason(e)})") from None
     os.close(fd)
     os.unlink(probe)
 
 
-def check_output_file(path: str | Path, label: str | None = None) -> Path:
+def check_output_file(path: str | Path, label: str | None = None, example: str | None = None) -> Path:
     """The file that writing `path` will create or replace (a symbolic link's target), checked.
 
     Raises `OutputError` when `path` is a folder, a FIFO, a device or a socket, a read-only file, a
     link that loops, or when its folder cannot be created or written. Call it before any
-    computation; `write_atomic` checks again when it writes.
+    computation; `write_atomic` checks again when it writes. `example` is a file name to suggest
+    when `path` is a folder.
     """
     p = Path(path)
     label = label or str(p)
@@ -86,11 +87,12 @@ def check_output_file(path: str | Path, label: str | None = None) -> Path:
         except OSError as e:  # a loop of links
             raise OutputError(label, f"cannot be followed to a file ({_reason(e)})") from None
         if stat.S_ISDIR(mode):
-            raise OutputError(label, f"is a folder; give a file name (e.g. {p / 'transforms.json'})"
-                              if p.suffix == "" else "is a folder, not a file")
+            raise OutputError(label, f"is a folder; give a file name (e.g. {p / example})" if example
+                              else "is a folder; give the name of a file (in it, or beside it)")
         if not stat.S_ISREG(mode):
             raise OutputError(label, f"is {_kind(mode)}; treereg only replaces regular files")
-        if not os.access(target, os.W_OK):
+        # No write bit for anyone says "keep this" even to root, for whom access() is always yes.
+        if not os.access(target, os.W_OK) or not mode & 0o222:
             raise OutputError(label, "is read-only; treereg does not replace it")
     _check_can_create_in(target.parent, label)
     return target

@@ -26,6 +26,9 @@ import numpy as np
 
 from ..errors import ConfigError
 from ..params import ANGULAR_STEP_RANGE_DEG
+
+#: Most stations a simulated case may have (each is a full scan).
+MAX_STATIONS = 32
 from ..io import atomic
 from ..io.cases import TRUTH_NAME
 from ..io.scans import read_points, write_scan
@@ -125,8 +128,13 @@ class CaseSpec:
             pair(name)
         phi, vphi = self.angular_step_deg
         step_lo, step_hi = ANGULAR_STEP_RANGE_DEG
+        for name in ("range_sigma_m", "dropout", "lean_deg", "tilt_deg", "ground_slope_deg", "ground_radius_m",
+                     "ground_front_m"):
+            if not np.isfinite(getattr(self, name)):
+                raise ConfigError(f"{name}: {getattr(self, name)} is not a finite number")
         checks = [
-            (self.n_stations >= 1, "n_stations: at least one station is needed"),
+            (1 <= self.n_stations <= MAX_STATIONS, f"n_stations: {self.n_stations} is outside 1-{MAX_STATIONS} stations"),
+            (self.seed >= 0, f"seed: {self.seed} is not a non-negative whole number"),
             (all(step_lo <= x <= step_hi for x in (phi, vphi)),
              f"angular_step_deg: {phi:g} x {vphi:g} deg is outside the allowed range ({step_lo:g} to {step_hi:g} deg)"),
             (self.orders in (1, 2, 3), f"orders: {self.orders} is not 1, 2 or 3"),
@@ -136,11 +144,12 @@ class CaseSpec:
             (0 <= self.lean_deg <= 45, f"lean_deg: {self.lean_deg} is outside 0-45 deg"),
             (0 <= self.ground_slope_deg <= 30, f"ground_slope_deg: {self.ground_slope_deg} is outside 0-30 deg"),
             (0 <= self.tilt_deg <= 10, f"tilt_deg: {self.tilt_deg} is outside 0-10 deg"),
-            (self.range_sigma_m >= 0, "range_sigma_m: must be >= 0"),
+            (0 <= self.range_sigma_m <= 1, f"range_sigma_m: {self.range_sigma_m} is outside 0-1 m"),
             (0 <= self.dropout < 1, f"dropout: {self.dropout} is outside [0, 1)"),
             (self.station_distance_m[0] > 0.5, "station_distance_m: stations must stand more than 0.5 m from the trunk"),
-            (self.ground_radius_m >= 1.0, "ground_radius_m: the ground must reach at least 1 m around the tree"),
-            (self.ground_front_m >= 0.0, "ground_front_m: must be >= 0"),
+            (self.station_distance_m[1] <= 200.0, "station_distance_m: stations farther than 200 m from the trunk see no tree"),
+            (1.0 <= self.ground_radius_m <= 500.0, f"ground_radius_m: {self.ground_radius_m} is outside 1-500 m"),
+            (0.0 <= self.ground_front_m <= 500.0, f"ground_front_m: {self.ground_front_m} is outside 0-500 m"),
         ]
         checks.append((self.splat_radius_m is None or (self.from_points is not None and 0 < self.splat_radius_m <= 1),
                        "splat_radius_m: needs from_points and a radius in (0, 1] m"))

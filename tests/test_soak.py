@@ -1,13 +1,15 @@
 """Soak: the server is never stuck and does not grow (issue 10).
 
-`treereg view` on two demo scans, five browser tabs stepping through the stages and pressing Run
-for at least a minute, while one of them uploads a third scan, runs, and removes it again, 20 times.
-Every tab must still answer at the end, the scans must be as they started, and the server's
-resident memory must stay within 20% of what it was after the first cycle (a warm-up: libraries,
-caches and the first drawing of every stage are paid once).
+`treereg view` on two demo scans, five browser tabs stepping through the stages and pressing Run,
+while one of them uploads a third scan, runs, and removes it again, over and over. Every tab must
+still answer at the end, the scans must be as they started, no error may have been shown or
+logged, and the server's resident memory must stay within 20% of what it was after the warm-up
+(every stage drawn once and one cycle: libraries, caches and first drawings are paid once).
 
-Marked `soak` (run by the default `pytest`; `-m "not soak"` leaves it out). It takes about two
-minutes on a quiet 2-core machine; it prints its timings and memory with `-s`.
+Marked `soak`; the default `pytest` runs it at a size that fits the suite's time budget (20 s of
+stepping, 4 cycles: about 1.5 minutes on a quiet 2-core machine, 4 on a busy one). The size issue 10
+asks for (60 s, 20 cycles) is `python benchmarks/bench_soak.py`, or TREEREG_SOAK_SECONDS=60
+TREEREG_SOAK_CYCLES=20 here; its result is in benchmarks/RESULTS.md. `-s` prints timings and memory.
 """
 
 from __future__ import annotations
@@ -31,8 +33,8 @@ pytestmark = [pytest.mark.soak, pytest.mark.browser]
 
 REPO = Path(__file__).resolve().parent.parent
 TABS = 5
-STEPPING_S = float(os.environ.get("TREEREG_SOAK_SECONDS", 60.0))
-CYCLES = int(os.environ.get("TREEREG_SOAK_CYCLES", 20))
+STEPPING_S = float(os.environ.get("TREEREG_SOAK_SECONDS", 20.0))
+CYCLES = int(os.environ.get("TREEREG_SOAK_CYCLES", 4))
 MEMORY_GROWTH = 0.20
 #: Parameters of a cheap run (one fine iteration, no ICP, a short evaluation).
 LIGHT = {"matching": {"n_pairs": 3}, "fine": {"max_iterations": 1}, "icp": {"enabled": False},
@@ -44,7 +46,7 @@ def _rss_mb(pid: int) -> float:
 
 
 def _body(page) -> str:
-    return page.evaluate("() => document.body.innerText")
+    return page.evaluate("() => document.body.textContent")  # not innerText: no layout of the page
 
 
 def _press(page, label: str) -> None:
@@ -73,7 +75,7 @@ class Cycle:
                 page.get_by_role("button", name="Add a scan file").click()
             chooser.value.set_files(files=[{"name": "extra.ply", "mimeType": "application/octet-stream", "buffer": self.data}])
             self._to("added")
-        elif self.state == "added" and re.search(r"\b3: extra\.ply\b", text):
+        elif self.state == "added" and re.search(r"3: extra\.ply", text):
             run = page.get_by_role("button", name="Run", exact=True)
             if run.is_enabled():  # disabled while another tab's run is under way
                 run.click()
@@ -83,7 +85,7 @@ class Cycle:
             page.get_by_role("option", name="extra.ply", exact=True).click()
             page.get_by_role("button", name="Remove scan", exact=True).click()
             self._to("removed")
-        elif self.state == "removed" and not re.search(r"\b3: extra\.ply\b", text):
+        elif self.state == "removed" and not re.search(r"3: extra\.ply", text):
             self.done += 1
             self.seconds.append(time.monotonic() - self.t0)
             print(f"  cycle {self.done}: {self.seconds[-1]:.1f} s", flush=True)
@@ -104,7 +106,7 @@ def browser():
         b.close()
 
 
-def test_five_tabs_and_twenty_upload_cycles_leave_the_server_answering_and_flat(browser, tmp_path):
+def test_five_tabs_and_upload_cycles_leave_the_server_answering_and_flat(browser, tmp_path):
     from playwright.sync_api import expect
 
     for name in ("scan1.ply", "scan2.ply"):
@@ -174,7 +176,7 @@ def test_five_tabs_and_twenty_upload_cycles_leave_the_server_answering_and_flat(
                 raise AssertionError(f"tab {k} does not answer:\n{_body(page)[:2000]}\n{''.join(log)[-3000:]}") from None
         pages[0].wait_for_timeout(2000)
         final = _rss_mb(proc.pid)
-        text = _body(pages[0])
+        text = pages[0].evaluate("() => document.body.innerText")
         errors = [ln for ln in text.splitlines() if "Internal error" in ln or "failed:" in ln]
         assert not errors and "3: extra.ply" not in text, (errors, "".join(log)[-5000:])
         assert not any("Traceback" in ln for ln in log), "".join(log)[-5000:]

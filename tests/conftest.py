@@ -13,3 +13,12 @@ REAL_TREES = SHARED / "data" / "real_trees"
 def needs(path: Path) -> pytest.MarkDecorator:
     """Skip the test (with the missing path as the reason) when `path` is not there."""
     return pytest.mark.skipif(not path.exists(), reason=f"{path} is not available (the shared data folder beside the checkout)")
+
+#: Debian's Chromium, driven by Playwright (never `playwright install`: no downloads here).
+CHROMIUM = Path("/usr/bin/chromium")
+#: Headless, offline, WebGL on SwiftShader (see /work/shared/VISER_NOTES.md).
+CHROMIUM_ARGS = [
+    "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+    "--disable-background-networking", "--disable-component-update", "--disable-sync",
+    "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
+]

@@ -25,8 +25,9 @@ import pytest
 pytestmark = pytest.mark.browser
 
 playwright_api = pytest.importorskip("playwright.sync_api")
-CHROMIUM = "/usr/bin/chromium"
-if not Path(CHROMIUM).exists():
+from conftest import CHROMIUM, CHROMIUM_ARGS  # noqa: E402
+
+if not CHROMIUM.exists():
     pytest.skip(f"{CHROMIUM} is not installed", allow_module_level=True)
 
 from treereg_core.io.scans import read_points  # noqa: E402
@@ -36,11 +37,7 @@ from treereg_core.demo import DEMO_DIR  # noqa: E402
 from treereg_viewer.palette import scan_color  # noqa: E402
 
 REPO = Path(__file__).resolve().parent.parent
-LAUNCH_ARGS = [
-    "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-    "--disable-background-networking", "--disable-component-update", "--disable-sync",
-    "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
-]
+LAUNCH_ARGS = CHROMIUM_ARGS
 ROT_TOL_DEG = 0.5
 DISP_TOL_M = 0.03
 #: Screenshots are saved here for people (and the README) to look at.
@@ -80,7 +77,7 @@ def served(tmp_path_factory):
 @pytest.fixture(scope="module")
 def browser():
     with playwright_api.sync_playwright() as p:
-        b = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=LAUNCH_ARGS)
+        b = p.chromium.launch(executable_path=str(CHROMIUM), headless=True, args=LAUNCH_ARGS)
         yield b
         b.close()
 
@@ -170,6 +167,12 @@ def _wait_all_done(page, timeout_ms=120_000):
         "!/[○…✗]/.test(e.textContent) && /1 Scans/.test(e.textContent))", timeout=timeout_ms)
 
 
+def _param_input(page, label):
+    """The text input of a parameter (viser's text inputs are not tied to their label element)."""
+    return page.locator("label", has_text=re.compile(f"^{re.escape(label)}$")).locator(
+        "xpath=ancestor::div[.//input][1]//input").first
+
+
 def _go(page, label):
     """Pick a stage in the selector, like a user."""
     page.get_by_label("Stage", exact=True).click()
@@ -177,7 +180,9 @@ def _go(page, label):
 
 
 def _set_number(page, label, value):
-    box = page.get_by_label(label, exact=True).filter(visible=True)  # several stages may share a label
+    """Type a parameter's value (a text input: viser's number input drops an exponent's "e")."""
+    box = page.locator("label", has_text=re.compile(f"^{re.escape(label)}$")).filter(visible=True).locator(
+        "xpath=ancestor::div[.//input][1]//input").first  # several stages may share a label
     box.fill(str(value))
     box.press("Enter")
 

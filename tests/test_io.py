@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from treereg_core.io import scans as tio
-from treereg_core.errors import ScanError
+from treereg_core.errors import OutputError, ScanError
 from treereg_core.io.scans import ScanWarning, read_points, read_scan, write_scan
 from treereg_core.simulate.cases import simulate_case
 
@@ -205,7 +205,11 @@ def test_millimetre_coordinates_are_refused(tmp_path, sim_scan):
 
 def test_georeferenced_metres_are_not_mistaken_for_millimetres(tmp_path, pts):
     p = write_scan(tmp_path / "utm.las", pts + [512_345.0, 5_123_456.0, 250.0])
-    assert read_points(p).shape == pts.shape
+    assert read_points(p).shape == pts.shape  # a cloud (e.g. --from-points) may be georeferenced
+    # A scan may not: its angles from the origin would mean nothing. Said plainly, not as millimetres.
+    with pytest.raises(ScanError, match=r"utm\.las: the points lie 5,1\d\d,\d\d\d m or more from the origin, so the scan is "
+                                        r"not in its scanner's frame \(georeferenced.*--scanner-position X Y Z"):
+        read_scan(p)
 
 
 @pytest.mark.parametrize("shape", [(100,), (100, 2), (100, 4), (2, 100, 3)])
@@ -241,9 +245,9 @@ def test_failed_write_leaves_no_file_and_keeps_the_old_one(tmp_path, pts, monkey
         raise OSError("disk full")  # ...then the failure
 
     monkeypatch.setattr(tio, "_write_ply", broken)
-    with pytest.raises(OSError, match="disk full"):
+    with pytest.raises(OutputError, match=r"keep\.ply: could not be written \(disk full\); nothing was replaced"):
         write_scan(target, pts * 2)
-    with pytest.raises(OSError):
+    with pytest.raises(OutputError):
         write_scan(tmp_path / "new.ply", pts)
     assert target.read_bytes() == before
     assert sorted(f.name for f in tmp_path.iterdir()) == ["keep.ply"]

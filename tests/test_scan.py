@@ -123,5 +123,5 @@ def test_from_points_errors_name_the_scan():
     column = np.column_stack([np.cos(np.radians(beta)), np.zeros_like(beta), np.sin(np.radians(beta))]) * 5
     with pytest.raises(ScanError, match=r"^/data/col\.ply: cannot estimate the angular step"):
         Scan.from_points(column, name="col.ply", source="/data/col.ply")
-    with pytest.raises(ScanError, match="must be positive"):
+    with pytest.raises(ScanError, match=r"angular steps 0 x 0\.1 deg are outside the allowed range \(0\.001 to 1 deg\)"):
         Scan.from_points(column, name="col.ply", angular_step_deg=(0.0, 0.1))

@@ -56,11 +56,10 @@ def _idle(app: TreeregApp, timeout: float = 120.0) -> None:
     assert app.drawer.wait_idle(30.0), "drawing did not finish"
 
 
-def _upload(handle, name: str, data: bytes) -> None:
-    """What viser does when a browser has sent a file: set the button's value, call its callbacks."""
-    handle._impl.value = viser.UploadedFile(name, data)
-    for cb in handle._impl.update_cb:
-        cb(viser.GuiEvent(None, None, handle))
+def _upload(app, handle, name: str, data: bytes) -> None:
+    """What a browser sends when a file is uploaded (a start message, then 512 kB parts), through the
+    app's upload receiver."""
+    app.uploads.receive(handle, name, data)
 
 
 def _nodes(server: viser.ViserServer) -> set[str]:
@@ -233,9 +232,9 @@ def test_invalid_parameter_is_rejected_and_the_input_shows_what_is_in_force(env)
     assert ctl.params == before.params
     assert "slicing.quantiles" in app.stages.message_md.content and "⚠" in app.stages.message_md.content
     number = app.stages.sections["coarse"].handles["inlier_m"]
-    number.value = -1.0  # below its minimum
+    number.value = "-1"  # below its minimum
     _idle(app)
-    assert number.value == before.params.coarse.inlier_m
+    assert number.value == "0.4" == str(before.params.coarse.inlier_m)
     assert "coarse.inlier_m" in app.stages.message_md.content
     assert all(ctl.snapshot.output(s) is before.output(s) for s in STAGE_NAMES)
 
@@ -272,7 +271,7 @@ def test_bad_upload_shows_a_message_and_changes_nothing(env, case):
         "allnan.xyz": (b"nan nan nan\n" * 200, "NaN"),
     }
     for name, (data, why) in bad.items():
-        _upload(app.scans.upload, name, data)
+        _upload(app, app.scans.upload, name, data)
         _idle(app)
         snap = ctl.snapshot
         assert snap.error and snap.message.startswith(f"Upload rejected — {name}:"), snap.message
@@ -356,7 +355,7 @@ def test_presets_and_parameter_files_round_trip(small_app, tmp_path):
     app.files.apply_preset.value = True
     _idle(app)
     assert ctl.params.matching.n_pairs == 3 and ctl.snapshot.params.matching.n_pairs == 3
-    assert app.stages.sections["matching"].handles["n_pairs"].value == 3
+    assert app.stages.sections["matching"].handles["n_pairs"].value == "3"
     assert app.stages.sections["matching"].handles["beta_check"].value is True
     sent: list[tuple[str, bytes]] = []
     app.send_file = lambda client, name, data: sent.append((name, data))  # capture the download
@@ -365,10 +364,10 @@ def test_presets_and_parameter_files_round_trip(small_app, tmp_path):
     assert name == "params.json" and json.loads(data)["matching"]["n_pairs"] == 3
     edited = json.loads(data)
     edited["matching"]["n_pairs"] = 7
-    _upload(app.files.load_params, "mine.json", json.dumps(edited).encode())
+    _upload(app, app.files.load_params, "mine.json", json.dumps(edited).encode())
     _idle(app)
-    assert ctl.params.matching.n_pairs == 7 and app.stages.sections["matching"].handles["n_pairs"].value == 7
-    _upload(app.files.load_params, "bad.json", b'{"matching": {"n_pairs": "many"}}')
+    assert ctl.params.matching.n_pairs == 7 and app.stages.sections["matching"].handles["n_pairs"].value == "7"
+    _upload(app, app.files.load_params, "bad.json", b'{"matching": {"n_pairs": "many"}}')
     _idle(app)
     assert ctl.params.matching.n_pairs == 7
     assert "matching.n_pairs" in app.stages.message_md.content
@@ -377,7 +376,7 @@ def test_presets_and_parameter_files_round_trip(small_app, tmp_path):
 def test_good_upload_adds_a_scan_in_the_next_colour(small_app, case):
     app = small_app
     data = (DEMO_DIR / case.scans[2].name).read_bytes()
-    _upload(app.scans.upload, "extra.ply", data)
+    _upload(app, app.scans.upload, "extra.ply", data)
     _idle(app)
     snap = app.controller.snapshot
     assert [s.name for s in snap.scans][-1] == "extra.ply" and len(snap.scans) == 4
@@ -389,7 +388,7 @@ def test_good_upload_adds_a_scan_in_the_next_colour(small_app, case):
     # Rows with NaN are dropped by the reader: the message says so, the scan is added.
     pts = case.scans[1].points[:3000].copy()
     pts[::4, 2] = np.nan
-    _upload(app.scans.upload, "holes.xyz", "\n".join(" ".join(f"{v:.4f}" for v in r) for r in pts).encode())
+    _upload(app, app.scans.upload, "holes.xyz", "\n".join(" ".join(f"{v:.4f}" for v in r) for r in pts).encode())
     _idle(app)
     snap = app.controller.snapshot
     assert snap.scans[-1].name == "holes.xyz" and snap.scans[-1].n_points == 2250

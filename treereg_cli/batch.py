@@ -35,7 +35,8 @@ def add(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--dask", metavar="SCHEDULER_ADDRESS",
                    help="run the trees on this Dask cluster instead (tcp://host:8786; needs treereg[dask])")
     p.add_argument("--redo", action="store_true", help="register every tree again, even those already done")
-    p.add_argument("--until", choices=("coarse", "fine"), default="fine", help="last stage to run (default: fine)")
+    p.add_argument("--until", choices=("coarse", "fine"), default="fine",
+                   help="last stage to run (default: fine, with verification; coarse leaves every scan unverified)")
     add_param_args(p)
     p.set_defaults(func=run)
 
@@ -62,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
     seconds = time.perf_counter() - t0
     paths = write_summary(outcomes, out, {o.tree: picture_of(o.tree, out) for o in outcomes},
                           title=f"treereg batch: {src.name}")
-    counts = {s: sum(o.status == s for o in outcomes) for s in ("ok", "partial", "failed", "error")}
+    counts = {s: sum(o.status == s for o in outcomes) for s in ("ok", "partial", "unverified", "failed", "error")}
     print(f"{len(outcomes)} trees ({ran} run, {len(outcomes) - ran} already done) in {seconds:.1f} s: "
           + ", ".join(f"{v} {k}" for k, v in counts.items() if v))
     for o in outcomes:

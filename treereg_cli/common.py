@@ -27,10 +27,13 @@ def load_params(args: argparse.Namespace) -> Params:
 
 
 def angular_steps(values: list[float]) -> tuple[float, float]:
-    """--angular-step H [V] as (phi, varphi)."""
+    """--angular-step H [V] as (phi, varphi), checked against the parameter's range."""
     if len(values) > 2:
         raise ConfigError(f"--angular-step takes one or two values (H [V]), got {len(values)}")
-    return values[0], values[-1]
+    try:
+        return P.Params().with_value("prepare", "angular_step_deg", (values[0], values[-1])).prepare.angular_step_deg
+    except ConfigError as e:
+        raise ConfigError(f"--angular-step: {str(e).split(': ', 1)[1]}") from None
 
 
 def add_param_args(p: argparse.ArgumentParser) -> None:

@@ -6,6 +6,7 @@ import argparse
 import json
 
 from treereg_core import params as P
+from treereg_core.io.atomic import check_output_file
 
 from .common import load_params
 
@@ -24,13 +25,17 @@ def add(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.out:
+        check_output_file(args.out, example="params.json")
     params = load_params(args)
     if args.explain:
         for sec in P.SECTIONS:
             print(f"[{sec}]")
             for f in P.field_info(sec):
                 unit = f" ({f.metadata['unit']})" if f.metadata["unit"] else ""
-                print(f"  {f.name} = {getattr(getattr(params, sec), f.name)!r}{unit}: {f.metadata['doc']}")
+                lo, hi = f.metadata["min"], f.metadata["max"]
+                span = "" if lo is None and hi is None else f" [{'' if lo is None else f'{lo:g}'} to {'' if hi is None else f'{hi:g}'}]"
+                print(f"  {f.name} = {getattr(getattr(params, sec), f.name)!r}{unit}{span}: {f.metadata['doc']}")
         return 0
     if args.out:
         P.save(params, args.out)

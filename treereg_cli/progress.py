@@ -5,6 +5,18 @@ from __future__ import annotations
 import sys
 import time
 
+#: Streams a bar has left mid-line (the next message must start on a fresh line).
+_open_lines: set[int] = set()
+
+
+def end_line() -> None:
+    """Finish a half-drawn progress line, so the next message starts on a line of its own."""
+    for stream in (sys.stderr, sys.stdout):
+        if id(stream) in _open_lines:
+            stream.write("\n")
+            stream.flush()
+    _open_lines.clear()
+
 
 class ProgressBar:
     """A one-line text progress bar on stderr; usable as a `Progress` callback."""
@@ -25,7 +37,9 @@ class ProgressBar:
         n = int(round(fraction * self.width))
         bar = "#" * n + "-" * (self.width - n)
         line = f"\r{self.label} [{bar}] {fraction * 100:5.1f}% {now - self.t0:6.1f}s {text[:40]:<40}"
+        _open_lines.add(id(self.stream))  # before writing: Ctrl-C may land right after the write
         self.stream.write(line)
         if fraction >= 1.0:
             self.stream.write("\n")
+            _open_lines.discard(id(self.stream))
         self.stream.flush()

@@ -12,18 +12,20 @@ import time
 from pathlib import Path
 
 from treereg_core.errors import ConfigError, ScanError
+from treereg_core.io import atomic
+from treereg_core.io.atomic import check_output_file
 from treereg_core.io.e57 import write_registered_e57
 from treereg_core.io.merged import write_merged
 from treereg_core.io.scans import WRITE_EXTENSIONS, extension
-from treereg_core.io.transforms import registration_file, write_exports, write_transforms
+from treereg_core.io.transforms import export_paths, registration_file, write_exports, write_transforms
 from treereg_core.pipeline import register
+from treereg_core.stages import UNTIL
 from treereg_core.verify.report import quality_report, verdict_lines
 
 from .common import add_param_args, load_params, read_scans
 from .progress import ProgressBar
 
 #: `--until` choice -> the last stage run ("fine" includes the verification and the joint placement).
-UNTIL = {"coarse": "coarse", "fine": "graph"}
 
 
 def add(sub: argparse._SubParsersAction) -> None:
@@ -59,11 +61,21 @@ def run(args: argparse.Namespace) -> int:
         # Said before minutes of registration, not after.
         raise ConfigError(f"{args.merged}: the merged cloud is written as {', '.join(WRITE_EXTENSIONS)}; "
                           f"not {extension(args.merged) or '(no extension)'!r}")
+    out = Path(args.out)
+    e57 = Path(args.e57) if args.e57 else (out.parent / "registered.e57" if args.exports else None)
+    # Where the results go is checked before anything is read or computed.
+    check_output_file(out, example="transforms.json")
+    for extra in (e57, args.merged):
+        if extra is not None:
+            check_output_file(extra)
     params = load_params(args)
     scans = read_scans(args.scans, params, args.scanner_position)
     if len(scans) < 2:
         raise ConfigError("register needs at least two scans (the first is the reference); "
                           f"{', '.join(args.scans)} hold(s) {len(scans)}")
+    if args.exports:  # the matrix files are named after the scans (an E57 names its own)
+        for path in export_paths(out.parent, [s.name for s in scans], out.name)[1:]:
+            check_output_file(path)
     t0 = time.perf_counter()
     reg = register(scans, params, until=UNTIL[args.until], progress=ProgressBar("register"))
     seconds = time.perf_counter() - t0
@@ -77,20 +89,17 @@ def run(args: argparse.Namespace) -> int:
                            quality=quality_report(scans, pipe.pairs, pipe.outputs), keep_unverified=args.keep_unverified,
                            sources={s.name: str(s.source.resolve()) if s.source.exists() else str(s.source) for s in scans},
                            seconds=seconds)
-    out = Path(args.out)
-    merged = []
-    if args.merged:
-        # Written first: when it cannot be written, the transform file is not written either.
-        try:
-            # The same scans as "transforms": unverified guesses only with --keep-unverified.
-            merged.append(write_merged(args.merged, scans, tf.transforms))
-        except OSError as e:  # one line naming the file, not a traceback
-            raise ScanError(args.merged, f"cannot write the merged cloud ({e.strerror or e})") from None
-    written = write_exports(out.parent, tf, name=out.name) if args.exports else [write_transforms(out, tf)]
-    e57 = Path(args.e57) if args.e57 else (out.parent / "registered.e57" if args.exports else None)
-    if e57 is not None:
-        written.append(write_registered_e57(e57, scans, tf))
-    written += merged
+    # One batch: the transform file, its matrices, the E57 and the merged cloud all land, or none.
+    try:
+        with atomic.batch():
+            written = write_exports(out.parent, tf, name=out.name) if args.exports else [write_transforms(out, tf)]
+            if e57 is not None:
+                written.append(write_registered_e57(e57, scans, tf))
+            if args.merged:
+                # The same scans as "transforms": unverified guesses only with --keep-unverified.
+                written.append(write_merged(args.merged, scans, tf.transforms))
+    except OSError as e:  # one line naming the file, not a traceback
+        raise ScanError(e.filename or str(out), f"cannot write the results ({e.strerror or e}); nothing was written") from None
     for name, rows in metrics.items():
         print(f"\n{name}" if " -> " in name else f"\n{name} -> {scans[0].name}")
         for r in rows:

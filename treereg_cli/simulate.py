@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import argparse
 
-from treereg_core.simulate.cases import CaseSpec, write_case
+from treereg_core.io.atomic import check_output_dir, check_output_file
+from treereg_core.simulate.cases import CaseSpec, case_paths, write_case
 
 from .common import angular_steps
 from .progress import ProgressBar
@@ -51,6 +52,7 @@ def add(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    check_output_dir(args.out)
     spec = CaseSpec(
         seed=args.seed, n_stations=args.stations, angular_step_deg=angular_steps(args.angular_step),
         height_m=args.height, dbh_m=args.dbh, orders=args.orders, bent=args.bent, lean_deg=args.lean,
@@ -59,6 +61,8 @@ def run(args: argparse.Namespace) -> int:
         range_sigma_m=args.noise, dropout=args.dropout, station_distance_m=tuple(args.distance),
         from_points=args.from_points, splat_radius_m=args.splat,
     )
+    for path in case_paths(args.out, spec.n_stations):  # before the (long) simulation
+        check_output_file(path)
     case = spec.build(progress=ProgressBar("simulate"))
     truth = write_case(case, args.out, dtype="float32" if args.float32 else "float64")
     for m in case.metrics:

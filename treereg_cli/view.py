@@ -4,12 +4,19 @@ when it runs."""
 from __future__ import annotations
 
 import argparse
+import errno
+import socket
 from pathlib import Path
 
 from treereg_core.demo import DEMO_DIR, demo_case
+from treereg_core.errors import ConfigError
+from treereg_core.io.atomic import check_output_dir
 from treereg_core.io.cases import read_truth, truth_beside
 
 from .common import add_param_args, load_params, read_scans
+
+#: Largest scan file a browser may upload, unless --max-upload-mb says otherwise.
+DEFAULT_MAX_UPLOAD_MB = 1024.0
 
 
 def add(sub: argparse._SubParsersAction) -> None:
@@ -23,12 +30,42 @@ def add(sub: argparse._SubParsersAction) -> None:
     add_param_args(p)
     p.add_argument("--truth", help="truth.json with the true transforms (default: the one beside the scans, if any)")
     p.add_argument("--out", help="folder to also write exports to (besides the browser downloads)")
-    p.add_argument("--port", type=int, default=8080, help="port (default 8080; 0 = any free port)")
-    p.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1: this machine only)")
+    p.add_argument("--port", type=int, default=8080, help="port (default 8080; 0 = any free port); a port in use is an error")
+    p.add_argument("--host", default="127.0.0.1",
+                   help="address to bind (default 127.0.0.1: this machine only; anything else lets other "
+                   "machines upload files and write exports, without a login)")
+    p.add_argument("--max-upload-mb", type=float, default=DEFAULT_MAX_UPLOAD_MB, metavar="MB",
+                   help=f"largest scan file the browser may upload (default {DEFAULT_MAX_UPLOAD_MB:g} MB)")
     p.set_defaults(func=run)
 
 
+def check_address(host: str, port: int) -> None:
+    """Refuse a port that is in use (viser would silently take the next one) or an address this
+    machine cannot bind, before anything is read."""
+    if not 0 <= port <= 65535:
+        raise ConfigError(f"--port: {port} is not a port number (0 to 65535; 0 = any free port)")
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except socket.gaierror as e:
+        raise ConfigError(f"--host {host}: not an address of this machine ({e.strerror})") from None
+    family, kind, proto, _, addr = infos[0]
+    with socket.socket(family, kind, proto) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as the server binds
+        try:
+            s.bind(addr)
+        except OSError as e:
+            if port and e.errno == errno.EADDRINUSE:
+                raise ConfigError(f"--port {port}: the port is in use (another treereg view?); choose another "
+                                  "port, or --port 0 for any free one") from None
+            raise ConfigError(f"--host {host}: cannot listen there ({(e.strerror or str(e)).lower()})") from None
+
+
 def run(args: argparse.Namespace) -> int:
+    # Everything that can be wrong with the command line is checked before any scan is read.
+    check_address(args.host, args.port)
+    out_dir = check_output_dir(args.out) if args.out else None
+    if not args.max_upload_mb > 0:
+        raise ConfigError(f"--max-upload-mb: {args.max_upload_mb:g} must be a positive size in MB")
     params = load_params(args)
     if args.scans:
         scans = read_scans(args.scans, params, args.scanner_position)
@@ -44,6 +81,6 @@ def run(args: argparse.Namespace) -> int:
     from treereg_viewer.app import serve
     from treereg_viewer.controller import Controller
 
-    serve(Controller(scans, params, truth), host=args.host, port=args.port,
-          out_dir=Path(args.out) if args.out else None)
+    serve(Controller(scans, params, truth), host=args.host, port=args.port, out_dir=out_dir,
+          max_upload_bytes=int(args.max_upload_mb * 1e6))
     return 0

@@ -14,3 +14,12 @@ class ScanError(ValueError):
 
 class ConfigError(ValueError):
     """A parameter file or value is invalid; the message names the key and the problem."""
+
+
+class OutputError(ValueError):
+    """A file or folder treereg was asked to write cannot be written there; the message names it and says why."""
+
+    def __init__(self, path: str, problem: str) -> None:
+        self.path = path
+        self.problem = problem
+        super().__init__(f"{path}: {problem}")

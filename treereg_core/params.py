@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import types
 import typing
 from dataclasses import dataclass, field, fields, replace
@@ -17,7 +18,12 @@ from pathlib import Path
 from typing import Any
 
 from .io.atomic import write_text_atomic
+from .io.json_input import load_json
 from .errors import ConfigError
+
+#: Instrument angular steps treereg works with, degrees: finer than any TLS (0.001 deg is 1.7 mm at
+#: 100 m) to coarser than any tree scan worth registering. Scans, estimates and simulations obey it too.
+ANGULAR_STEP_RANGE_DEG: tuple[float, float] = (0.001, 1.0)
 
 
 def _f(default: Any, unit: str, doc: str, choices: tuple[Any, ...] | None = None,
@@ -42,7 +48,8 @@ class PrepareParams:
     """per-scan preparation before anything is matched."""
 
     angular_step_deg: tuple[float, float] | None = _f(
-        None, "deg", "instrument angular steps (horizontal phi, vertical varphi); None = estimate from the data")
+        None, "deg", "instrument angular steps (horizontal phi, vertical varphi); None = estimate from the data",
+        lo=ANGULAR_STEP_RANGE_DEG[0], hi=ANGULAR_STEP_RANGE_DEG[1])
     remove_ground: bool = _f(True, "", "remove the ground before projection (robust plane through the lowest point of each cell)")
     ground_cell_m: float = _f(1.0, "m", "cell size of the lowest-point grid used to find the ground", lo=0.1, hi=10.0)
     ground_band_m: float = _f(0.3, "m", "points within this height above the ground plane are removed", lo=0.0, hi=5.0)
@@ -398,14 +405,7 @@ def from_dict(data: dict[str, Any], base: Params | None = None, source: str = "p
 
 def load(path: str | Path, base: Params | None = None) -> Params:
     """Read a parameter JSON file (as written by `save`, or any subset of it) over `base`."""
-    path = Path(path)
-    try:
-        data = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: no such parameter file") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise ConfigError(f"{path}: not valid JSON ({e})") from None
-    return from_dict(data, base=base, source=str(path))
+    return from_dict(load_json(path, "parameter file"), base=base, source=str(path))
 
 
 def save(params: Params, path: str | Path) -> None:
@@ -439,6 +439,8 @@ def _coerce(key: str, fld: dataclasses.Field, value: Any) -> Any:
             if isinstance(value, bool):
                 raise ValueError(value)
             f = float(value)
+            if not math.isfinite(f):
+                raise ConfigError(f"{key}: {_shown(value)} is not a finite number")
             if hint is int:
                 if f != int(f):
                     raise ValueError(value)
@@ -453,25 +455,30 @@ def _coerce(key: str, fld: dataclasses.Field, value: Any) -> Any:
         elif typing.get_origin(hint) is tuple:
             if isinstance(value, str):
                 value = [v for v in value.replace(",", " ").split() if v]
+            elif isinstance(value, (int, float)) and not isinstance(value, bool):
+                value = [value]
             elem = typing.get_args(hint)
             seq = list(value)
             if len(elem) == 2 and elem[1] is Ellipsis:
-                out = tuple(elem[0](v) for v in seq)
+                out = tuple(_element(elem[0], v) for v in seq)
                 if not out:
                     raise ConfigError(f"{key}: needs at least one value")
             else:
+                if len(seq) == 1 and len(set(elem)) == 1:
+                    seq = seq * len(elem)  # one value for all, as `--angular-step 0.05` means 0.05 x 0.05
                 if len(seq) != len(elem):
                     raise ConfigError(f"{key}: needs {len(elem)} values, got {len(seq)}")
-                out = tuple(t(v) for t, v in zip(elem, seq))
-            if any(v != v for v in out):  # NaN
-                raise ValueError(value)
+                out = tuple(_element(t, v) for t, v in zip(elem, seq))
+            bad = [v for v in out if isinstance(v, float) and not math.isfinite(v)]
+            if bad:
+                raise ConfigError(f"{key}: {format_value(bad[0])} is not a finite number")
             _check_range(key, out, meta)
         else:
             out = value
     except ConfigError:  # a ValueError too: keep its precise message (range, length)
         raise
-    except (TypeError, ValueError):
-        raise ConfigError(f"{key}: {value!r} is not a valid {getattr(hint, '__name__', hint)}") from None
+    except (TypeError, ValueError, OverflowError):
+        raise ConfigError(f"{key}: {_shown(value)} is not a valid {_type_name(hint)}") from None
     choices = meta.get("choices")
     if choices is not None and out not in choices:
         raise ConfigError(f"{key}: {out!r} is not one of {list(choices)}")
@@ -481,9 +488,56 @@ def _coerce(key: str, fld: dataclasses.Field, value: Any) -> Any:
 def _check_range(key: str, values: tuple[Any, ...], meta: Any) -> None:
     """Every number of a value (a scalar, or each element of a tuple) within the field's [min, max]."""
     lo, hi = meta.get("min"), meta.get("max")
+    unit = f" {meta['unit']}" if meta.get("unit") and meta["unit"] not in ("steps",) else ""
     for v in values:
         if (lo is not None and v < lo) or (hi is not None and v > hi):
-            raise ConfigError(f"{key}: {v} is outside [{lo}, {hi}]")
+            allowed = f"{lo:g} to {hi:g}{unit}" if lo is not None and hi is not None else \
+                f"at least {lo:g}{unit}" if lo is not None else f"at most {hi:g}{unit}"
+            raise ConfigError(f"{key}: {v:g}{unit} is outside the allowed range ({allowed})")
+
+
+def format_value(value: Any) -> str:
+    """A parameter value as a person writes it: 0.001, 1e-09, (0.1, 0.1) -> '0.1, 0.1', None -> 'none'."""
+    if value is None:
+        return "none"
+    if isinstance(value, tuple):
+        return ", ".join(format_value(v) for v in value)
+    if isinstance(value, float):
+        return f"{value:g}"
+    return str(value)
+
+
+def _element(typ: type, v: Any) -> Any:
+    """One number of a list parameter: no booleans, no fractions where a whole number is meant."""
+    if isinstance(v, bool):
+        raise ValueError(v)
+    f = float(v)
+    if typ is int:
+        if f != int(f):
+            raise ValueError(v)
+        return int(f)
+    return typ(f) if typ is float else typ(v)
+
+
+def _shown(value: Any) -> str:
+    """A rejected value as a message quotes it (cut short: a config file may hold anything)."""
+    text = repr(value)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def _type_name(hint: Any) -> str:
+    """How a message names a field's type: 'number', 'whole number', 'list of 2 numbers'."""
+    if hint is float:
+        return "number"
+    if hint is int:
+        return "whole number"
+    if hint is bool:
+        return "true/false value"
+    if typing.get_origin(hint) is tuple:
+        elem = typing.get_args(hint)
+        n = "numbers" if len(elem) == 2 and elem[1] is Ellipsis else f"{len(elem)} numbers"
+        return f"list of {n}"
+    return getattr(hint, "__name__", str(hint))
 
 
 def _owner_of(fld: dataclasses.Field) -> type:

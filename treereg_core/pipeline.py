@@ -266,11 +266,14 @@ class Registration:
 def register(
     scans: Sequence[Scan],
     params: Params | None = None,
-    until: str = "fine",
+    until: str = "graph",
     truth: dict[str, np.ndarray] | None = None,
     progress: Progress | None = None,
 ) -> Registration:
-    """One call: register every scan onto the first; `until` is a stage name ('coarse', 'fine', 'evaluation')."""
+    """One call: register every scan onto the first; `until` is a stage name (default "graph": fine
+    registration, verification and the joint placement, so `pipeline.verdicts()` says which scans
+    are verified; "coarse" or "fine" stop earlier, every scan then unverified; "evaluation" adds the
+    paper's evaluation and ICP)."""
     pipe = Pipeline(list(scans), params or Params(), truth)
     last = pipe.run(until, progress)
     ok = last is not None and last.ok and last.stage == until

@@ -21,6 +21,7 @@ import numpy as np
 
 from .prepare.angular_step import StepEstimate, estimate_steps, grid_steps
 from .errors import ScanError
+from .params import ANGULAR_STEP_RANGE_DEG
 
 #: Fewer points than this cannot be registered meaningfully (and cannot estimate a grid).
 MIN_POINTS = 100
@@ -62,8 +63,10 @@ class Scan:
         pts.setflags(write=False)
         object.__setattr__(self, "points", pts)
         h, v = (float(s) for s in self.angular_step_deg)
-        if not (h > 0 and v > 0):
-            raise ScanError(self.label, f"angular steps must be positive, got {self.angular_step_deg}")
+        lo, hi = ANGULAR_STEP_RANGE_DEG
+        if not (lo <= h <= hi and lo <= v <= hi):
+            raise ScanError(self.label, f"angular steps {h:g} x {v:g} deg are outside the allowed range "
+                                        f"({lo:g} to {hi:g} deg)")
         object.__setattr__(self, "angular_step_deg", (h, v))
         pose = np.eye(4) if self.pose is None else np.array(self.pose, dtype=np.float64)
         if pose.shape != (4, 4) or not np.isfinite(pose).all():
@@ -137,8 +140,18 @@ class Scan:
             try:
                 step = step or estimate_steps(alpha, beta)
             except ValueError as e:
-                raise ScanError(label, f"cannot estimate the angular step: {e}; give it with --angular-step H V") from None
+                raise ScanError(label, f"cannot estimate the angular step: {e}; give it with --angular-step "
+                                       "(the instrument's steps in degrees)") from None
             angular_step_deg = step.steps
+            lo, hi = ANGULAR_STEP_RANGE_DEG
+            if not all(lo <= float(s) <= hi for s in angular_step_deg):
+                # Points not on a scanner's grid (a cloud merged from several stations, a resampled
+                # file) give absurd steps: say so rather than compute with them.
+                h, v = (float(s) for s in angular_step_deg)
+                raise ScanError(label, f"the angular step estimated from the points, {h:.2g} x {v:.2g} deg, is "
+                                       f"outside {lo:g} to {hi:g} deg, so the points do not look like one "
+                                       "station's scan in its own frame; give the instrument's steps with "
+                                       "--angular-step")
         scan = cls(
             points=pts,
             name=name,
@@ -154,6 +167,12 @@ class Scan:
             beta.setflags(write=False)
             scan.__dict__["_angles"] = (alpha, beta)
         return scan
+
+    def with_angular_step(self, angular_step_deg: tuple[float, float]) -> "Scan":
+        """The same station with the instrument's steps given (not estimated)."""
+        h, v = (float(s) for s in angular_step_deg)
+        return Scan(points=self.points, name=self.name, angular_step_deg=(h, v), source=self.source,
+                    step_estimated=False, pose=self.pose, step=StepEstimate(h, v, 1.0, "given"))
 
     def with_points(self, points: np.ndarray, name: str | None = None) -> "Scan":
         """The same station (steps, source) with other points, e.g. after cropping or ground removal."""

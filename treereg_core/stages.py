@@ -49,7 +49,14 @@ def _label(ctx: StageContext, k: int) -> str:
 def _run_prepare(ctx: StageContext) -> list[Any]:
     # First each station at the working resolution (prepare/resolution.py); then ground and crops,
     # across scans: the target tree of a plot is chosen from every station's stems at once.
-    work = ctx.each(lambda i: working_resolution(ctx.scans[i], resolution=ctx.params.resolution),
+    given = ctx.params.prepare.angular_step_deg
+
+    def station(i: int) -> Scan:
+        # The instrument's steps, when given (e.g. typed in the app after loading), over the estimate.
+        s = ctx.scans[i]
+        return s.with_angular_step(given) if given is not None and tuple(given) != s.angular_step_deg else s
+
+    work = ctx.each(lambda i: working_resolution(station(i), resolution=ctx.params.resolution),
                     lambda i: f"working resolution: {ctx.scans[i].name}")
     ctx.progress(0.9, "ground, stems and the target tree")
     preps = prepare_scans([w.scan for w in work], **ctx.params.pick("prepare", "target"))
@@ -258,6 +265,10 @@ STAGES: tuple[Stage, ...] = (
 
 #: Target surface points the verify stage uses (its residual is a trimmed mean: more change nothing).
 SURFACE_SAMPLE = 20_000
+
+#: Where a run stops when a user says "--until coarse|fine": fine includes verification and the
+#: placement of every scan (the graph stage), so every scan gets its verdict.
+UNTIL = {"coarse": "coarse", "fine": "graph"}
 
 #: Stage names in run order.
 STAGE_NAMES: tuple[str, ...] = tuple(s.name for s in STAGES)

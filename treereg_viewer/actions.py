@@ -12,6 +12,7 @@ from typing import Any, Protocol
 from treereg_core.params import Params
 
 from .controller import Controller
+from .uploads import UploadReceiver
 from .view_state import ViewState
 
 
@@ -20,6 +21,8 @@ class AppActions(Protocol):
 
     controller: Controller
     out_dir: Path | None
+    uploads: UploadReceiver
+    max_upload_bytes: int
 
     @property
     def view(self) -> ViewState: ...
@@ -40,6 +43,8 @@ class AppActions(Protocol):
 
     def focus_section(self, stage: str, row_label: str) -> None: ...
 
+    def flush_edits(self) -> None: ...
+
     def on_param_change(self, section: str, name: str, value: Any) -> str | None: ...
 
     def load_params(self, params: Params, source: str, note: str = "") -> None: ...
@@ -49,10 +54,12 @@ class AppActions(Protocol):
 
 class AppHost(Protocol):
     """The shared app as a viewer sees it (`app.TreeregApp` implements it): the computation and its
-    caches, the exports folder, who presents, and the downloads."""
+    caches, the exports folder, the upload receiver, who presents, and the downloads."""
 
     controller: Controller
     out_dir: Path | None
+    uploads: UploadReceiver
+    max_upload_bytes: int
     derived: Any
     server: Any
     presenter: Any

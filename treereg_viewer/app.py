@@ -20,7 +20,9 @@ passes its panels (`app.stages`, `app.panel`, ...) through.
 
 from __future__ import annotations
 
+import ipaddress
 import logging
+import sys
 import threading
 import time
 from pathlib import Path
@@ -28,14 +30,22 @@ from typing import Any, Literal
 
 import viser
 
+from treereg_core.errors import ConfigError
+from treereg_core.limits import format_bytes
+
 from . import camera
 from .controller import Controller, Snapshot
 from .derived import Derived
 from .stages import STAGE_NAMES
+from .uploads import UploadReceiver
 from .view_state import ViewState
 from .viewer import Viewer
 
 log = logging.getLogger(__name__)
+
+
+#: Largest scan file a browser may upload unless the app is told otherwise.
+MAX_UPLOAD_BYTES = 1024 * 1000 * 1000
 
 
 class TreeregApp:
@@ -54,10 +64,13 @@ class TreeregApp:
     tabs
         "each": every browser tab gets its own viewer (what `treereg view` serves); "shared": one
         viewer on the server's own GUI and scene, seen by every tab (scripts, tests without a browser).
+    max_upload_bytes
+        Largest scan file a browser may upload (uploads stream to a temporary file).
     """
 
     def __init__(self, server: viser.ViserServer, controller: Controller, out_dir: Path | None = None,
-                 autorun: bool = True, tabs: Literal["each", "shared"] = "shared") -> None:
+                 autorun: bool = True, tabs: Literal["each", "shared"] = "shared",
+                 max_upload_bytes: int = MAX_UPLOAD_BYTES) -> None:
         self.server = server
         self.controller = controller
         self.out_dir = Path(out_dir) if out_dir is not None else None
@@ -66,6 +79,10 @@ class TreeregApp:
         self._lock = threading.Lock()
         self._viewers: dict[int | None, Viewer] = {}
         self.presenter: Viewer | None = None
+        self.max_upload_bytes = int(max_upload_bytes)
+        # One receiver for every tab's upload buttons: each file streams to a temporary file.
+        self.uploads = UploadReceiver(server, on_message=lambda text, error: controller.note(text, error=error),
+                                      on_progress=self._show_receiving)
 
         server.gui.configure_theme(show_share_button=False, control_width="large", brand_color=(30, 140, 60),
                                    titlebar_content=None)
@@ -159,6 +176,7 @@ class TreeregApp:
         self.controller.close()
         for v in self.viewers:
             v.close()
+        self.uploads.close()
 
     def _on_snapshot(self, snap: Snapshot) -> None:
         for v in self.viewers:
@@ -166,6 +184,14 @@ class TreeregApp:
                 v.on_snapshot(snap)
             except Exception:  # one tab's GUI failing must not stop the others
                 log.exception("viewer update failed")
+
+    def _show_receiving(self, text: str) -> None:
+        """What is being uploaded, shown in every tab (an upload can take minutes)."""
+        for v in self.viewers:
+            try:
+                v.scans.show_receiving(text)
+            except Exception:
+                log.exception("could not show an upload's progress")
 
     def _on_progress(self, fraction: float, text: str) -> None:
         for v in self.viewers:
@@ -221,22 +247,61 @@ class TreeregApp:
     def step_stage(self, delta: int) -> None:
         self.viewer.step_stage(delta)
 
+    def run_current(self) -> None:
+        self.viewer.run_current()
+
+    def flush_edits(self) -> None:
+        self.viewer.flush_edits()
+
+    def on_param_change(self, section: str, name: str, value: Any) -> str | None:
+        return self.viewer.on_param_change(section, name, value)
+
+    def load_params(self, params: Any, source: str, note: str = "") -> None:
+        self.viewer.load_params(params, source, note)
+
     def frame_view(self) -> None:
         self.viewer.frame_view()
 
 
-def serve(controller: Controller, host: str = "127.0.0.1", port: int = 8080, out_dir: Path | None = None) -> None:
-    """Start the server and the app, print the URL (tests read it), block until Ctrl-C."""
+def exposure_warning(host: str, port: int, out_dir: Path | None, max_upload_bytes: int) -> str | None:
+    """What binding `host` exposes, when it is more than this machine (None for loopback addresses)."""
+    try:
+        loopback = host == "localhost" or ipaddress.ip_address(host).is_loopback
+    except ValueError:  # a host name
+        loopback = False
+    if loopback:
+        return None
+    writes = f", and write exports into {out_dir}" if out_dir is not None else ""
+    return (f"treereg view: warning: --host {host} lets anyone who can reach this machine on port {port} use the "
+            f"app: see the scans, upload files of up to {format_bytes(max_upload_bytes)} to it, run "
+            f"registrations{writes}. There is no login; use --host 127.0.0.1 unless this network is trusted.")
+
+
+def serve(controller: Controller, host: str = "127.0.0.1", port: int = 8080, out_dir: Path | None = None,
+          max_upload_bytes: int = MAX_UPLOAD_BYTES) -> None:
+    """Start the server and the app, print the URL (tests read it), block until Ctrl-C.
+
+    A port in use is an error (`ConfigError`): viser would silently take the next one. `port=0`
+    asks for any free port.
+    """
     t0 = time.perf_counter()
     server = viser.ViserServer(host=host, port=port, verbose=False)
-    app = TreeregApp(server, controller, out_dir=out_dir, tabs="each")
+    if port and server.get_port() != port:
+        server.stop()
+        controller.close()
+        raise ConfigError(f"--port {port}: the port is in use (another treereg view?); choose another port, "
+                          "or --port 0 for any free one")
+    app = TreeregApp(server, controller, out_dir=out_dir, tabs="each", max_upload_bytes=max_upload_bytes)
+    warning = exposure_warning(host, server.get_port(), out_dir, max_upload_bytes)
+    if warning:
+        print(warning, file=sys.stderr, flush=True)
     url = f"http://{host}:{server.get_port()}/"
     print(f"treereg view: {url}  (app ready in {time.perf_counter() - t0:.1f} s; Ctrl-C to stop)", flush=True)
     try:
         while True:
             time.sleep(1.0)
     except KeyboardInterrupt:
-        pass
+        print("treereg view: stopped (Ctrl-C)", flush=True)
     finally:
         app.close()
         server.stop()

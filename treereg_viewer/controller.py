@@ -29,6 +29,7 @@ from treereg_core.stage import Pair, StageOutput
 from treereg_core.stages import STAGE_NAMES as STAGES
 
 from .stages import label
+from .uploads import discard
 
 log = logging.getLogger(__name__)
 
@@ -73,9 +74,9 @@ class Snapshot:
 
 Listener = Callable[[Snapshot], None]
 ProgressListener = Callable[[float, str], None]
-#: Turns an uploaded file (its name and bytes) into a Scan and the notes a user should read (rows
-#: repaired, ...), raising ScanError when it cannot.
-ScanParser = Callable[[str, bytes], "tuple[Scan, list[str]]"]
+#: Turns an uploaded file (the name the user picked, the path it was received at) into a Scan and the
+#: notes a user should read (rows repaired, ...), raising ScanError when it cannot.
+ScanParser = Callable[[str, Path], "tuple[Scan, list[str]]"]
 
 
 @dataclass
@@ -85,7 +86,7 @@ class _Requests:
     params_changed: bool = False
     run_until: str | None = None
     rerun_from: str | None = None
-    uploads: list[tuple[str, bytes]] = field(default_factory=list)
+    uploads: list[tuple[str, Path]] = field(default_factory=list)  # received files; the worker deletes them
     removals: list[str] = field(default_factory=list)
     scans: list[Scan] | None = None
     truth: dict[str, np.ndarray] | None = None
@@ -97,27 +98,22 @@ class _Requests:
                     or self.notes or self.choices)
 
 
-def parse_scan_upload(filename: str, data: bytes) -> tuple[Scan, list[str]]:
-    """Read an uploaded scan file with treereg_core.io (via a temporary file of the same suffix).
+def parse_scan_upload(filename: str, path: Path) -> tuple[Scan, list[str]]:
+    """Read an uploaded scan file (received at `path`, under the name the user picked) with treereg_core.io.
 
     Returns the scan and what the reader repaired (its warnings, e.g. rows with NaN dropped). Errors
     and notes name the uploaded file, never the temporary path the user has not seen.
     """
     name = Path(filename).name or "upload"
-    if not data:
-        raise ScanError(name, "the file is empty")
-    with tempfile.TemporaryDirectory(prefix="treereg-upload-") as tmp:
-        path = Path(tmp) / name
-        path.write_bytes(data)
-        try:
-            # Only the worker thread reads uploads, so recording warnings here catches its own.
-            with warnings.catch_warnings(record=True) as caught:
-                warnings.simplefilter("always")
-                scan = read_scan(path)
-        except ScanError as e:
-            raise ScanError(name, e.problem.replace(str(path), name)) from None
+    try:
+        # Only the worker thread reads uploads, so recording warnings here catches its own.
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            scan = read_scan(path)
+    except ScanError as e:
+        raise ScanError(name, e.problem.replace(str(path), name)) from None
     notes = [str(w.message).replace(str(path), name) for w in caught if issubclass(w.category, UserWarning)]
-    # The temporary directory is gone: name the scan after the uploaded file, not the temp path.
+    # The temporary file goes away: name the scan after the uploaded file, not the temp path.
     return Scan(scan.points, scan.name, scan.angular_step_deg, Path(name), scan.step_estimated), notes
 
 
@@ -214,11 +210,19 @@ class Controller:
                 r.rerun_from = rerun_from
             self._notify()
 
-    def add_scan_bytes(self, filename: str, data: bytes) -> None:
-        """Queue an uploaded file; the worker parses it (a bad file only produces a message)."""
+    def add_scan_file(self, filename: str, path: Path) -> None:
+        """Queue an uploaded file (received at `path`, which the worker deletes once read); the worker
+        parses it, and a bad file only produces a message."""
         with self._wake:
-            self._req.uploads.append((filename, bytes(data)))
+            self._req.uploads.append((filename, Path(path)))
             self._notify()
+
+    def add_scan_bytes(self, filename: str, data: bytes) -> None:
+        """Queue a file given as bytes (scripts): stored in a private temporary folder, then as `add_scan_file`."""
+        folder = Path(tempfile.mkdtemp(prefix="treereg-upload-"))
+        path = folder / (Path(filename).name or "upload")
+        path.write_bytes(data)
+        self.add_scan_file(filename, path)
 
     def remove_scan(self, name: str) -> None:
         """Queue the removal of a target scan (the reference stays: every transform is onto it)."""
@@ -304,16 +308,18 @@ class Controller:
                 truth = {k: v for k, v in pipe.truth.items() if k != name} if pipe.truth else None
                 pipe.set_scans([s for s in pipe.scans if s.name != name], truth)
                 message, error = f"Removed {name}; {len(pipe.scans)} scans remain: press Run to register them.", False
-        for filename, data in req.uploads:
+        for filename, path in req.uploads:
             try:
-                scan, notes = self._parse_upload(filename, data)
+                scan, notes = self._parse_upload(filename, path)
             except (ScanError, ConfigError) as e:
-                message, error = f"Upload rejected — {e}", True
+                message, error = f"Upload rejected — {e}; nothing was added.", True
                 continue
             except Exception as e:  # a reader bug must not take the app down either
                 log.exception("reading upload %s failed", filename)
                 message, error = f"Upload rejected — {filename}: could not be read ({type(e).__name__}: {e})", True
                 continue
+            finally:
+                discard(path)  # read (or refused): the received copy is not needed any more
             scan = _unique_name(scan, {s.name for s in pipe.scans})
             pipe.set_scans([*pipe.scans, scan], pipe.truth)
             message, error = (f"Added {scan.name} ({scan.n_points:,} points) as scan {len(pipe.scans)}; "
@@ -377,10 +383,14 @@ class Controller:
         except Exception as e:
             # The stage that raised is the first one still without an output.
             stage = next((s for s in todo if pipe.output(s) is None), running["stage"] or until)
-            log.exception("pipeline stage %s failed", stage)
+            if isinstance(e, (ConfigError, ScanError)):  # the input asks for the impossible: the message says what to change
+                why = str(e)
+            else:
+                log.exception("pipeline stage %s failed", stage)
+                why = f"{type(e).__name__}: {e}"
             pipe.invalidate(stage)  # the stage has no valid output: it and all later ones are stale
-            self._crashed[stage] = f"{type(e).__name__}: {e}"
-            self._publish(message=f"{label(stage)} failed: {type(e).__name__}: {e}", error=True)
+            self._crashed[stage] = why
+            self._publish(message=f"{label(stage)} failed: {why}", error=True)
             return
         seconds = time.perf_counter() - t0
         # Report the first stage that failed (the cause); pairs that did not fail went on past it.

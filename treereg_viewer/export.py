@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from treereg_core import params as P
+from treereg_core.io import atomic
 from treereg_core.io.atomic import write_bytes_atomic
 from treereg_core.io.merged import write_merged
 from treereg_core.io.transforms import TransformFile, registration_file, write_exports
@@ -75,8 +76,10 @@ def export_bundle(snap: Snapshot, cloud_format: str = "ply", keep_unverified: bo
 
 
 def write_bundle(bundle: ExportBundle, out_dir: Path) -> list[Path]:
-    """Write every file of `bundle` into `out_dir` (atomically each)."""
-    return [write_bytes_atomic(Path(out_dir) / name, data) for name, data in bundle.files.items()]
+    """Write every file of `bundle` into `out_dir`, as one batch: all of them, or (on an error) none
+    replace what was there."""
+    with atomic.batch():
+        return [write_bytes_atomic(Path(out_dir) / name, data) for name, data in bundle.files.items()]
 
 
 def zip_bundle(bundle: ExportBundle) -> bytes:

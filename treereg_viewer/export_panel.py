@@ -4,17 +4,23 @@ from __future__ import annotations
 
 import json
 import logging
+from pathlib import Path
 from typing import Any
 
 import viser
 
 from treereg_core import params as P
-from treereg_core.errors import ConfigError, ScanError
+from treereg_core.errors import ConfigError, OutputError, ScanError
+from treereg_core.io.json_input import parse_json
 
 from . import export
 from .actions import AppActions
 from .checks import stage_warnings
 from .presets import ABOUT_SHORT, preset_note
+from .uploads import discard
+
+#: A parameter file is a few kB.
+PARAMS_MAX_BYTES = 1000 * 1000
 
 log = logging.getLogger(__name__)
 
@@ -56,14 +62,13 @@ class ExportPanel:
         self.preset.on_update(lambda _: setattr(self.preset_md, "content", preset_note(self.preset.value)))
         self.apply_preset.on_click(lambda _: app.load_params(P.PRESETS[self.preset.value], f"preset {self.preset.value}",
                                                              ABOUT_SHORT.get(self.preset.value, "")))
-        self.download_params.on_click(
-            lambda e: app.send_file(e.client, "params.json", (json.dumps(P.to_dict(app.controller.params), indent=2) + "\n").encode())
-        )
-        self.load_params.on_upload(lambda _: self._load_params(self.load_params.value))
+        self.download_params.on_click(lambda e: self._download_params(e.client))
+        app.uploads.add(self.load_params, self._load_params, PARAMS_MAX_BYTES, what="parameter file")
         if current in ABOUT_SHORT and app.controller.params == P.PRESETS[current]:
             app.controller.note(ABOUT_SHORT[current])  # e.g. why the paper preset may fail
 
     def _download(self, client: Any, only: str | None) -> None:
+        self.app.flush_edits()
         snap = self.app.controller.snapshot
         try:
             bundle = export.export_bundle(snap, cloud_format=self.cloud_format.value,
@@ -72,12 +77,12 @@ class ExportPanel:
             if self.app.out_dir is not None:
                 paths = export.write_bundle(bundle, self.app.out_dir)
                 written = f" Written to `{self.app.out_dir}` ({len(paths)} files)."
-        except (export.ExportError, ConfigError, ScanError, OSError) as e:
-            self.app.controller.note(f"Export failed: {e}", error=True)
+        except (export.ExportError, ConfigError, ScanError, OutputError, OSError) as e:
+            self._failed(str(e))
             return
         except Exception as e:  # a writer bug: one line for the user, the traceback in the log
             log.exception("export failed")
-            self.app.controller.note(f"Export failed: {type(e).__name__}: {e}", error=True)
+            self._failed(f"{type(e).__name__}: {e}")
             return
         if only is not None:
             self.app.send_file(client, only, bundle.files[only])
@@ -95,15 +100,27 @@ class ExportPanel:
             what += (f" **Not exported: {', '.join(left_out)}** (not verified; see the Placement stage) — tick "
                      "\"Include unverified best guesses\" to export them anyway.")
         self.export_md.content = f"{what}{written}{caution}"
+        # The message at the top says so too: it replaces an "Export failed" from before.
+        self.app.controller.note(f"{what}{written}", error=False)
 
-    def _load_params(self, uploaded: Any) -> None:
+    def _failed(self, why: str) -> None:
+        self.export_md.content = f"**⚠ Export failed:** {why}"
+        self.app.controller.note(f"Export failed: {why}", error=True)
+
+    def _download_params(self, client: Any) -> None:
+        self.app.flush_edits()  # a value just typed belongs in the file
+        data = (json.dumps(P.to_dict(self.app.controller.params), indent=2) + "\n").encode()
+        self.app.send_file(client, "params.json", data)
+
+    def _load_params(self, filename: str, path: Path) -> None:
+        """A parameter file received from the browser: applied when valid, else one message."""
         try:
-            data = json.loads(uploaded.content.decode("utf-8"))
-            params = P.from_dict(data, source=uploaded.name or "parameters")
-        except (UnicodeDecodeError, json.JSONDecodeError) as e:
-            self.app.controller.note(f"{uploaded.name}: not valid JSON ({e})", error=True)
-            return
+            data = path.read_bytes()
+        finally:
+            discard(path)
+        try:
+            params = P.from_dict(parse_json(data, filename), source=filename)
         except ConfigError as e:
-            self.app.controller.note(str(e), error=True)
+            self.app.controller.note(f"{e}; the parameters in force did not change.", error=True)
             return
-        self.app.load_params(params, uploaded.name)
+        self.app.load_params(params, filename)

@@ -1,9 +1,15 @@
 """GUI inputs for one parameter section, built from the field metadata in treereg_core.params.
 
-Each field's type picks the input (checkbox, dropdown for `choices`, number with its min/max,
-text for optional values and lists); its label carries the unit and its hint the one-line doc.
+Each field's type picks the input (checkbox, dropdown for `choices`, text for numbers, optional
+values and lists); its label carries the unit and its hint the one-line doc and range.
 A change is handed to `on_change(section, name, value)`, which returns None when accepted or a
 message when rejected; a rejected value is put back so the input always shows what is in force.
+
+Numbers are typed into text inputs, not viser's number inputs: those drop every character that is
+not a digit, so "1e12" arrives as 112 and "1e-3" as 13. The text is checked by the parameter tree
+(`Params.with_value`), the one place that checks a value (range, type, finiteness), as for the
+command line and config files. A text input reports every keystroke, so a typed value is applied
+once the input has been still for `SETTLE_S` (or at once when Run is pressed: `flush`).
 """
 
 from __future__ import annotations
@@ -20,6 +26,9 @@ from treereg_core import params as P
 
 #: on_change(section, field name, raw value) -> None if accepted, else the reason it was rejected.
 OnChange = Callable[[str, str, Any], "str | None"]
+
+#: A typed value is applied when its input has been still this long (seconds).
+SETTLE_S = 0.8
 
 _SUFFIXES = ("_deg", "_m", "_px")
 
@@ -57,25 +66,15 @@ def _hint_type(section: str, fld: dataclasses.Field) -> tuple[Any, bool]:
 
 
 def format_text(value: Any) -> str:
-    """How a text input shows a value: None -> '', tuples -> '0.25, 0.5, 0.75'."""
+    """How a text input shows a value: None -> '', 0.001 -> '0.001', tuples -> '0.25, 0.5, 0.75'."""
     if value is None:
         return ""
     if isinstance(value, tuple):
-        return ", ".join(f"{v:g}" if isinstance(v, float) else str(v) for v in value)
+        return ", ".join(format_text(v) for v in value)
+    if isinstance(value, float):
+        short = f"{value:g}"
+        return short if float(short) == value else repr(value)
     return str(value)
-
-
-def _float_step(value: float, lo: float | None) -> float:
-    # Enough decimals for the default and the minimum, at least three (e.g. 0.001 m).
-    digits = 3
-    for x in (value, lo):
-        if x is None:
-            continue
-        d = 0
-        while d < 6 and abs(x - round(x, d)) > 1e-12:
-            d += 1
-        digits = max(digits, d)
-    return 10.0 ** -digits
 
 
 class SectionWidgets:
@@ -85,6 +84,8 @@ class SectionWidgets:
         self.section = section
         self._on_change = on_change
         self._syncing = threading.local()
+        self._timers: dict[str, threading.Timer] = {}
+        self._timers_lock = threading.Lock()
         self.handles: dict[str, Any] = {}
         self._kinds: dict[str, str] = {}
         self._choices: dict[str, tuple[Any, ...]] = {}
@@ -104,24 +105,51 @@ class SectionWidgets:
             self._choices[fld.name] = tuple(choices)
             h = gui.add_dropdown(label, [str(c) for c in choices], initial_value=str(value), hint=hint)
             kind = "choice"
-        elif typ in (int, float) and not optional:
-            lo, hi = meta.get("min"), meta.get("max")
-            step = 1 if typ is int else _float_step(float(value), lo)
-            h = gui.add_number(label, value, min=lo, max=hi, step=step, hint=hint)
-            kind = "number"
         else:
             extra = " Leave empty for none." if optional else ""
             if typing.get_origin(typ) is tuple:
-                extra += " Values separated by commas."
+                extra += " Values separated by commas." + (" One value means the same for both." if
+                                                           len(set(typing.get_args(typ))) == 1 and len(typing.get_args(typ)) == 2 else "")
             h = gui.add_text(label, format_text(value), hint=hint + "." + extra if hint else extra.strip())
             kind = "text"
         self.handles[fld.name] = h
         self._kinds[fld.name] = kind
-        h.on_update(lambda event, name=fld.name: self._changed(name))
+        # Keystrokes come from a browser (a client); a value set in Python is complete at once.
+        h.on_update(lambda event, name=fld.name: self._changed(name, typed=event.client is not None))
 
-    def _changed(self, name: str) -> None:
+    def _changed(self, name: str, typed: bool = False) -> None:
         if getattr(self._syncing, "on", False):
             return
+        if self._kinds[name] != "text" or not typed:
+            self._apply(name)
+            return
+        with self._timers_lock:  # typing: apply once the input is still
+            old = self._timers.pop(name, None)
+            if old is not None:
+                old.cancel()
+            timer = threading.Timer(SETTLE_S, self._settled, args=(name,))
+            timer.daemon = True
+            self._timers[name] = timer
+        timer.start()
+
+    def _settled(self, name: str) -> None:
+        with self._timers_lock:
+            if self._timers.get(name) is not threading.current_thread():
+                return  # a newer keystroke, or a flush, took over
+            del self._timers[name]
+        self._apply(name)
+
+    def flush(self) -> None:
+        """Apply typed values still waiting to settle (Run was pressed right after typing)."""
+        with self._timers_lock:
+            waiting = list(self._timers)
+            for timer in self._timers.values():
+                timer.cancel()
+            self._timers.clear()
+        for name in waiting:
+            self._apply(name)
+
+    def _apply(self, name: str) -> None:
         h = self.handles[name]
         kind = self._kinds[name]
         value: Any = h.value
@@ -134,9 +162,13 @@ class SectionWidgets:
     def sync(self, params: P.Params) -> None:
         """Show `params` in the inputs without reporting them as changes (a load, a preset, a revert)."""
         sec = getattr(params, self.section)
+        with self._timers_lock:
+            typing = set(self._timers)  # a value still being typed is not overwritten
         self._syncing.on = True
         try:
             for name, h in self.handles.items():
+                if name in typing:
+                    continue
                 v = getattr(sec, name)
                 kind = self._kinds[name]
                 shown = str(v) if kind == "choice" else format_text(v) if kind == "text" else v

@@ -6,6 +6,8 @@ from typing import Any
 
 import viser
 
+from treereg_core.limits import format_bytes
+
 from .actions import AppActions
 from .controller import Snapshot
 from .palette import scan_color
@@ -28,17 +30,25 @@ class ScanPanel:
         self.max_points.on_update(lambda _: app.set_view(max_points=int(self.max_points.value)))
         self.stations.on_update(lambda _: app.set_view(show_stations=bool(self.stations.value)))
         self.visibility_folder = gui.add_folder("Show / hide")
-        self._checkboxes: list[Any] = []
+        self._pool: list[Any] = []  # one checkbox per scan index ever shown
+        self._checkboxes: list[Any] = []  # those of the current scans
         self._names: tuple[str, ...] = ()
         self.upload = gui.add_upload_button("Add a scan file", icon=viser.Icon.UPLOAD, mime_type="*/*",
-                                            hint=f"Appends a scan ({SCAN_SUFFIXES}); the first scan stays the reference.")
-        self.upload.on_upload(lambda _: app.controller.add_scan_bytes(self.upload.value.name, self.upload.value.content))
+                                            hint=f"Appends a scan ({SCAN_SUFFIXES}, up to "
+                                                 f"{format_bytes(app.max_upload_bytes)}); the first scan stays the reference.")
+        # Streamed to a temporary file on the server (see uploads.py), then read by the worker.
+        app.uploads.add(self.upload, app.controller.add_scan_file, app.max_upload_bytes, what="scan file")
+        self.receiving = gui.add_markdown("")
         gui.add_markdown("Uploaded scans are registered onto scan 1. A file that cannot be read is "
                          "reported above and changes nothing.")
         # A wrong upload must be undoable without restarting the app.
         self.remove_choice = gui.add_dropdown("Scan to remove", ("(none)",), hint="A target scan (scan 1 is the reference and stays).")
         self.remove_button = gui.add_button("Remove scan", icon=viser.Icon.TRASH, color="gray", disabled=True)
         self.remove_button.on_click(lambda _: self._remove())
+
+    def show_receiving(self, text: str) -> None:
+        """What is being uploaded, and how far (every tab sees it); "" when nothing is."""
+        self.receiving.content = f"*{text}*" if text else ""
 
     def _remove(self) -> None:
         name = self.remove_choice.value
@@ -54,13 +64,22 @@ class ScanPanel:
         targets = names[1:]
         self.remove_choice.options = targets or ("(none)",)
         self.remove_button.disabled = not targets
-        for cb in self._checkboxes:
-            cb.remove()
-        self._checkboxes = []
+        # Checkboxes are reused, never removed: viser keeps every removal message for the tabs that
+        # open later, so removing and re-adding them on each upload would grow without end.
         with self.visibility_folder:
-            for i, name in enumerate(names):
+            while len(self._pool) < len(names):
+                i = len(self._pool)
                 r, g, b = scan_color(i)
-                cb = self.gui.add_checkbox(f"{i + 1}: {name}", name not in self.app.view.hidden_scans,
-                                           hint=f"scan colour rgb({r}, {g}, {b})")
-                cb.on_update(lambda _, name=name, cb=cb: self.app.set_scan_visible(name, bool(cb.value)))
-                self._checkboxes.append(cb)
+                cb = self.gui.add_checkbox(f"{i + 1}", True, hint=f"scan colour rgb({r}, {g}, {b})")
+                cb.on_update(lambda _, i=i: self._toggled(i))
+                self._pool.append(cb)
+        for i, cb in enumerate(self._pool):
+            if i < len(names):
+                cb.label = f"{i + 1}: {names[i]}"
+                cb.value = names[i] not in self.app.view.hidden_scans
+            cb.visible = i < len(names)
+        self._checkboxes = self._pool[: len(names)]
+
+    def _toggled(self, i: int) -> None:
+        if i < len(self._names):
+            self.app.set_scan_visible(self._names[i], bool(self._pool[i].value))

@@ -300,6 +300,11 @@ class StagePanel:
         self.progress.value = float(min(max(fraction, 0.0), 1.0) * 100.0)
         self.progress_text.content = f"*{text}*" if text else ""
 
+    def flush_edits(self) -> None:
+        """Apply parameter values still being typed (Run, an export: they must see what the user typed)."""
+        for w in self.sections.values():
+            w.flush()
+
     def sync_params(self, params: Any) -> None:
         for w in self.sections.values():
             w.sync(params)

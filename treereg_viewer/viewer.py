@@ -131,6 +131,14 @@ class Viewer:
     def out_dir(self) -> Path | None:
         return self.host.out_dir
 
+    @property
+    def uploads(self) -> Any:
+        return self.host.uploads
+
+    @property
+    def max_upload_bytes(self) -> int:
+        return self.host.max_upload_bytes
+
     def set_view(self, **changes: Any) -> None:
         """Record display choices and ask for a redraw (callbacks call this; it returns at once)."""
         if "stage" in changes and changes["stage"] != self._view.stage and "focus_section" not in changes:
@@ -198,11 +206,16 @@ class Viewer:
         Stale stages run; when nothing from here on is stale, this stage is re-run (and so are the
         later ones, which depend on it).
         """
+        self.flush_edits()
         snap = self.controller.snapshot
         stage = self.view.stage
         later = STAGE_NAMES[STAGE_NAMES.index(stage):]
         anything_stale = any(snap.status(s) != "done" for s in later) or self.controller.params != snap.params
         self.controller.request_run(STAGE_NAMES[-1], rerun_from=None if anything_stale else stage)
+
+    def flush_edits(self) -> None:
+        """Apply parameter values still being typed (see param_widgets.SETTLE_S)."""
+        self.stages.flush_edits()
 
     def on_param_change(self, section: str, name: str, value: Any) -> str | None:
         try:
@@ -424,3 +437,5 @@ class Viewer:
     def close(self) -> None:
         self._closed = True
         self.drawer.close()
+        for button in (self.scans.upload, self.files.load_params):
+            self.host.uploads.remove(button)

@@ -13,9 +13,13 @@ from pathlib import Path
 from ..io.atomic import write_text_atomic
 from .tree import TreeOutcome
 
-TREE_COLUMNS = ("tree", "status", "exit_code", "scans", "registered", "failed", "points", "read_s", "register_s",
+TREE_COLUMNS = ("tree", "status", "exit_code", "scans", "verified", "unverified", "failed", "points", "read_s", "register_s",
                 "total_s", "max_rot_err_deg", "max_disp_err_m", "message")
 SCAN_COLUMNS = ("tree", "scan", "verdict", "points", "rot_err_deg", "disp_err_m", "message")
+
+
+#: Colour class of a scan's verdict in the report.
+VERDICT_CLASS = {"failed": "failed", "unverified": "partial"}
 
 
 def _num(v: float | None, digits: int) -> str:
@@ -27,7 +31,8 @@ def tree_row(o: TreeOutcome) -> dict[str, str]:
     disp = [s.disp_err_m for s in o.scans if s.disp_err_m is not None]
     return {
         "tree": o.tree, "status": o.status, "exit_code": str(o.exit_code), "scans": str(len(o.scans)),
-        "registered": str(sum(s.verdict != "failed" for s in o.scans)),
+        "verified": str(sum(s.verdict in ("reference", "verified") for s in o.scans)),  # the reference counts
+        "unverified": str(sum(s.verdict == "unverified" for s in o.scans)),
         "failed": str(sum(s.verdict == "failed" for s in o.scans)),
         "points": str(sum(s.points for s in o.scans)),
         "read_s": _num(o.seconds.get("read"), 2), "register_s": _num(o.seconds.get("register"), 2),
@@ -62,14 +67,14 @@ def write_summary(outcomes: list[TreeOutcome], out_dir: Path, pictures: dict[str
 _STYLE = """
 body{font-family:system-ui,sans-serif;margin:24px;color:#222}
 table{border-collapse:collapse}td,th{border-bottom:1px solid #ddd;padding:6px 10px;text-align:left;vertical-align:top}
-th{background:#f4f4f4}.ok{color:#1a7f37}.partial{color:#b35900}.failed,.error{color:#c62828}
+th{background:#f4f4f4}.ok{color:#1a7f37}.partial,.unverified{color:#b35900}.failed,.error{color:#c62828}
 .scan{white-space:nowrap}.msg{max-width:420px;font-size:90%;color:#555}
 """
 
 
 def report_html(outcomes: list[TreeOutcome], pictures: dict[str, bytes | None], title: str) -> str:
     """The HTML report: one row per tree."""
-    counts = {s: sum(o.status == s for o in outcomes) for s in ("ok", "partial", "failed", "error")}
+    counts = {s: sum(o.status == s for o in outcomes) for s in ("ok", "partial", "unverified", "failed", "error")}
     e = html.escape
     head = (f"<h1>{e(title)}</h1><p>{len(outcomes)} trees: " +
             ", ".join(f'<span class="{k}">{v} {k}</span>' for k, v in counts.items() if v) + "</p>")
@@ -79,13 +84,13 @@ def report_html(outcomes: list[TreeOutcome], pictures: dict[str, bytes | None], 
         img = (f'<img alt="top and side view of {e(o.tree)}" src="data:image/png;base64,'
                f'{base64.b64encode(png).decode()}">' if png else "")
         scans = "<br>".join(
-            f'<span class="scan">{e(s.name)}: <b class="{"failed" if s.verdict == "failed" else "ok"}">{e(s.verdict)}</b>'
+            f'<span class="scan">{e(s.name)}: <b class="{VERDICT_CLASS.get(s.verdict, "ok")}">{e(s.verdict)}</b>'
             + (f", {s.rot_err_deg:.3f}&deg; / {1000 * s.disp_err_m:.1f} mm" if s.disp_err_m is not None else "")
             + "</span>" for s in o.scans)
         times = ", ".join(f"{k} {v:.1f} s" for k, v in o.seconds.items())
         rows.append(f'<tr><td>{e(o.tree)}</td><td>{img}</td><td class="{o.status}">{o.status}</td><td>{scans}</td>'
                     f'<td>{times}</td><td class="msg">{e(o.message)}</td></tr>')
-    table = ("<table><tr><th>tree</th><th>registered scans (top, side)</th><th>status</th>"
+    table = ("<table><tr><th>tree</th><th>verified scans (top, side)</th><th>status</th>"
              "<th>scans: verdict, error against truth</th><th>times</th><th>message</th></tr>" + "".join(rows) + "</table>")
     return (f"<!DOCTYPE html><html><head><meta charset=\"utf-8\"><title>{e(title)}</title>"
             f"<style>{_STYLE}</style></head><body>{head}{table}</body></html>\n")

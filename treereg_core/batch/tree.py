@@ -23,7 +23,9 @@ from ..io.cases import read_truth
 from ..io.scans import read_scan
 from ..io.transforms import TransformFile, registration_file
 from ..params import Params, to_dict
-from ..pipeline import Pipeline, register
+from ..pipeline import register
+from ..stages import UNTIL
+from ..verify.report import quality_report
 from .jobs import TreeJob
 from .picture import tree_picture
 
@@ -35,8 +37,10 @@ OK, FAILED, BAD_INPUT = 0, 1, 2
 class ScanOutcome:
     """One scan of a tree: how it ended, and its error against the truth when there is one.
 
-    verdict : "reference", "fine" (the fine transform), "coarse" (fine not kept: the coarse one),
-        or "failed" (not registered; `message` says where and why).
+    verdict : "reference", "verified" (placed, with the evidence), "unverified" (a best guess, listed
+        under "unverified" in transforms.json; `message` says why and what to try) or "failed" (no
+        transform; `message` says where and why). The error against truth is given for verified
+        scans and for unverified guesses alike, so a campaign shows what verification held back.
     """
 
     name: str
@@ -49,8 +53,9 @@ class ScanOutcome:
 
 @dataclass(frozen=True)
 class TreeOutcome:
-    """A tree's result: status "ok" (every scan registered), "partial", "failed" (no scan registered,
-    or bad input) or "error" (an unexpected exception; its last line is the message)."""
+    """A tree's result: status "ok" (every scan verified), "partial" (some verified), "unverified"
+    (best guesses only, e.g. `--until coarse`), "failed" (no scan registered, or bad input) or
+    "error" (an unexpected exception; its last line is the message). Only "ok" exits 0."""
 
     tree: str
     status: str
@@ -93,34 +98,8 @@ def tree_params(job: TreeJob, params: Params) -> Params:
 
 
 def apply_target(params: Params, xy: tuple[float, float]) -> Params:
-    """The target stem's position as a parameter. Target-tree selection is a prepare-stage step of
-    its own; until it is part of the parameters, a manifest's target cannot be honoured."""
-    for section, name in (("target", "tree_at_m"), ("prepare", "tree_at_m")):
-        sec = getattr(params, section, None)
-        if sec is not None and hasattr(sec, name):
-            return params.with_value(section, name, xy)
-    raise ConfigError("the manifest gives a target position, but this version of treereg cannot select a "
-                      "target tree; leave the target column empty")
-
-
-def _pair_verdict(pipe: Pipeline, k: int) -> tuple[str, str]:
-    """("fine" | "coarse" | "failed", message) of pair k."""
-    for name in ("prepare", "projection", "matching", "coarse"):
-        out = pipe.output(name)
-        if out is None:
-            continue
-        items = out.items
-        idx = [0, k + 1] if name in ("prepare", "projection") else [k]
-        for i in idx:
-            if i < len(items) and not items[i].ok:
-                return "failed", f"{name}: {items[i].message}"
-    fine = pipe.output("fine")
-    if fine is not None and k < len(fine.items):
-        it = fine.items[k]
-        if it.ok and getattr(it, "accepted", False):
-            return "fine", ""
-        return "coarse", getattr(it, "message", "")
-    return "coarse", ""
+    """The target stem's position (x y in the reference scan's frame) as the target section's parameter."""
+    return params.with_value("target", "tree_at", xy)
 
 
 def run_tree(job: TreeJob, params: Params, until: str = "fine", picture: bool = True) -> TreeOutcome:
@@ -138,7 +117,7 @@ def run_tree(job: TreeJob, params: Params, until: str = "fine", picture: bool = 
             raise ConfigError(f"{job.name}: scan files must have distinct base names, got {names}")
         seconds["read"] = time.perf_counter() - t0
         t1 = time.perf_counter()
-        reg = register(scans, p, until=until)
+        reg = register(scans, p, until=UNTIL[until])
         seconds["register"] = time.perf_counter() - t1
     except (ScanError, ConfigError) as e:
         seconds["total"] = time.perf_counter() - t0
@@ -148,11 +127,12 @@ def run_tree(job: TreeJob, params: Params, until: str = "fine", picture: bool = 
         last = traceback.format_exception_only(type(e), e)[-1].strip()
         return TreeOutcome(job.name, "error", FAILED, f"unexpected error: {last}", (), seconds, fp)
     truth = _read_truth(job)
+    pipe = reg.pipeline
+    verdicts = pipe.verdicts()
     outcomes = [ScanOutcome(scans[0].name, scans[0].n_points, "reference")]
-    for k, s in enumerate(scans[1:]):
-        verdict, msg = _pair_verdict(reg.pipeline, k)
-        if s.name not in reg.transforms:
-            verdict = "failed"
+    for s in scans[1:]:
+        verdict, reasons, hint = verdicts.get(s.name, ("failed", ("not registered",), ""))
+        msg = "; ".join(reasons) + (f" (try: {hint})" if hint and verdict != "verified" else "")
         rot = disp = None
         if truth is not None and s.name in reg.transforms and s.name in truth and names[0] in truth:
             T_true = np.linalg.inv(truth[names[0]]) @ truth[s.name]
@@ -160,15 +140,20 @@ def run_tree(job: TreeJob, params: Params, until: str = "fine", picture: bool = 
             rot = rotation_error_deg(T, T_true)
             disp = float(np.linalg.norm(apply_transform(T, s.points) - apply_transform(T_true, s.points), axis=1).mean())
         outcomes.append(ScanOutcome(s.name, s.n_points, verdict, msg, rot, disp))
+    n_verified = sum(o.verdict == "verified" for o in outcomes)
     n_failed = sum(o.verdict == "failed" for o in outcomes)
-    status = "ok" if n_failed == 0 else ("failed" if n_failed == len(scans) - 1 else "partial")
-    message = "" if n_failed == 0 else "; ".join(f"{o.name}: {o.message}" for o in outcomes if o.verdict == "failed")
+    status = ("ok" if n_verified == len(scans) - 1 else "partial" if n_verified else
+              "failed" if n_failed == len(scans) - 1 else "unverified")
+    message = "; ".join(f"{o.name}: {o.verdict}: {o.message}" for o in outcomes if o.verdict in ("unverified", "failed"))
     tf = None
-    if status != "failed":
-        tf = registration_file(scans, reg.transforms, p, stage=until, metrics=reg.pipeline.pair_metrics(),
+    if len(reg.transforms) >= 2:  # unverified guesses are written too, under "unverified", never as verified
+        tf = registration_file(scans, reg.transforms, p, stage=until, metrics=pipe.pair_metrics(), verdicts=verdicts,
+                               quality=quality_report(scans, pipe.pairs, pipe.outputs),
                                sources={s.name: str(Path(f).resolve()) for s, f in zip(scans, job.scans)},
                                seconds=seconds["register"])
-    png = tree_picture([s.points for s in scans], [reg.transforms.get(s.name) for s in scans]) if picture else None
+    # The picture shows what the transform file vouches for: the reference and the verified scans.
+    shown = {n: reg.transforms[n] for n in tf.transforms} if tf is not None else {}
+    png = tree_picture([s.points for s in scans], [shown.get(s.name) for s in scans]) if picture else None
     seconds["total"] = time.perf_counter() - t0
     return TreeOutcome(job.name, status, OK if status == "ok" else FAILED, message, tuple(outcomes),
                        {k: round(v, 3) for k, v in seconds.items()}, fp, tf, png)

@@ -11,6 +11,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from ..limits import check_raster
 from ..params import ProjectionParams
 from .projection import Projection, gap_fill_px, limit_pixel_size, pixel_size_deg, project
 from ..prepare.image_check import fill_rate, image_warning, stripe_fraction
@@ -138,14 +139,19 @@ def build_sequence(scan: Scan, *, projection: ProjectionParams, n_scans: int) ->
         pts = np.column_stack([pts[:, :2] @ R.T, pts[:, 2]])
     centre_rel = (rotation_z(-az_ref)[:2, :2] @ centre).astype(np.float32)
     pixel = pixel_size_deg(scan.angular_step_deg, p.pixel_factor, p.square_pixels)
+    sample = pts[:: max(1, scan.n_points // _SIZING_SAMPLE)]
+    spans = np.zeros(2)
+    for a in angles:  # a few thousand points per angle: cheap
+        al, be = rotated_angles_deg(sample, centre_rel, a)
+        spans = np.maximum(spans, [np.ptp(al), np.ptp(be)])
+    spans *= 1.05  # 5% margin: the sample can miss the extreme points.
     if p.max_image_px is not None:
-        sample = pts[:: max(1, scan.n_points // _SIZING_SAMPLE)]
-        spans = np.zeros(2)
-        for a in angles:  # a few thousand points per angle: cheap
-            al, be = rotated_angles_deg(sample, centre_rel, a)
-            spans = np.maximum(spans, [np.ptp(al), np.ptp(be)])
-        # 5% margin: the sample can miss the extreme points.
-        pixel = limit_pixel_size(spans[0] * 1.05, spans[1] * 1.05, pixel, p.max_image_px)
+        pixel = limit_pixel_size(spans[0], spans[1], pixel, p.max_image_px)
+    # The sequence keeps every image: refuse sizes that cannot fit before allocating any.
+    check_raster(f"{scan.label}: the projection images",
+                 spans[1] / pixel[1] + 1 + 2 * p.border_px[1], spans[0] / pixel[0] + 1 + 2 * p.border_px[0], 1.0,
+                 "cap the image size (projection.max_image_px, e.g. 700), or use a larger pixel factor, "
+                 "fewer rotations (projection.theta_deg) or a coarser angular step", count=len(angles))
     fill = gap_fill_px(scan.angular_step_deg, pixel)
     projections = []
     for a in angles:

@@ -21,12 +21,13 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from ..limits import check_raster
 from ..params import ArcParams
 from ..results import Metric
 from ..scan import Scan
 
-#: Rasters larger than this many cells are split at empty column gaps (a 360 deg scan at a fine step).
-_MAX_RASTER_CELLS = 40_000_000
+#: Bytes per raster cell: the occupancy grid, its dilation (bool each) and the labels (int32).
+_RASTER_CELL_BYTES = 6
 
 
 @dataclass(frozen=True)
@@ -103,8 +104,11 @@ def _label_cells(col: np.ndarray, row: np.ndarray, h: int) -> np.ndarray:
     return lab[cc, rr]
 
 
-def _label_raster(col: np.ndarray, row: np.ndarray, c: float) -> np.ndarray:
-    """Component label per point (0-based, arbitrary order) of grid cells `col`, `row`."""
+def _label_raster(col: np.ndarray, row: np.ndarray, c: float, what: str = "the slice raster") -> np.ndarray:
+    """Component label per point (0-based, arbitrary order) of grid cells `col`, `row`.
+
+    Raises `limits.RasterTooLarge` (naming `what`) before allocating a raster that cannot fit.
+    """
     h = int(np.floor(c / 2.0))
     reach = 2 * h + 1
     # Split at column gaps no arc can bridge, so a wide, sparse slice never needs one huge raster.
@@ -119,9 +123,9 @@ def _label_raster(col: np.ndarray, row: np.ndarray, c: float) -> np.ndarray:
     for g in range(len(starts)):
         sel = order[cuts[g]:cuts[g + 1]]
         gc, gr = col[sel], row[sel]
-        cells = (int(gc.max() - gc.min()) + 2 * h + 1) * (int(gr.max() - gr.min()) + 2 * h + 1)
-        if cells > _MAX_RASTER_CELLS:
-            raise ValueError(f"slice raster of {cells} cells is too large; use a coarser angular step")
+        check_raster(what, int(gr.max() - gr.min()) + 2 * h + 1, int(gc.max() - gc.min()) + 2 * h + 1,
+                     _RASTER_CELL_BYTES, "one cell per angular step: check the scan's angular step "
+                     "(--angular-step, prepare.angular_step_deg) or use thinner slices (slicing.thickness_m)")
         lab = _label_cells(gc, gr, h)
         _, inv = np.unique(lab, return_inverse=True)
         labels[sel] = inv + offset
@@ -163,7 +167,7 @@ def separate_arcs(scan: Scan, indices: np.ndarray, p: ArcParams) -> ArcResult:
         return ArcResult(False, "the slice holds no points of this scan", (Metric("arcs", "", 0),),
                          idx, np.empty(0, dtype=np.int64), 0)
     col, row = angular_cells(scan, idx)
-    raw = _label_raster(col, row, p.connectivity)
+    raw = _label_raster(col, row, p.connectivity, f"{scan.label}: the arcs' slice raster")
     if p.max_range_jump_m is not None:
         raw = _split_by_range(raw, np.linalg.norm(scan.points[idx], axis=1), p.max_range_jump_m)
     counts = np.bincount(raw)

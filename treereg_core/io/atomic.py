@@ -1,14 +1,33 @@
-"""Atomic file writes: write a temporary file beside the target, then rename it over the target.
+"""Every file treereg writes goes through here: its destination is checked first, then it is written
+atomically (a temporary file beside the target, renamed over it only when complete).
 
-A crash or an error mid-write never leaves a half-written file under the target's name.
+- A crash, an error or Ctrl-C mid-write never leaves a half-written file under the target's name,
+  and the temporary file is removed.
+- Only regular files are ever replaced. A symbolic link is written *through*: its target gets the
+  new content and the link stays. A folder, FIFO, device or socket is refused, never replaced.
+- `check_output_file` / `check_output_dir` say what is wrong with a destination (a folder given as
+  a file, a parent that is a file, a folder that cannot be written) *before* any computation, so
+  a long run never ends in an error about where its result should go. Problems are
+  `errors.OutputError`: one line naming the path.
+- `batch()` groups several writes (a case folder, a set of exports): every file is written to its
+  temporary first, and only when all succeeded are they renamed, with Ctrl-C held off for those
+  few microseconds. An interrupted or failed batch leaves every previous file as it was.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
+import signal
+import stat
 import tempfile
+import threading
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterator
+
+from ..errors import OutputError
+
+_local = threading.local()
 
 
 def _umask() -> int:
@@ -17,18 +36,156 @@ def _umask() -> int:
     return mask
 
 
+def _kind(mode: int) -> str:
+    if stat.S_ISFIFO(mode):
+        return "a FIFO (named pipe)"
+    if stat.S_ISCHR(mode) or stat.S_ISBLK(mode):
+        return "a device"
+    if stat.S_ISSOCK(mode):
+        return "a socket"
+    return "not a regular file"
+
+
+def _reason(e: OSError) -> str:
+    return (e.strerror or str(e) or type(e).__name__).lower()
+
+
+# ---- checks ------------------------------------------------------------------------------------
+def _check_can_create_in(folder: Path, label: str) -> None:
+    """`folder` exists or can be made, and files can be created in it."""
+    existing = folder
+    while not os.path.lexists(existing):
+        existing = existing.parent
+    if existing.is_symlink() and not existing.exists():
+        raise OutputError(label, f"cannot create the folder {folder}: {existing} is a broken symbolic link")
+    if not existing.is_dir():
+        raise OutputError(label, f"cannot create the folder {folder}: {existing} is a file, not a folder")
+    # The only truthful test (permissions, read-only file systems, root on /sys...): make a file.
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".treereg-check-", dir=existing)
+    except OSError as e:
+        what = "a file" if existing == folder else f"the folder {folder}"
+        raise OutputError(label, f"cannot create {what} in {existing} ({_reason(e)})") from None
+    os.close(fd)
+    os.unlink(probe)
+
+
+def check_output_file(path: str | Path, label: str | None = None, example: str | None = None) -> Path:
+    """The file that writing `path` will create or replace (a symbolic link's target), checked.
+
+    Raises `OutputError` when `path` is a folder, a FIFO, a device or a socket, a read-only file, a
+    link that loops, or when its folder cannot be created or written. Call it before any
+    computation; `write_atomic` checks again when it writes. `example` is a file name to suggest
+    when `path` is a folder.
+    """
+    p = Path(path)
+    label = label or str(p)
+    target = Path(os.path.realpath(p))
+    if os.path.lexists(target):
+        try:
+            mode = os.stat(target).st_mode
+        except OSError as e:  # a loop of links
+            raise OutputError(label, f"cannot be followed to a file ({_reason(e)})") from None
+        if stat.S_ISDIR(mode):
+            raise OutputError(label, f"is a folder; give a file name (e.g. {p / example})" if example
+                              else "is a folder; give the name of a file (in it, or beside it)")
+        if not stat.S_ISREG(mode):
+            raise OutputError(label, f"is {_kind(mode)}; treereg only replaces regular files")
+        # No write bit for anyone says "keep this" even to root, for whom access() is always yes.
+        if not os.access(target, os.W_OK) or not mode & 0o222:
+            raise OutputError(label, "is read-only; treereg does not replace it")
+    _check_can_create_in(target.parent, label)
+    return target
+
+
+def check_output_dir(path: str | Path, label: str | None = None) -> Path:
+    """The folder `path` (followed through links), checked: it is, or can be made, a folder we can write in."""
+    p = Path(path)
+    label = label or str(p)
+    target = Path(os.path.realpath(p))
+    if os.path.lexists(target) and not target.is_dir():
+        try:
+            mode = os.stat(target).st_mode
+        except OSError as e:
+            raise OutputError(label, f"cannot be followed to a folder ({_reason(e)})") from None
+        raise OutputError(label, "is a file, not a folder" if stat.S_ISREG(mode) else f"is {_kind(mode)}, not a folder")
+    _check_can_create_in(target, label)
+    return target
+
+
+# ---- writing -----------------------------------------------------------------------------------
+class _Batch:
+    def __init__(self) -> None:
+        self.pending: list[tuple[Path, Path]] = []  # (temporary, target)
+
+
+@contextlib.contextmanager
+def batch() -> Iterator[None]:
+    """Group the writes made inside (on this thread): all or none of them replace their targets."""
+    outer = getattr(_local, "batch", None)
+    if outer is not None:  # nested: the outermost batch commits
+        yield
+        return
+    b = _Batch()
+    _local.batch = b
+    try:
+        yield
+    except BaseException:
+        for tmp, _ in b.pending:
+            tmp.unlink(missing_ok=True)
+        raise
+    finally:
+        _local.batch = None
+    with _interrupts_held():
+        for tmp, target in b.pending:
+            os.replace(tmp, target)
+
+
+@contextlib.contextmanager
+def _interrupts_held() -> Iterator[None]:
+    """Ctrl-C during the final renames waits until they are done (main thread only; elsewhere no signal arrives)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    caught: list[int] = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: caught.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if caught:
+        raise KeyboardInterrupt
+
+
 def write_atomic(path: str | Path, write: Callable[[Path], None]) -> Path:
-    """Run `write(tmp)` on a temporary file beside `path`, then rename it over `path`."""
+    """Run `write(tmp)` on a temporary file beside the target of `path`, then rename it over the target.
+
+    The target is `path`, or the file a symbolic link `path` points to. Raises `OutputError` (and
+    leaves everything as it was) when it cannot be written; inside `batch()` the rename waits for
+    the batch. Returns `path`.
+    """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    target = check_output_file(path)
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    except OSError as e:
+        raise OutputError(str(path), f"cannot be written ({_reason(e)})") from None
     os.close(fd)
     tmp = Path(tmp_name)
     try:
         write(tmp)
-        # mkstemp makes the file private (0600); give it the permissions a plain open() would.
-        os.chmod(tmp, 0o666 & ~_umask())
-        os.replace(tmp, path)
+        # mkstemp makes the file private (0600): keep the mode of the file replaced, else what open() gives.
+        mode = stat.S_IMODE(os.stat(target).st_mode) if target.exists() else 0o666 & ~_umask()
+        os.chmod(tmp, mode)
+        b = getattr(_local, "batch", None)
+        if b is not None:
+            b.pending.append((tmp, target))
+        else:
+            os.replace(tmp, target)
+    except OSError as e:
+        tmp.unlink(missing_ok=True)
+        raise OutputError(str(path), f"could not be written ({_reason(e)}); nothing was replaced") from None
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise

@@ -41,11 +41,21 @@ RETURN_COLUMNS: tuple[str, ...] = ("return_number", "returnnumber", "target_inde
 #: Everything `write_scan` writes.
 WRITE_EXTENSIONS: tuple[str, ...] = (".ply", ".las", ".laz")
 
-#: A scan whose points spread further than this from their centre (median distance, in file units)
-#: is not a tree in metres; millimetres is by far the most common reason.
-MAX_MEDIAN_SPREAD = 200.0
-#: ... and whose bounding box is larger than this (file units).
-MAX_EXTENT = 1000.0
+#: A tree cloud in metres spans at most this (1st to 99th percentile along its longest axis, file
+#: units): the tallest trees are about 100 m, a scan with its surroundings a few hundred metres.
+MAX_EXTENT_M = 500.0
+#: A scan in metres in its scanner's frame has its points a median of at most this from the scanner.
+MAX_RANGE_M = 300.0
+#: What a single-tree scan typically measures in metres (extent, median range): the unit whose
+#: factor brings a cloud closest to these is the one it was written in.
+TYPICAL_EXTENT_M = 20.0
+TYPICAL_RANGE_M = 15.0
+#: Units a point file may be in besides metres: name, factor to metres.
+OTHER_UNITS: tuple[tuple[str, float], ...] = (("centimetres", 0.01), ("millimetres", 0.001))
+#: Points a median distance of more than this fraction of their range apart are a scene seen from the
+#: origin; closer together, they sit far from the origin: not the scanner's frame (georeferenced).
+MIN_SPREAD_TO_RANGE = 0.02
+_SIZE_SAMPLE = 200_000
 #: LAS/LAZ coordinate resolution we write (metres).
 LAS_SCALE_M = 0.0001
 _LAS_CHUNK = 2_000_000
@@ -73,7 +83,8 @@ def read_points(path: str | Path, check_units: bool = True) -> np.ndarray:
     path
         A file with one of `READ_EXTENSIONS`.
     check_units
-        Refuse coordinates that look like millimetres (see `check_metres`).
+        Refuse coordinates that look like centimetres or millimetres (see `check_metres`; a
+        scan's own frame is checked by `record_to_scan`).
 
     Returns
     -------
@@ -84,7 +95,7 @@ def read_points(path: str | Path, check_units: bool = True) -> np.ndarray:
     ------
     ScanError
         Missing or empty file, unknown extension, unreadable or non-numeric content, wrong shape,
-        no finite points, or (with `check_units`) millimetre-looking coordinates.
+        no finite points, or (with `check_units`) coordinates that are not metres.
     """
     path = Path(path)
     ext = _check_file(path)
@@ -160,7 +171,9 @@ def read_records(path: str | Path, check_units: bool = True) -> list[ScanRecord]
         if len(r.points) == 0:
             raise ScanError(label, "the scan holds no valid points")
         if check_units:
-            check_metres(r.points, label)
+            # Points spread like a scene seen from the origin: their distance from it tells the unit
+            # too. Far and close together (georeferenced) is `record_to_scan`'s to say.
+            check_metres(r.points, label, scanner_frame=_seen_from_origin(r.points))
         out.append(r)
     return out
 
@@ -270,29 +283,55 @@ def read_scan(
     return scan if name is None else scan.with_points(scan.points, name=name)
 
 
-def check_metres(points: np.ndarray, label: str) -> None:
-    """Raise `ScanError` when the points look like millimetres rather than metres.
+def _size(points: np.ndarray) -> tuple[float, float, float]:
+    """(robust extent, spread, median range) in file units, from a subsample.
 
-    A single tree scanned from a few metres away spans at most a few hundred metres, so a cloud
-    whose bounding box exceeds `MAX_EXTENT` units *and* whose points lie a median of more than
-    `MAX_MEDIAN_SPREAD` units from their median point is almost certainly in millimetres. (The two
-    together let through georeferenced clouds with large offsets, and far outliers of a real scan.)
+    Extent: the largest 1st-to-99th percentile span over the axes (far outliers do not count).
+    Spread: median distance of the points from their median point. Range: median distance from the origin.
+    """
+    sample = points[:: max(1, len(points) // _SIZE_SAMPLE)]
+    lo, hi = np.percentile(sample, [1.0, 99.0], axis=0)
+    extent = float((hi - lo).max())
+    spread = float(np.median(np.linalg.norm(sample - np.median(sample, axis=0), axis=1)))
+    rng = float(np.median(np.linalg.norm(sample, axis=1)))
+    return extent, spread, rng
+
+
+def _seen_from_origin(points: np.ndarray) -> bool:
+    """True when the points spread like a scene seen from the origin (a scan in another unit), not
+    like a scan far from the origin with its points close together (georeferenced coordinates)."""
+    _, spread, rng = _size(points)
+    return spread >= MIN_SPREAD_TO_RANGE * rng
+
+
+def check_metres(points: np.ndarray, label: str, scanner_frame: bool = False) -> None:
+    """Raise `ScanError`, naming the likely unit and its factor, when the points are not in metres.
+
+    A tree cloud in metres spans at most `MAX_EXTENT_M` (and, seen from its scanner, lies within
+    `MAX_RANGE_M`). Beyond that, the unit is the one (centimetres or millimetres) whose factor brings
+    the extent (and the range) closest to a typical tree scan's; the message gives the sizes in
+    metres that factor would make, so the user can check. The extent does not change with a shift,
+    so georeferenced clouds in metres pass (`record_to_scan` tests a scan's frame).
     """
     if len(points) == 0:
         return
-    # A strided subset tells metres from millimetres as well as all points (and far faster).
-    points = points[:: max(1, len(points) // 200_000)]
-    extent = float(np.ptp(points, axis=0).max())
-    if extent <= MAX_EXTENT:
+    extent, _, rng = _size(points)
+    if extent <= MAX_EXTENT_M and (not scanner_frame or rng <= MAX_RANGE_M):
         return
-    spread = float(np.median(np.linalg.norm(points - np.median(points, axis=0), axis=1)))
-    if spread > MAX_MEDIAN_SPREAD:
-        raise ScanError(
-            label,
-            f"coordinates span {extent:,.0f} units (median distance from the centre {spread:,.0f}); "
-            "treereg expects metres and this looks like millimetres: convert the file to metres "
-            "(scale the coordinates by 0.001) and read it again",
-        )
+
+    def misfit(f: float) -> float:
+        out = abs(np.log10(max(extent * f, 1e-9) / TYPICAL_EXTENT_M))
+        return out + (abs(np.log10(max(rng * f, 1e-9) / TYPICAL_RANGE_M)) if scanner_frame else 0.0)
+
+    unit, f = min(OTHER_UNITS, key=lambda u: misfit(u[1]))
+    seen = f"{extent * f:,.1f} m" + (f", a median {rng * f:,.1f} m from the scanner" if scanner_frame else "")
+    where = f" (median distance from the scanner {rng:,.0f})" if scanner_frame else ""
+    raise ScanError(
+        label,
+        f"coordinates span {extent:,.0f} units{where}; treereg expects metres and this looks like {unit}: "
+        f"convert the file to metres (scale the coordinates by {f:g}, which makes the scan span {seen}) "
+        "and read it again",
+    )
 
 
 def _drop_non_finite(path: Path, pts: np.ndarray) -> np.ndarray:

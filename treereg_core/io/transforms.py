@@ -28,6 +28,8 @@ from ..errors import ConfigError
 from ..geometry.rigid import invert
 from ..params import Params, to_dict
 from ..scan import Scan
+from . import atomic
+from .json_input import load_json
 from .atomic import write_text_atomic
 
 #: Largest |R^T R - I| entry accepted for the rotation part of a transform.
@@ -178,14 +180,7 @@ def read_transforms(path: str | Path) -> TransformFile:
         rigid 4x4; the message names the file and the key.
     """
     path = Path(path)
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: no such transform file") from None
-    except IsADirectoryError:
-        raise ConfigError(f"{path}: is a directory, not a transform file") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise ConfigError(f"{path}: not valid JSON ({e})") from None
+    data = load_json(path, "transform file")
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: expected a JSON object with 'reference' and 'transforms'")
     for key in ("reference", "transforms"):
@@ -269,12 +264,22 @@ def _stems(names: list[str]) -> dict[str, str]:
     return {n: (s if counts[s] == 1 else n) for n, s in stems.items()}
 
 
-def export_names(tf: TransformFile, name: str = DEFAULT_NAME) -> dict[str, tuple[str, str]]:
+def export_names(names: Sequence[str], name: str = DEFAULT_NAME) -> dict[str, tuple[str, str]]:
     """Per scan, the names of its CloudCompare and PDAL matrix files: `<output stem>.<scan stem>.cloudcompare.txt`
     and `.pdal.txt`, named after the transform file so that two cases written into one folder do
     not overwrite each other's matrices."""
     out = Path(name).stem
-    return {scan: (f"{out}.{stem}.cloudcompare.txt", f"{out}.{stem}.pdal.txt") for scan, stem in _stems(tf.names).items()}
+    return {scan: (f"{out}.{stem}.cloudcompare.txt", f"{out}.{stem}.pdal.txt") for scan, stem in _stems(list(names)).items()}
+
+
+def export_paths(out_dir: str | Path, names: Sequence[str], name: str = DEFAULT_NAME) -> list[Path]:
+    """The files `write_exports` writes for scans `names`: the transform file first, then per scan
+    its CloudCompare and PDAL matrix files (`export_names`); checked before a run, written after it."""
+    out = Path(out_dir)
+    paths = [out / name]
+    for cc, pdal in export_names(names, name).values():
+        paths += [out / cc, out / pdal]
+    return paths
 
 
 def write_exports(out_dir: str | Path, tf: TransformFile, name: str = DEFAULT_NAME) -> list[Path]:
@@ -282,17 +287,17 @@ def write_exports(out_dir: str | Path, tf: TransformFile, name: str = DEFAULT_NA
     (`export_names`: e.g. `transforms.scan2.cloudcompare.txt`) into `out_dir`.
 
     The reference gets its (identity) files too, so every scan can be treated the same way.
-    All writes are atomic. Returns the written paths, the transform file first.
+    The files are written as one batch: all of them or, on an error or Ctrl-C, none replace
+    what was there. Returns the written paths (`export_paths`), transforms.json first.
     """
-    out = Path(out_dir)
-    written = [write_transforms(out / name, tf)]
-    for scan, (cc_name, pdal_name) in export_names(tf, name).items():
-        T = tf.matrix(scan)
-        cc, pdal = out / cc_name, out / pdal_name
-        write_text_atomic(cc, cloudcompare_matrix_text(T))
-        write_text_atomic(pdal, pdal_matrix_string(T) + "\n")
-        written += [cc, pdal]
-    return written
+    paths = export_paths(out_dir, tf.names, name)
+    with atomic.batch():
+        write_transforms(paths[0], tf)
+        for scan, cc, pdal in zip(tf.names, paths[1::2], paths[2::2]):
+            T = tf.matrix(scan)
+            write_text_atomic(cc, cloudcompare_matrix_text(T))
+            write_text_atomic(pdal, pdal_matrix_string(T) + "\n")
+    return paths
 
 
 def registration_file(scans: Sequence[Scan], transforms: dict[str, np.ndarray], params: Params, *, stage: str,

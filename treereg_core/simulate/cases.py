@@ -25,6 +25,11 @@ from typing import Any
 import numpy as np
 
 from ..errors import ConfigError
+from ..params import ANGULAR_STEP_RANGE_DEG
+
+#: Most stations a simulated case may have (each is a full scan).
+MAX_STATIONS = 32
+from ..io import atomic
 from ..io.cases import TRUTH_NAME
 from ..io.scans import read_points, write_scan
 from ..results import Metric, Progress
@@ -122,9 +127,16 @@ class CaseSpec:
         for name in ("height_range_m", "station_distance_m", "separation_deg", "instrument_height_m"):
             pair(name)
         phi, vphi = self.angular_step_deg
+        step_lo, step_hi = ANGULAR_STEP_RANGE_DEG
+        for name in ("range_sigma_m", "dropout", "lean_deg", "tilt_deg", "ground_slope_deg", "ground_radius_m",
+                     "ground_front_m"):
+            if not np.isfinite(getattr(self, name)):
+                raise ConfigError(f"{name}: {getattr(self, name)} is not a finite number")
         checks = [
-            (self.n_stations >= 1, "n_stations: at least one station is needed"),
-            (0.001 <= phi <= 5 and 0.001 <= vphi <= 5, f"angular_step_deg: {self.angular_step_deg} is outside 0.001-5 deg"),
+            (1 <= self.n_stations <= MAX_STATIONS, f"n_stations: {self.n_stations} is outside 1-{MAX_STATIONS} stations"),
+            (self.seed >= 0, f"seed: {self.seed} is not a non-negative whole number"),
+            (all(step_lo <= x <= step_hi for x in (phi, vphi)),
+             f"angular_step_deg: {phi:g} x {vphi:g} deg is outside the allowed range ({step_lo:g} to {step_hi:g} deg)"),
             (self.orders in (1, 2, 3), f"orders: {self.orders} is not 1, 2 or 3"),
             (self.height_m is None or 1.0 <= self.height_m <= 60.0, f"height_m: {self.height_m} is outside 1-60 m"),
             (self.dbh_m is None or 0.02 <= self.dbh_m <= 3.0, f"dbh_m: {self.dbh_m} is outside 0.02-3 m"),
@@ -132,11 +144,12 @@ class CaseSpec:
             (0 <= self.lean_deg <= 45, f"lean_deg: {self.lean_deg} is outside 0-45 deg"),
             (0 <= self.ground_slope_deg <= 30, f"ground_slope_deg: {self.ground_slope_deg} is outside 0-30 deg"),
             (0 <= self.tilt_deg <= 10, f"tilt_deg: {self.tilt_deg} is outside 0-10 deg"),
-            (self.range_sigma_m >= 0, "range_sigma_m: must be >= 0"),
+            (0 <= self.range_sigma_m <= 1, f"range_sigma_m: {self.range_sigma_m} is outside 0-1 m"),
             (0 <= self.dropout < 1, f"dropout: {self.dropout} is outside [0, 1)"),
             (self.station_distance_m[0] > 0.5, "station_distance_m: stations must stand more than 0.5 m from the trunk"),
-            (self.ground_radius_m >= 1.0, "ground_radius_m: the ground must reach at least 1 m around the tree"),
-            (self.ground_front_m >= 0.0, "ground_front_m: must be >= 0"),
+            (self.station_distance_m[1] <= 200.0, "station_distance_m: stations farther than 200 m from the trunk see no tree"),
+            (1.0 <= self.ground_radius_m <= 500.0, f"ground_radius_m: {self.ground_radius_m} is outside 1-500 m"),
+            (0.0 <= self.ground_front_m <= 500.0, f"ground_front_m: {self.ground_front_m} is outside 0-500 m"),
         ]
         checks.append((self.splat_radius_m is None or (self.from_points is not None and 0 < self.splat_radius_m <= 1),
                        "splat_radius_m: needs from_points and a radius in (0, 1] m"))
@@ -270,9 +283,22 @@ def write_case(case: SimulatedCase, out_dir: str | Path, dtype: str = "float64",
     """
     out = Path(out_dir)
     say = progress or (lambda f, t: None)
-    for k, scan in enumerate(case.scans):
-        say(k / (len(case.scans) + 1), f"writing {scan.name}")
-        write_scan(out / scan.name, scan.points, dtype=dtype)
+    with atomic.batch():  # all files or, on an error or Ctrl-C, none replace what was there
+        for k, scan in enumerate(case.scans):
+            say(k / (len(case.scans) + 1), f"writing {scan.name}")
+            write_scan(out / scan.name, scan.points, dtype=dtype)
+        path = _write_truth(case, out)
+    say(1.0, f"wrote {out}")
+    return path
+
+
+def case_paths(out_dir: str | Path, n_stations: int) -> list[Path]:
+    """The files `write_case` writes for `n_stations` scans (checked before simulating)."""
+    out = Path(out_dir)
+    return [out / f"scan{k + 1}.ply" for k in range(n_stations)] + [out / TRUTH_NAME]
+
+
+def _write_truth(case: SimulatedCase, out: Path) -> Path:
     tf = TransformFile(
         reference=case.scans[0].name,
         transforms=case.truth(),
@@ -284,9 +310,7 @@ def write_case(case: SimulatedCase, out_dir: str | Path, dtype: str = "float64",
             "simulation": case.spec.to_dict(),
         },
     )
-    path = write_transforms(out / TRUTH_NAME, tf)
-    say(1.0, f"wrote {out}")
-    return path
+    return write_transforms(out / TRUTH_NAME, tf)
 
 
 def simulate_case(seed: int = 0, n_stations: int = 3, progress: Progress | None = None,

@@ -211,7 +211,10 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
     rows = []
     for i, scan in enumerate(snap.scans):
         prep = prepared.items[i] if prepared is not None and i < len(prepared.items) else None
-        phi, vphi = scan.angular_step_deg
+        # The instrument's steps in force: the parameter's when one is set (it replaces the
+        # estimate in the prepare stage), else the scan's own (read off its grid, or estimated).
+        given = snap.params.prepare.angular_step_deg
+        phi, vphi = given or scan.angular_step_deg
         kept = ground = target = ""
         if prep is not None:
             kept = f"{prep.scan.n_points:,}" if getattr(prep, "scan", None) is not None else ""
@@ -220,7 +223,7 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
             xy = getattr(prep, "stem_xy", None)
             target = f"{xy[0]:.2f}, {xy[1]:.2f}" if xy is not None and getattr(prep, "target", "") else "all points"
         step = scan.step
-        how = "" if step is None or step.source == "given" else (" (grid)" if step.source == "grid" else f" (est., {step.confidence:.2f})")
+        how = "" if given or step is None or step.source == "given" else (" (grid)" if step.source == "grid" else f" (est., {step.confidence:.2f})")
         rows.append((
             f"{i + 1}{' (reference)' if i == 0 else ''}", scan.name, f"{scan.n_points:,}",
             f"{phi:.3g} / {vphi:.3g}{how}", kept, ground, target,

@@ -329,7 +329,7 @@ def test_cross_section_and_fits_views(served, browser):
     context, page, _ = _open(browser, url)
     _close_toast(page)
     _wait_all_done(page)
-    _go(page, "8 Fine")
+    _go(page, "9 Fine")
     _choose(page, "Show", "Cross-section")
     expect(page.get_by_role("heading", name=re.compile("^Cross-section at z = "))).to_be_visible(timeout=60_000)
     text = page.evaluate("() => document.body.innerText")
@@ -353,8 +353,8 @@ def test_cross_section_and_fits_views(served, browser):
     _choose(page, "Show", "Stage details")
 
     # The fits view: rejected fits hidden by default; shown, none drawn larger than a tree's section.
-    _go(page, "7 Fits")
-    expect(page.get_by_role("heading", name=re.compile("^7 Fits"))).to_be_visible(timeout=60_000)
+    _go(page, "8 Fits")
+    expect(page.get_by_role("heading", name=re.compile("^8 Fits"))).to_be_visible(timeout=60_000)
     page.wait_for_function("() => !!window.__viserMutable.nodeRefFromName['/sections/ref_fits']", timeout=60_000)
     nodes = page.evaluate("() => Object.keys(window.__viserMutable.nodeRefFromName)")
     assert not any(n.endswith("_rejected") for n in nodes)  # hidden by default
@@ -376,7 +376,7 @@ def test_cross_section_and_fits_views(served, browser):
         drawn += 1
     assert drawn >= 3
     table = page.evaluate("() => document.body.innerText")
-    assert "nan" not in table.split("7 Fits", 1)[-1].lower().split("parameters: fitting")[0]
+    assert "nan" not in table.split("8 Fits", 1)[-1].lower().split("parameters: fitting")[0]
     context.close()
 
 
@@ -456,7 +456,7 @@ def test_a_scan_of_another_tree_is_marked_unverified_with_the_reason(served, bro
         page.get_by_role("button", name="Download transforms.json").click()
     doc = json.loads(Path(dl.value.path()).read_text())
     assert "other_tree.ply" not in doc["transforms"] and doc["quality"]["scans"]["other_tree.ply"]["verdict"] != "verified"
-    expect(page.get_by_text(re.compile(r"Not exported: other_tree\.ply"))).to_be_visible()
+    expect(page.get_by_text(re.compile(r"Not exported: other_tree\.ply")).first).to_be_visible()
     context.close()
 
 

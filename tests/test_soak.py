@@ -80,7 +80,7 @@ class Cycle:
             if run.is_enabled():  # disabled while another tab's run is under way
                 run.click()
                 self._to("running")
-        elif self.state == "running" and re.search(r"[✓✗⚠] 10 Result", text) and not re.search(r"[○…] \d+ \w+", text):
+        elif self.state == "running" and re.search(r"[✓✗⚠] 13 Result", text) and not re.search(r"[○…] \d+ \w+", text):
             page.get_by_label("Scan to remove", exact=True).click()
             page.get_by_role("option", name="extra.ply", exact=True).click()
             page.get_by_role("button", name="Remove scan", exact=True).click()
@@ -136,15 +136,19 @@ def test_five_tabs_and_upload_cycles_leave_the_server_answering_and_flat(browser
             contexts.append(ctx)
             pages.append(page)
         first = pages[0]
-        first.wait_for_function("() => /✓ 10 Result/.test(document.body.innerText)", timeout=240_000)
+        first.wait_for_function("() => /✓ 13 Result/.test(document.body.innerText)", timeout=240_000)
         first.get_by_role("tab", name="Scans").click()
         shown = first.get_by_label("Points shown per scan", exact=True)
         shown.fill("3000")  # five tabs draw every change on the CPU: keep each drawing small
         shown.press("Enter")
-        # Warm-up: every stage drawn once, one cycle; then the memory we hold the server to.
-        for title in ("2 Projection", "3 Matching", "4 Coarse", "5 Slices", "6 Arcs", "7 Fits", "8 Fine", "9 ICP", "10 Result"):
-            _press(first, "Next")
-            expect(first.get_by_role("heading", name=re.compile("^" + title + "(:|$)"))).to_be_visible(timeout=180_000)
+        # Warm-up: every stage drawn once in every tab (each tab has its own view and scene), one
+        # cycle; then the memory we hold the server to.
+        for title in ("2 Projection", "3 Matching", "4 Coarse", "5 Hypotheses", "6 Slices", "7 Arcs", "8 Fits", "9 Fine",
+                      "10 Verify", "11 Placement", "12 ICP", "13 Result"):
+            for page in pages:
+                _press(page, "Next")
+            for page in pages:
+                expect(page.get_by_role("heading", name=re.compile("^" + title + "(:|$)"))).to_be_visible(timeout=180_000)
         cycle = Cycle(first, (DEMO_DIR / "scan3.ply").read_bytes())
         while cycle.done < 1:
             cycle.step()
@@ -156,7 +160,7 @@ def test_five_tabs_and_upload_cycles_leave_the_server_answering_and_flat(browser
         while time.monotonic() - t0 < STEPPING_S or cycle.done < CYCLES:
             for k, page in enumerate(pages[1:], start=1):
                 if time.monotonic() - t0 < STEPPING_S:
-                    _press(page, "Next" if (actions // 9) % 2 == 0 else "Previous")
+                    _press(page, "Next" if (actions // 12) % 2 == 0 else "Previous")
                     if actions % 10 == k:  # now and then a tab presses Run as well
                         _press(page, "Run")
                     actions += 1
@@ -169,7 +173,7 @@ def test_five_tabs_and_upload_cycles_leave_the_server_answering_and_flat(browser
         for k, page in enumerate(pages):  # a step in each tab comes back from the server to it
             stage = page.get_by_label("Stage", exact=True)
             before = stage.input_value()
-            _press(page, "Previous" if before.startswith("10 ") else "Next")
+            _press(page, "Previous" if before.startswith("13 ") else "Next")
             try:
                 expect(stage).not_to_have_value(before, timeout=60_000)
             except AssertionError:

@@ -36,12 +36,12 @@ ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-f
 #: (what changes, stage label, parameter label in the app, section, field, values to alternate, stages it re-runs
 #: until the stage is shown)
 CHANGES = (
-    ("arcs.min_points", "6 Arcs", "min points", "arcs", "min_points", (25, 15), ("arcs",)),
-    ("fitting.min_arc_deg", "7 Fits", "min arc (deg)", "fitting", "min_arc_deg", (40.0, 45.0), ("sections",)),
-    ("evaluation.layer_spacing_m", "10 Result", "layer spacing (m)", "evaluation", "layer_spacing_m", (0.16, 0.15),
+    ("arcs.min_points", "7 Arcs", "min points", "arcs", "min_points", (25, 15), ("arcs",)),
+    ("fitting.min_arc_deg", "8 Fits", "min arc (deg)", "fitting", "min_arc_deg", (40.0, 45.0), ("sections",)),
+    ("evaluation.layer_spacing_m", "13 Result", "layer spacing (m)", "evaluation", "layer_spacing_m", (0.16, 0.15),
      ("evaluation",)),
 )
-DONE = ("() => [...document.querySelectorAll('p, div')].some(e => /✓ 10 Result/.test(e.textContent) && "
+DONE = ("() => [...document.querySelectorAll('p, div')].some(e => /✓ 13 Result/.test(e.textContent) && "
         "!/[○…✗]/.test(e.textContent) && /1 Scans/.test(e.textContent))")
 SHOWN = ("(l) => [...document.querySelectorAll('p, div')].some(e => e.textContent.includes('✓ ' + l) && "
          "/1 Scans/.test(e.textContent) && !e.textContent.includes('○ ' + l) && !e.textContent.includes('… ' + l))")

@@ -58,6 +58,7 @@ class Row:
     rot_deg: float
     disp_m: float
     disp_all_m: float
+    verdict: str
     seconds: float
     peak_mb: float
 
@@ -71,11 +72,12 @@ def measure(label: str, scans: list[Scan], truth: dict[str, np.ndarray], target_
     """Register `scans` once (time, peak memory) and score every pair against `truth`."""
     tracemalloc.start()
     t0 = time.perf_counter()
-    reg = register(scans, params, until="fine")
+    reg = register(scans, params)  # through verification and placement, as `treereg register`
     seconds = time.perf_counter() - t0
     peak = tracemalloc.get_traced_memory()[1] / 2**20
     tracemalloc.stop()
     prep = reg.pipeline.output("prepare").items
+    verdicts = reg.pipeline.verdicts()
     rows = []
     for k in range(1, len(scans)):
         s = scans[k]
@@ -90,11 +92,11 @@ def measure(label: str, scans: list[Scan], truth: dict[str, np.ndarray], target_
                 right = "no (reference)"
         if T is None:
             rows.append(Row(label, f"{s.name} -> {scans[0].name}", s.n_points, len(kept), right, False,
-                            float("nan"), float("nan"), float("nan"), seconds, peak))
+                            float("nan"), float("nan"), float("nan"), verdicts[s.name][0], seconds, peak))
             continue
         rows.append(Row(label, f"{s.name} -> {scans[0].name}", s.n_points, len(kept), right, True,
                         rotation_error_deg(T, T_true), mean_displacement(T, T_true, kept),
-                        mean_displacement(T, T_true, s.points), seconds, peak))
+                        mean_displacement(T, T_true, s.points), verdicts[s.name][0], seconds, peak))
     return rows
 
 
@@ -119,14 +121,17 @@ def companions(n: int, seed: int) -> tuple[list[Scan], dict[str, np.ndarray], li
 
 def table(report: list[str], rows: list[Row]) -> None:
     base = float(np.median([r.seconds for r in rows])) if rows else 1.0
-    report.append("| case | pair | points | target region | right tree | rotation error (deg) | mean displacement, target region (mm) | mean displacement, whole station (mm) | time (x median) | peak memory (MB) | within 0.5 deg, 3 cm |")
-    report.append("|---|---|---|---|---|---|---|---|---|---|---|")
+    report.append("| case | pair | points | target region | right tree | rotation error (deg) | mean displacement, target region (mm) | mean displacement, whole station (mm) | verdict | time (x median) | peak memory (MB) | within 0.5 deg, 3 cm |")
+    report.append("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         report.append(f"| {r.case} | {r.pair} | {r.points:,} | {r.kept:,} | {r.right_tree} | {r.rot_deg:.3f} | {r.disp_m * 1000:.1f} | "
-                      f"{r.disp_all_m * 1000:.1f} | {r.seconds / base:.2f} | {r.peak_mb:.0f} | {'yes' if r.success else 'NO'} |")
+                      f"{r.disp_all_m * 1000:.1f} | {r.verdict} | {r.seconds / base:.2f} | {r.peak_mb:.0f} | {'yes' if r.success else 'NO'} |")
     good = [r for r in rows if r.success]
     disp = [r.disp_m for r in rows if r.ok]
+    wrong_verified = [r for r in rows if r.verdict == "verified" and not r.success]
     report.append("")
+    report.append(f"{len(wrong_verified)} verified but outside {MAX_ROT_DEG} deg and {MAX_DISP_M * 100:.0f} cm; "
+                  f"{sum(r.verdict == 'verified' for r in rows)} / {len(rows)} verified.")
     report.append(f"{len(good)} / {len(rows)} pairs within {MAX_ROT_DEG} deg and {MAX_DISP_M * 100:.0f} cm; "
                   f"median mean displacement (target region) {np.median(disp) * 1000 if disp else float('nan'):.1f} mm; "
                   f"median time per case {base:.1f} s (= 1.0), peak memory up to {max(r.peak_mb for r in rows):.0f} MB.")
@@ -157,7 +162,8 @@ def main() -> None:
         rows += r
         print(f"{spec.label}: simulated in {sim:.1f} s; " + "; ".join(
             f"{x.pair}: {x.rot_deg:.3f} deg {x.disp_m * 1000:.1f} mm, tree {x.right_tree}" for x in r), file=sys.stderr, flush=True)
-    table(report, rows)
+    if rows:
+        table(report, rows)
     if args.companions and REAL_STATION.exists():
         report.append("")
         report.append(f"### The real RIEGL station with {args.companions} simulated companions")

@@ -14,6 +14,7 @@ alone, without app or browser. Prints a markdown table; the ratio is browser / p
 from __future__ import annotations
 
 import argparse
+import re
 import statistics
 import sys
 import time
@@ -79,7 +80,9 @@ def main() -> int:
                 seen = []
                 for k in range(args.repeats):
                     page.wait_for_function(DONE)
-                    box = page.get_by_label(label, exact=True).filter(visible=True)
+                    # Parameters are text inputs, not tied to their label element: the input beside it.
+                    box = page.locator("label", has_text=re.compile(f"^{re.escape(label)}$")).filter(visible=True).locator(
+                        "xpath=ancestor::div[.//input][1]//input").first
                     box.fill(str(values[k % 2]))
                     box.press("Enter")
                     # The stage is stale (○) now: Run brings it back (✓).

@@ -157,6 +157,24 @@ def test_scans_of_one_tree_are_verified_and_a_scan_of_another_tree_is_not(case, 
     # Its pair with scan 1 says why: the other tree sits in space the reference saw through.
     v = pipe.output("verify").items[1]
     assert v.verdict != VERIFIED and any("saw through" in r or "re-paired" in r for r in v.reasons), v.reasons
+    # Its steps are a confident estimate: nothing blames them.
+    assert not any("angular step" in r for r in verdicts["other_tree.ply"][1]), verdicts["other_tree.ply"]
+
+
+def test_a_refused_scan_with_a_doubtful_step_estimate_says_to_give_the_steps(case, other_tree):
+    """Points off any angular grid (jittered by 1 cm) give a low-confidence step estimate; when such
+    a scan is refused, its reasons name the doubtful step and the hint says to give the instrument's."""
+    rng = np.random.default_rng(0)
+    jittered = Scan.from_points(other_tree.points + rng.normal(0.0, 0.01, other_tree.points.shape), "jittered.ply")
+    assert jittered.step.low, jittered.step.describe()
+    pipe = Pipeline([case.scans[0], case.scans[1], jittered], Params(), case.truth())
+    pipe.run("graph")
+    verdicts = pipe.verdicts()
+    assert verdicts["scan2.ply"][0] == VERIFIED and verdicts["scan2.ply"][1] == ()
+    verdict, reasons, hint = verdicts["jittered.ply"]
+    assert verdict != VERIFIED
+    assert any(r.startswith("the angular step of jittered.ply, ") and "is doubtful" in r for r in reasons), reasons
+    assert hint.startswith("give the instrument's angular steps (--angular-step H V"), hint
 
 
 def test_the_command_line_writes_verified_scans_only_and_exits_1_for_the_others(case, other_tree, tmp_path, capsys):

@@ -30,7 +30,7 @@ from .prepare.resolution import working_resolution
 from .results import Metric
 from .scan import Scan
 from .stage import Stage, StageContext
-from .verify.evidence import PairVerification, gather_evidence, judge, verification
+from .verify.evidence import VERIFIED, PairVerification, gather_evidence, judge, verification
 from .verify.graph import Edge, Placement, place_scans
 from .verify.hypotheses import HypothesesResult, pass_through, score_hypotheses
 from .verify.visibility import scan_range_image
@@ -187,7 +187,22 @@ def _run_graph(ctx: StageContext) -> list[Any]:
         pts = _scan(ctx, i).points
         samples[i] = pts[rng.choice(len(pts), min(ctx.params.graph.sample_points, len(pts)), replace=False)]
     placed = place_scans(len(ctx.scans), edges, samples, graph=ctx.params.graph, max_loop_m=ctx.params.verify.max_loop_m)
-    return [_with_truth(ctx, i, pl) for i, pl in enumerate(placed)]
+    return [_with_truth(ctx, i, _with_step_doubt(ctx, i, pl)) for i, pl in enumerate(placed)]
+
+
+def _with_step_doubt(ctx: StageContext, i: int, pl: Placement) -> Placement:
+    """A scan left unverified while its (or the reference's) angular step is a doubtful estimate: the
+    projection images were drawn at a guessed pixel size, so the step is the first thing to give."""
+    if pl.verdict == VERIFIED or ctx.params.prepare.angular_step_deg is not None:
+        return pl
+    doubtful = [ctx.scans[j] for j in dict.fromkeys((0, i)) if ctx.scans[j].step.low]
+    if not doubtful:
+        return pl
+    why = tuple(f"the angular step of {s.name}, {s.step.describe()}, is doubtful, so its projection images may "
+                "be distorted" for s in doubtful)
+    hint = "give the instrument's angular steps (--angular-step H V, or prepare.angular_step_deg in the Scans stage)"
+    reasons = pl.reasons + why
+    return replace(pl, reasons=reasons, message="; ".join(reasons), hint=f"{hint}; {pl.hint}" if pl.hint else hint)
 
 
 def _with_truth(ctx: StageContext, i: int, pl: Placement) -> Placement:

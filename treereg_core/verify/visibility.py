@@ -23,6 +23,7 @@ from __future__ import annotations
 import threading
 import weakref
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -51,17 +52,33 @@ class RangeImage:
         row = np.floor((beta_deg - self.beta0_deg) / self.cell_deg[1]).astype(np.int64)
         return col, row
 
-    def nearest(self, col: np.ndarray, row: np.ndarray) -> np.ndarray:
-        """Nearest range among the cells within `_REACH` of (col, row); inf where none has a return."""
-        out = np.full(len(col), np.inf)
+    @cached_property
+    def _reach(self) -> tuple[np.ndarray, np.ndarray]:
+        """The image with each cell holding the nearest range within `_REACH` of it (sorted keys,
+        ranges): made once, so a query is one lookup instead of one per neighbour (the free-space
+        test runs dozens of times per pair)."""
+        row, col = np.divmod(self.keys, self.n_cols)
+        keys, ranges = [], []
         for dc in range(-_REACH, _REACH + 1):
             for dr in range(-_REACH, _REACH + 1):
-                c = np.mod(col + dc, self.n_cols)
-                key = (row + dr) * self.n_cols + c
-                i = np.searchsorted(self.keys, key)
-                i = np.minimum(i, len(self.keys) - 1)
-                hit = (self.keys[i] == key) & (row + dr >= 0)
-                out = np.where(hit, np.minimum(out, self.ranges_m[i]), out)
+                keys.append((row - dr) * self.n_cols + np.mod(col - dc, self.n_cols))
+                ranges.append(self.ranges_m)
+        key, r = np.concatenate(keys), np.concatenate(ranges)
+        order = np.lexsort((r, key))
+        key, r = key[order], r[order]
+        first = np.r_[True, key[1:] != key[:-1]] if len(key) else np.zeros(0, bool)
+        return key[first], r[first]
+
+    def nearest(self, col: np.ndarray, row: np.ndarray) -> np.ndarray:
+        """Nearest range among the cells within `_REACH` of (col, row); inf where none has a return."""
+        keys, ranges = self._reach
+        out = np.full(len(col), np.inf)
+        if len(keys) == 0:
+            return out
+        key = row * self.n_cols + col
+        i = np.minimum(np.searchsorted(keys, key), len(keys) - 1)
+        hit = keys[i] == key
+        out[hit] = ranges[i[hit]]
         return out
 
 

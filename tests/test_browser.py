@@ -467,6 +467,12 @@ def test_the_tour_walks_the_stages(served, browser):
     context, page, _ = _open(browser, url)
     _close_toast(page)
     _wait_all_done(page)
+    # From the result, where the scans are drawn registered: the tour's first steps must show them
+    # apart again, each in its own frame (a redrawn scan frame once kept its registered pose).
+    _go(page, "13 Result")
+    expect(page.get_by_role("heading", name=re.compile("^13 Result"))).to_be_visible(timeout=60_000)
+    where = "() => window.__viserMutable.nodeRefFromName['/scans/s1']?.position.toArray()"
+    page.wait_for_function(f"() => {{ const p = ({where})(); return p && Math.hypot(...p) > 0.5; }}", timeout=60_000)
     page.get_by_role("tab", name="Teach").click()
     page.get_by_role("button", name="Start the tour", exact=True).click()
     for k, (stage, title) in enumerate((("1 Scans", "One tree, several stations"), ("2 Projection", "Rotating projection"),
@@ -474,6 +480,7 @@ def test_the_tour_walks_the_stages(served, browser):
         expect(page.get_by_role("heading", name=re.compile(f"Tour · step {k + 1} of \\d+: {title}"))).to_be_visible(timeout=60_000)
         expect(page.get_by_label("Stage", exact=True)).to_have_value(stage)
         expect(page.get_by_text("Try:", exact=False).first).to_be_visible()
+        page.wait_for_function(f"() => {{ const p = ({where})(); return p && Math.hypot(...p) < 1e-6; }}", timeout=60_000)
         _screenshot(page, f"tour_step{k + 1}")
         page.get_by_role("button", name="Next ▶", exact=True).click()
     expect(page.get_by_role("heading", name=re.compile("Tour · step 4 of"))).to_be_visible(timeout=60_000)

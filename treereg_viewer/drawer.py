@@ -154,8 +154,7 @@ class Drawer:
             # The scan layer: points change only with the scans, preparation and display options.
             key = scan_layer_key(snap, view)
             if self._keys.get("scans") != key:
-                self._replace("scans", [])
-                self._handles["scans"] = draw_scan_layer(scene, snap, view, residuals)
+                self._replace("scans", draw_scan_layer(scene, snap, view, residuals))
                 self._scan_frames = {
                     i: h for i, h in enumerate(h for h in self._handles["scans"] if _is_scan_frame(h))
                 }
@@ -175,9 +174,8 @@ class Drawer:
                    tuple(getattr(view, f) for f in fields))
             stage_changed = self._keys.get("stage") != key
             if stage_changed:
-                self._replace("stage", [])
                 handles, content = render_stage(scene, f"/{name}", snap, view)
-                self._handles["stage"] = handles
+                self._replace("stage", handles)
                 self._keys["stage"] = key
                 self._stage_content = content
             for k, g in self._groups.items():
@@ -185,8 +183,7 @@ class Drawer:
             # The cross-section: its 3-D marker and, in section mode, the panel.
             key = (id(cs), None if branch is None else branch.index, view.show_rejected, sectioning)
             if self._keys.get("section") != key:
-                self._replace("section", [])
-                self._handles["section"] = cross_section.draw_marker(scene, "/section", cs, branch) if sectioning else []
+                self._replace("section", cross_section.draw_marker(scene, "/section", cs, branch) if sectioning else [])
                 self._keys["section"] = key
             panel_key = ("section", key) if sectioning else ("stage", self._keys["stage"])
             if self._keys.get("panel") != panel_key:
@@ -202,8 +199,15 @@ class Drawer:
                  for b in evaluated_branches(snap, view.target)])
 
     def _replace(self, layer: str, handles: list[Any]) -> None:
-        # Remove the old nodes first: a new node may reuse an old name.
+        """`handles` (just drawn) take the place of the layer's old nodes. A node drawn again under its
+        old name has replaced it already, and viser then resets its pose in the browser too; removing
+        the old node first would not: an open tab would keep the old node's pose on the new one (the
+        scans stayed registered after stepping back to stage 1). Old nodes not drawn again are removed."""
+        kept = {getattr(h, "name", None) for h in handles}
         for h in reversed(self._handles.get(layer, [])):
+            name = getattr(h, "name", None)
+            if name in kept or any(k and k.startswith(f"{name}/") for k in kept):  # removal takes the children
+                continue
             try:
                 h.remove()
             except Exception:  # already removed with its parent

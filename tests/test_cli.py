@@ -28,7 +28,7 @@ def test_register_writes_transforms_close_to_truth(case_dir, tmp_path, capsys):
     merged = tmp_path / "res" / "merged.las"
     assert main(["register", *scans, "--out", str(out), "--exports", "--merged", str(merged)]) == 0
     tf = read_transforms(out)
-    assert tf.reference == "scan1.ply"
+    assert tf.reference == "scan1.ply" and tf.extra["pose"].startswith("placement")
     assert tf.params["fine"]["max_iterations"] >= 1  # the parameters used are recorded
     for scan, T_true in zip(case.scans[1:], case.T_ref_scan[1:]):
         T = tf.matrix(scan.name)
@@ -59,7 +59,7 @@ def test_register_until_coarse_and_paper_preset(case_dir, tmp_path):
     # Stopped before verification: the coarse transform is a best guess, not a result to trust.
     assert code == 1
     tf = read_transforms(out)
-    assert tf.extra["stage"] == "coarse" and list(tf.transforms) == ["scan1.ply"]
+    assert tf.extra["stage"] == "coarse" and tf.extra["pose"].startswith("coarse") and list(tf.transforms) == ["scan1.ply"]
     assert "scan2.ply" in tf.extra["unverified"] and "before verification" in tf.extra["unverified"]["scan2.ply"]["why"][0]
     # The paper's literal settings: on this case its SVD over 15 ties is kept (enough agree), as a best guess.
     paper_out = tmp_path / "paper.json"

@@ -644,6 +644,10 @@ def test_fits_hide_rejected_ones_and_never_draw_one_larger_than_its_slice(env):
     # The table: accepted first, numbered from 1, no NaN; picking a row frames it and cuts there.
     rows = [line for line in app.panel.table.splitlines() if line.startswith("| ") and "| yes |" in line or "| no:" in line]
     assert rows and "| yes |" in rows[0]
+    # "yes" = used: a plausible fit with a partner in the other scan, not merely plausible.
+    used = sum("| yes |" in line for line in app.panel.table.splitlines())
+    n_pairs = app.controller.snapshot.output("sections").items[app.view.target].n_pairs
+    assert 0 < used <= 2 * n_pairs, (used, n_pairs)
     options = app.stages.view_controls["focus_sections"].options
     assert options[0] == "(none)" and options[1].startswith("#1: ")
     app.stages.view_controls["focus_sections"].value = options[1]

@@ -31,7 +31,7 @@ class ExportPanel:
         with gui.add_folder("Export"):
             where = f" They are also written to `{app.out_dir}`." if app.out_dir else ""
             gui.add_markdown(
-                "The transforms `T_ref_scan` of the latest run (fine where it ran, else coarse) with the "
+                "The transforms `T_ref_scan` of the latest run: each scan's final placement (*11 Placement*: all scans solved together from the verified fine registrations; only coarse if that is all that ran), with the "
                 "parameters used; CloudCompare matrix text per scan; the PDAL matrix string; the merged "
                 f"registered cloud, each point tagged with its scan. A click starts the download.{where}"
             )

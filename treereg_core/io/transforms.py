@@ -337,6 +337,10 @@ def registration_file(scans: Sequence[Scan], transforms: dict[str, np.ndarray], 
         if verdict != "verified" and s is not scans[0]:
             unverified[s.name] = {"matrix": np.asarray(T, dtype=float), "why": list(reasons)}
     extra: dict[str, Any] = {"stage": stage}
+    # Which pose the matrices are: "fine" runs on to the placement, where every scan is solved from the
+    # verified fine pairs together (not each pair's own fine result, which the app shows beside it).
+    extra["pose"] = {"fine": "placement (all scans solved together from the verified fine registrations)",
+                     "coarse": "coarse (each scan's pair with the reference)"}.get(stage, stage)
     if seconds is not None:
         extra["seconds"] = round(float(seconds), 3)
     extra["angular_step_deg"] = {s.name: list(s.angular_step_deg) for s in scans}

@@ -19,7 +19,7 @@ from ..controller import Snapshot
 from ..palette import KEPT, REJECTED, hex_color
 from ..view_panel import PanelContent
 from ..view_state import ViewState
-from .common import item_message, metrics_table, pair_label, target_index, title
+from .common import item_message, metrics_table, pair_label, plural, target_index, title
 
 
 def inlier_threshold(c: Any, p: Any) -> float:
@@ -87,7 +87,14 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
             f"{root}/ties", segs, np.repeat(colors[:, None, :], 2, axis=1), thickness=1.5, thickness_units="screen"))
         handles.append(scene.add_point_cloud(f"{root}/inlier_ties", ref[inl], KEPT, point_size=0.05,
                                              point_shape="circle", precision="float32"))
-        plots.append((residual_figure(c, inlier_threshold(c, snap.params.coarse)), 1.6))
+        threshold = inlier_threshold(c, snap.params.coarse)
+        plots.append((residual_figure(c, threshold), 1.6))
+        res = np.asarray(c.residuals_m, dtype=float)
+        across = int(np.count_nonzero((res < threshold) != inl))
+        if across:  # say why bars sit on the "wrong" side of the line, before a user has to ask
+            text += (f" {plural(across, 'tie point')} {'lies' if across == 1 else 'lie'} on the other side of the inlier "
+                     "distance in the histogram: RANSAC chose the inliers, then the transform was refitted on them, "
+                     "which moved their residuals a little.")
     table = metrics_table({pair_label(snap, i): it.metrics for i, it in enumerate(out.items)})
     return handles, PanelContent(title("coarse", snap, t), text=text, plots=tuple(plots), table=table)
 

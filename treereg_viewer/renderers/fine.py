@@ -112,9 +112,10 @@ def render_arcs(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewStat
     ref, tgt = _scans(snap, t)
     handles, counts = _arc_points(scene, root, ar, target_pose(snap, "hypothesis", t), ref, tgt, 2.0 * view.point_size)
     rows = [(k + 1, f"{sl.heights_m[k]:.2f}" if k < len(sl.heights_m) else "", *c) for k, c in enumerate(counts)]
-    text = ("Each colour is one arc (connected component in the scan's own angular grid, "
-            f"c = {snap.params.arcs.connectivity:g}); grey points belong to arcs smaller than "
-            f"{snap.params.arcs.min_points} points. The target is at its coarse pose.")
+    text = ("Colours tell the arcs of a slice apart (an arc: a connected component in the scan's own angular "
+            f"grid, c = {snap.params.arcs.connectivity:g}; the same colour recurs from slice to slice); grey "
+            f"points belong to arcs smaller than {snap.params.arcs.min_points} points. The target is at the pose "
+            "the fine stage starts from (5 Hypotheses).")
     table = md_table(("slice", "height (m)", f"arcs in {snap.scans[0].name}", f"arcs in {snap.scans[t + 1].name}"), rows)
     table += "\n\n" + metrics_table({pair_label(snap, t): ar.metrics})
     return handles, PanelContent(title("arcs", snap, t), text=text, table=table)
@@ -241,10 +242,14 @@ def draw_sections(scene: viser.SceneApi, root: str, snap: Snapshot, t: int, sl: 
                                              point_size=0.05, point_shape="circle", precision="float32"))
         handles.append(scene.add_point_cloud(f"{root}/ties_tgt", np.asarray(sec.tie_points_tgt), scan_color(t + 1),
                                              point_size=0.05, point_shape="circle", precision="float32"))
+    # A plausible fit counts only when a section of the other scan corresponds to it.
+    pairs = np.asarray(sec.correspondences.pairs, dtype=np.int64).reshape(-1, 2)
+    paired = ({id(sec.ref.sections[i]) for i in pairs[:, 0]} | {id(sec.tgt.sections[j]) for j in pairs[:, 1]})
     table_rows = []
     for r in rows:
         s, fit = r.section, r.section.fit
-        verdict = "yes" if s.plausible else f"no: {s.reason}"
+        verdict = (("yes" if id(s) in paired else "plausible, no partner") if s.plausible
+                   else f"no: {s.reason}")
         if not drawable(r):
             verdict += " (larger than its slice: not drawn)"
         mark = "▶ " if focus is r else ""
@@ -278,7 +283,7 @@ def render_sections(scene: viser.SceneApi, root: str, snap: Snapshot, view: View
     sl: SliceResult = snap.output("slices").items[t]
     ref, tgt = _scans(snap, t)
     handles, table, _ = draw_sections(scene, root, snap, t, sl, sec, ref, tgt, view)
-    text = (sections_sentence(sec.n_pairs, len(sec.tie_points_ref), "coarse") + " Only accepted fits are drawn, in "
+    text = (sections_sentence(sec.n_pairs, len(sec.tie_points_ref), "starting") + " Only accepted fits are drawn, in "
             "their scan's colour; only the sliced points are shown with them. Pick a row under *Frame a fit* (Stage "
             "tab) or click a fit in 3-D to look at it closely.")
     if sec.message:

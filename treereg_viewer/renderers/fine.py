@@ -302,6 +302,12 @@ def fine_status(snap: Snapshot, t: int, f: Any) -> str:
         text = f"{pair_label(snap, t)}: the coarse transform **stands** ({plural(n, 'fine iteration')} tried)."
     if f.message:
         text += f" {f.message[0].upper()}{f.message[1:]}."
+    fp = snap.params.fine
+    last = next((m.value for m in f.metrics if m.description == "fine update (last iteration)"), None)
+    if n >= fp.max_iterations and isinstance(last, (int, float)) and last > fp.tolerance_m:
+        # Not converged: said, so that a capped run is not read as a settled one.
+        text += (f" It stopped at the iteration limit (fine.max_iterations = {fp.max_iterations}) with the last update "
+                 f"still {last * 1000:.1f} mm (fine.tolerance_m = {fp.tolerance_m * 1000:g} mm).")
     return text
 
 

@@ -20,7 +20,7 @@ from ..controller import Snapshot
 from ..palette import GREY, hex_color, scan_color
 from ..view_panel import PanelContent
 from ..view_state import ViewState
-from .common import display_subset, md_table, metrics_table, pair_label, target_index, title
+from .common import display_subset, md_table, metrics_table, pair_label, plural, target_index, title
 
 #: How each verdict reads in the app.
 BADGE = {"verified": "✓ verified", "unverified": "⚠ unverified", "failed": "✗ failed"}
@@ -53,6 +53,11 @@ def render_hypotheses(scene: viser.SceneApi, root: str, snap: Snapshot, view: Vi
                 f"{h.runner_up or 'none'}, is {h.margin:.3f} less consistent. Grey: the rivals at their polished "
                 "poses. Consistency: the share of the points both stations see that lie where the reference saw a "
                 "surface, not in space its laser passed through.")
+        c = snap.output("coarse").items[t] if snap.output("coarse") is not None else None
+        weak = [n for _, n in getattr(c, "modes", ())[1:] if n < snap.params.hypotheses.min_mode_support]
+        if weak:  # the coarse stage counts every mode: say where the missing ones went
+            text += (f" Not scored: {plural(len(weak), 'further RANSAC mode')} with fewer than "
+                     f"{snap.params.hypotheses.min_mode_support} agreeing ties (hypotheses.min_mode_support).")
     table = md_table(("hypothesis", "tie support", "consistency", "seen by both", "in free space"), rows)
     return handles, PanelContent(title("hypotheses", snap, t), text=text, table=table)
 

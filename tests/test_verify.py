@@ -232,3 +232,37 @@ def test_a_hypothesis_picked_by_hand_becomes_the_result_and_says_so(case):
     pipe.choose("scan2.ply -> scan1.ply", None)
     pipe.run("graph")
     assert pipe.output("hypotheses").items[0].chosen == "coarse" and pipe.verdicts()["scan2.ply"][0] == VERIFIED
+
+
+# ---- symmetric crowns ------------------------------------------------------------------------------
+@pytest.mark.parametrize("fold", [3, 4])
+def test_a_crown_alike_from_several_headings_is_never_verified_at_a_wrong_one(fold):
+    """A trunk with identical branches every 360/fold degrees: the scans cannot tell their heading
+    apart by a turn of that much, so a registration is right only by luck. Every scan must end
+    refused, or verified and right (threefold symmetry was once verified 120 deg off: the turned
+    candidates turned about the centroid of one side, not about the stem)."""
+    from treereg_core.simulate.symmetric import symmetric_case
+
+    scans, truth = symmetric_case(fold)
+    pipe = Pipeline(scans, Params())
+    pipe.run("graph")
+    verdicts, T = pipe.verdicts(), pipe.transforms()
+    for s in scans[1:]:
+        verdict, reasons, _ = verdicts[s.name]
+        right = s.name in T and mean_displacement(T[s.name], truth[s.name], s.points) < 0.03
+        assert verdict != VERIFIED or right, (s.name, verdict)
+        if verdict != VERIFIED:
+            assert any("the heading is ambiguous" in r or "loop" in r for r in reasons), reasons
+
+
+def test_the_same_crown_with_its_symmetry_broken_registers_and_verifies():
+    """The control: each branch turned at random by up to 40 deg, the heading is determined again."""
+    from treereg_core.simulate.symmetric import symmetric_case
+
+    scans, truth = symmetric_case(4, whorl_jitter_deg=40.0, seed=1)
+    pipe = Pipeline(scans, Params())
+    pipe.run("graph")
+    verdicts, T = pipe.verdicts(), pipe.transforms()
+    for s in scans[1:]:
+        assert verdicts[s.name][0] == VERIFIED, verdicts[s.name]
+        assert mean_displacement(T[s.name], truth[s.name], s.points) < 0.01

@@ -126,7 +126,7 @@ class HypothesesParams:
     """Competing pose hypotheses: RANSAC's distinct modes and quarter turns, polished and scored by the surfaces."""
 
     enabled: bool = _f(True, "", "score competing hypotheses and start the fine stage from the one the surfaces prefer (off: RANSAC's transform, as the paper)")
-    turns: bool = _f(True, "", "also try the coarse transform turned about the tree by 90, 180 and 270 deg (a round crown looks alike from several headings)")
+    turns: bool = _f(True, "", "also try the coarse transform turned about the tree's stem by 90, 120, 180, 240 and 270 deg (a crown with two-, three- or fourfold symmetry looks alike from several headings)")
     min_mode_support: int = _f(6, "ties", "a distinct RANSAC mode is a candidate when this many ties agree with it", lo=3, hi=100000)
     polish_gate_m: float = _f(0.02, "m", "each candidate is aligned by the surfaces down to this pairing distance", lo=0.001, hi=1.0)
     polish_iterations: int = _f(5, "", "iterations of that alignment at each pairing distance (10 cm, 5 cm, final)", lo=1, hi=200)

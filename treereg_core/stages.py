@@ -104,8 +104,19 @@ def _run_hypotheses(ctx: StageContext) -> list[Any]:
         tgt = _scan(ctx, p.tgt)
         return score_hypotheses(scan_range_image(_station(ctx, p.ref), hp.cell_steps), _surface(ctx, p.ref),
                                 _surface(ctx, p.tgt, hp.polish_points), tgt.points, c.T_ref_target, list(c.modes),
-                                hypotheses=hp, choose=ctx.choices.get(_label(ctx, k)))
+                                hypotheses=hp, choose=ctx.choices.get(_label(ctx, k)), axis_xy=_stem_xy(ctx, p.tgt))
     return ctx.each(one, lambda k: _label(ctx, k))
+
+
+def _stem_xy(ctx: StageContext, i: int) -> np.ndarray | None:
+    """Scan i's stem at breast height (its frame): the found stem nearest to its points' centroid,
+    when within 2 m of it; None when none was found."""
+    prep = ctx.item("prepare", i)
+    stems = getattr(prep, "stems", None)
+    if prep is None or stems is None or len(stems) == 0:
+        return None
+    d = np.hypot(*(stems[:, :2] - prep.scan.points[:, :2].mean(axis=0)).T)
+    return stems[int(d.argmin()), :2] if d.min() <= 2.0 else None
 
 
 def _start(ctx: StageContext, k: int) -> Any:

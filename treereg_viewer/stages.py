@@ -79,7 +79,7 @@ VIEWS: dict[str, StageView] = {
     "hypotheses": StageView(
         "hypothesis", controls=("target", "hypothesis"),
         explanation="A nearly round crown looks alike from several headings: RANSAC's winner can be the wrong one. "
-        "So every distinct RANSAC solution and the coarse transform turned about the tree by quarter turns are "
+        "So every distinct RANSAC solution and the coarse transform turned about the stem by quarter, third and half turns are "
         "each aligned cheaply by the surfaces and judged by what the reference scanner saw: a target point lying "
         "where the reference's laser passed through empty space speaks against the pose (grey: the rivals). The "
         "most consistent pose goes on to the fine stage; the margin to the best distinct rival says how sure "

@@ -79,7 +79,7 @@ STEPS: tuple[TourStep, ...] = (
     TourStep(
         "hypotheses", "Could it be another heading?",
         "A nearly round crown looks alike from several sides, so the best coarse match can be a wrong heading. "
-        "treereg keeps every distinct RANSAC solution and the coarse pose turned by quarter turns, aligns each "
+        "treereg keeps every distinct RANSAC solution and the coarse pose turned about the stem (quarter, third and half turns), aligns each "
         "cheaply and asks the reference scanner: a target point where its laser passed through empty space "
         "speaks against the pose.",
         "Read the table: the margin between the chosen pose and its best rival. Pick another under *Use "

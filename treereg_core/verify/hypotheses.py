@@ -3,7 +3,7 @@
 A nearly round crown looks alike from several headings: the coarse stage's ties then split between
 transforms, and RANSAC's winner can be the wrong one. So the candidates are RANSAC's distinct modes
 (other headings, other trunk positions) and, whatever RANSAC found, the best transform turned about
-the tree's vertical axis by quarter turns: the question "would another heading explain the scans
+the tree's vertical axis by turns about its axis: the question "would another heading explain the scans
 as well?" is always asked. Each candidate goes through a cheap fine step (a point-to-plane
 alignment of the target's surface to the reference's, the pairing gate narrowing from 10 cm) and
 is scored by the free-space test (`visibility`): points both stations see in the same place count
@@ -23,8 +23,9 @@ from ..params import HypothesesParams
 from ..results import Metric
 from .visibility import RangeImage, Visibility, visibility
 
-#: Quarter turns about the tree tried against the coarse transform, whatever RANSAC found.
-TURNS_DEG = (90.0, 180.0, 270.0)
+#: Turns about the tree's axis tried against the coarse transform, whatever RANSAC found: a crown
+#: with two-, three- or fourfold symmetry looks alike after one of them.
+TURNS_DEG = (90.0, 120.0, 180.0, 240.0, 270.0)
 #: Points of the target scored per candidate (a seeded subset: the score needs no more).
 SCORE_POINTS = 20_000
 #: The cheap fine step's pairing gates before its final one (the full fine stage uses more).
@@ -92,15 +93,18 @@ def _distinct(a: np.ndarray, b: np.ndarray, centre: np.ndarray, deg: float, m: f
 
 
 def candidate_starts(T_best: np.ndarray, modes: list[tuple[np.ndarray, int]], tgt_points: np.ndarray,
-                     p: HypothesesParams) -> list[tuple[str, np.ndarray, int]]:
+                     p: HypothesesParams, axis_xy: np.ndarray | None = None) -> list[tuple[str, np.ndarray, int]]:
     """(label, start transform, tie support) of every hypothesis: RANSAC's best, its distinct
-    runners-up with enough support, and the best turned by quarter turns about the tree's vertical
-    axis (through the target's centroid, where the tree stands)."""
+    runners-up with enough support, and the best turned about the tree's vertical axis: through the
+    target's stem (`axis_xy`, target frame) when one was found, else its centroid. About the stem,
+    a turn that maps a symmetric crown onto itself starts where the symmetric pose is; about the
+    centroid of the one side a station sees it would start tens of centimetres off."""
     out = [("coarse", np.asarray(T_best, dtype=float), modes[0][1] if modes else 0)]
     for k, (T, n) in enumerate(modes[1:], start=2):
         if n >= p.min_mode_support:
             out.append((f"RANSAC mode {k}", np.asarray(T, dtype=float), n))
-    c = apply_transform(T_best, tgt_points).mean(axis=0)
+    c = (apply_transform(T_best, np.array([[axis_xy[0], axis_xy[1], 0.0]]))[0] if axis_xy is not None
+         else apply_transform(T_best, tgt_points).mean(axis=0))
     for deg in TURNS_DEG if p.turns else ():
         R = rotation_z(deg)
         out.append((f"turned {deg:.0f}°", make_transform(R, c - R @ c) @ T_best, 0))
@@ -109,9 +113,11 @@ def candidate_starts(T_best: np.ndarray, modes: list[tuple[np.ndarray, int]], tg
 
 def score_hypotheses(ref_image: RangeImage, ref_surf: Surface, tgt_surf: Surface, tgt_points: np.ndarray,
                      T_best: np.ndarray, modes: list[tuple[np.ndarray, int]], *,
-                     hypotheses: HypothesesParams, choose: str | None = None) -> HypothesesResult:
+                     hypotheses: HypothesesParams, choose: str | None = None,
+                     axis_xy: np.ndarray | None = None) -> HypothesesResult:
     """Polish every candidate with the surfaces and score it against the reference's view. `choose`
-    names a candidate the user picked: it wins whatever the scores (and says so).
+    names a candidate the user picked: it wins whatever the scores (and says so). `axis_xy`: the
+    target's stem (its frame), which the turned candidates turn about.
 
     A candidate keeps the better of its start and its polished pose: the cheap alignment can drift
     by a few centimetres on a pose that was right already, and must not cost it the comparison.
@@ -121,7 +127,7 @@ def score_hypotheses(ref_image: RangeImage, ref_surf: Surface, tgt_surf: Surface
     pts = tgt_points if len(tgt_points) <= SCORE_POINTS else tgt_points[rng.choice(len(tgt_points), SCORE_POINTS, replace=False)]
     centre = pts.mean(axis=0)
     cands = []
-    for label, T0, n in candidate_starts(T_best, modes, pts, p):
+    for label, T0, n in candidate_starts(T_best, modes, pts, p, axis_xy):
         c = apply_transform(T0, tgt_surf.points).mean(axis=0)
         T = align_narrowing(ref_surf, tgt_surf, T0, c, np.eye(6), p.polish_gate_m, p.polish_iterations, p.loss_scale_m,
                             gates_m=POLISH_GATES_M, gate_iterations=p.polish_iterations)

@@ -15,8 +15,10 @@ Prints markdown tables:
 5. the time of `treereg register` on 3 and 6 scans of ~300k points against a baseline revision.
 
 Families: the seeded benchmark set (`simulate.benchmark_cases`, a third awkward); two different
-trees of look-alike height (within 15%); three stations where the third sees another tree; leaf-on
-crowns (the simulator's leaves, and stations from rtls_pc_tree.xyz); six stations around one tree.
+trees of look-alike height (within 15%); three stations where the third sees another tree; crowns
+alike after a half, third or quarter turn and the same with their symmetry broken
+(`simulate.symmetric`); leaf-on crowns (the simulator's leaves, and stations from rtls_pc_tree.xyz);
+six stations around one tree. `--families` runs some of them.
 
     python benchmarks/bench_verify.py                 # full run
     python benchmarks/bench_verify.py --n 3 --small --real-seeds 1 --no-timing   # quick look
@@ -260,6 +262,24 @@ def multi_table(cases: list[tuple[str, SimulatedCase]], params: Params) -> tuple
     return table, outcomes
 
 
+#: The families of cases (`--families`).
+FAMILIES = ("benchmark", "different", "intruder", "symmetric", "leaf-on", "six")
+
+
+def symmetric_crowns(n: int, seed: int):
+    """Crowns alike after a half, third or quarter turn (`simulate.symmetric`): a registration is
+    right only by luck and must not be verified at a wrong heading; and the same crowns with their
+    symmetry broken (each branch turned by up to 40 deg), which must register and verify."""
+    from treereg_core.simulate.symmetric import symmetric_case
+
+    for fold in (2, 3, 4):
+        for k in range(n):
+            scans, truth = symmetric_case(fold, seed=seed + k)
+            yield "symmetric crowns", f"{fold}-fold s{seed + k}", scans, truth
+            scans, truth = symmetric_case(fold, whorl_jitter_deg=40.0, seed=seed + k)
+            yield "symmetry broken (control)", f"{fold}-fold jittered s{seed + k}", scans, truth
+
+
 def _register_seconds(python_path: Path, files: list[Path], out: Path) -> float:
     env = dict(os.environ, PYTHONPATH=str(python_path))
     t0 = time.perf_counter()
@@ -296,24 +316,29 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--baseline", default="HEAD~1", help="revision whose `treereg register` times are the baseline")
     ap.add_argument("--different", type=int, default=8, help="pairs of different trees")
     ap.add_argument("--multi", type=int, default=3, help="cases of six stations")
+    ap.add_argument("--symmetric", type=int, default=2, help="cases per symmetry (2-, 3-, 4-fold crowns) and controls")
+    ap.add_argument("--families", nargs="*", default=list(FAMILIES), choices=list(FAMILIES), help="which families to run")
     a = ap.parse_args(argv)
     report = Report()
     say = report.say
     params = PRESETS["robust"]
     rows: list[Outcome] = []
-    for i, spec in enumerate(benchmark_cases(a.n, a.seed, small=a.small)):
+    fam = set(a.families)
+    for i, spec in enumerate(benchmark_cases(a.n, a.seed, small=a.small) if "benchmark" in fam else ()):
         case = spec.build(None)
         rows += run("benchmark set", f"c{i:02d}", list(case.scans), case.truth(), params)[0]
         print(f"  case {i + 1}/{a.n} done", file=sys.stderr, flush=True)
-    for label, scans, truth in different_trees(a.different, a.seed):
+    for label, scans, truth in different_trees(a.different, a.seed) if "different" in fam else ():
         rows += run("different trees", label, scans, truth, params)[0]
-    for label, scans, truth in intruders(max(1, a.different // 2), a.seed):
+    for label, scans, truth in intruders(max(1, a.different // 2), a.seed) if "intruder" in fam else ():
         rows += run("third station sees another tree", label, scans, truth, params)[0]
+    for family, label, scans, truth in symmetric_crowns(a.symmetric, a.seed) if "symmetric" in fam else ():
+        rows += run(family, label, scans, truth, params)[0]
     leaf_rows: list[Outcome] = []
-    for label, scans, truth in leaf_on(a.real_seeds, a.seed, a.real_step):
+    for label, scans, truth in leaf_on(a.real_seeds, a.seed, a.real_step) if "leaf-on" in fam else ():
         leaf_rows += run("leaf-on crowns", label, scans, truth, params)[0]
     rows += leaf_rows
-    multi, multi_rows = multi_table(multi_station(a.multi, a.seed), params)
+    multi, multi_rows = multi_table(multi_station(a.multi, a.seed), params) if "six" in fam else ("Not run.", [])
     rows += multi_rows
 
     say("## Verification: confusion table (`treereg register`'s path to the placement)")

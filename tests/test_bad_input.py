@@ -26,6 +26,7 @@ import numpy as np
 import pytest
 import viser
 
+from conftest import rss_mb
 from treereg_cli.main import main
 from treereg_core import params as P
 from treereg_core.demo import DEMO_DIR
@@ -493,24 +494,6 @@ def test_app_angular_step_field_takes_only_physical_values_and_shows_the_one_in_
 
 
 # ---- in a real browser -------------------------------------------------------------------------------------
-def rss_mb(pid: int) -> float:
-    """Resident memory of a process, MB (from /proc)."""
-    return int(re.search(r"VmRSS:\s+(\d+)", Path(f"/proc/{pid}/status").read_text()).group(1)) / 1024
-
-
-@pytest.fixture(scope="module")
-def browser():
-    from conftest import CHROMIUM, CHROMIUM_ARGS
-
-    pw = pytest.importorskip("playwright.sync_api")
-    if not CHROMIUM.exists():
-        pytest.skip(f"{CHROMIUM} is not installed")
-    with pw.sync_playwright() as p:
-        b = p.chromium.launch(executable_path=str(CHROMIUM), headless=True, args=CHROMIUM_ARGS)
-        yield b
-        b.close()
-
-
 @pytest.fixture(scope="module")
 def served(browser):
     """`treereg view --port 0` on the demo, as a user starts it; yields (url, process)."""

@@ -25,7 +25,7 @@ import pytest
 pytestmark = pytest.mark.browser
 
 playwright_api = pytest.importorskip("playwright.sync_api")
-from conftest import CHROMIUM, CHROMIUM_ARGS  # noqa: E402
+from conftest import CHROMIUM  # noqa: E402
 
 if not CHROMIUM.exists():
     pytest.skip(f"{CHROMIUM} is not installed", allow_module_level=True)
@@ -37,7 +37,6 @@ from treereg_core.demo import DEMO_DIR  # noqa: E402
 from treereg_viewer.palette import scan_color  # noqa: E402
 
 REPO = Path(__file__).resolve().parent.parent
-LAUNCH_ARGS = CHROMIUM_ARGS
 ROT_TOL_DEG = 0.5
 DISP_TOL_M = 0.03
 #: Screenshots are saved here for people (and the README) to look at.
@@ -72,14 +71,6 @@ def served(tmp_path_factory):
         proc.wait(timeout=10)
     except subprocess.TimeoutExpired:
         proc.kill()
-
-
-@pytest.fixture(scope="module")
-def browser():
-    with playwright_api.sync_playwright() as p:
-        b = p.chromium.launch(executable_path=str(CHROMIUM), headless=True, args=LAUNCH_ARGS)
-        yield b
-        b.close()
 
 
 def _open(browser, url, scene=True):

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import pytest
 
-from conftest import CHROMIUM, CHROMIUM_ARGS
+from conftest import rss_mb
 from treereg_core.demo import DEMO_DIR
 
 pytestmark = [pytest.mark.soak, pytest.mark.browser]
@@ -39,10 +39,6 @@ MEMORY_GROWTH = 0.20
 #: Parameters of a cheap run (one fine iteration, no ICP, a short evaluation).
 LIGHT = {"matching": {"n_pairs": 3}, "fine": {"max_iterations": 1}, "icp": {"enabled": False},
          "evaluation": {"max_branches": 2, "layers": 1}, "acceptance": {"select": False}, "surface": {"refine": False}}
-
-
-def _rss_mb(pid: int) -> float:
-    return int(re.search(r"VmRSS:\s+(\d+)", Path(f"/proc/{pid}/status").read_text()).group(1)) / 1024
 
 
 def _body(page) -> str:
@@ -95,17 +91,6 @@ class Cycle:
         self.state, self.since = state, time.monotonic()
 
 
-@pytest.fixture(scope="module")
-def browser():
-    pw = pytest.importorskip("playwright.sync_api")
-    if not CHROMIUM.exists():
-        pytest.skip(f"{CHROMIUM} is not installed")
-    with pw.sync_playwright() as p:
-        b = p.chromium.launch(executable_path=str(CHROMIUM), headless=True, args=CHROMIUM_ARGS)
-        yield b
-        b.close()
-
-
 def test_five_tabs_and_upload_cycles_leave_the_server_answering_and_flat(browser, tmp_path):
     from playwright.sync_api import expect
 
@@ -153,7 +138,7 @@ def test_five_tabs_and_upload_cycles_leave_the_server_answering_and_flat(browser
         while cycle.done < 1:
             cycle.step()
             first.wait_for_timeout(200)
-        baseline = _rss_mb(proc.pid)
+        baseline = rss_mb(proc.pid)
         peak = baseline
         t0 = time.monotonic()
         actions = 0
@@ -167,7 +152,7 @@ def test_five_tabs_and_upload_cycles_leave_the_server_answering_and_flat(browser
                 if cycle.done < CYCLES:
                     cycle.step()
             first.wait_for_timeout(100 if time.monotonic() - t0 < STEPPING_S else 300)
-            peak = max(peak, _rss_mb(proc.pid))
+            peak = max(peak, rss_mb(proc.pid))
         busy_s = time.monotonic() - t0
         # Every tab still answers, and the server is back where it started.
         for k, page in enumerate(pages):  # a step in each tab comes back from the server to it
@@ -179,7 +164,7 @@ def test_five_tabs_and_upload_cycles_leave_the_server_answering_and_flat(browser
             except AssertionError:
                 raise AssertionError(f"tab {k} does not answer:\n{_body(page)[:2000]}\n{''.join(log)[-3000:]}") from None
         pages[0].wait_for_timeout(2000)
-        final = _rss_mb(proc.pid)
+        final = rss_mb(proc.pid)
         text = pages[0].evaluate("() => document.body.innerText")
         errors = [ln for ln in text.splitlines() if "Internal error" in ln or "failed:" in ln]
         assert not errors and "3: extra.ply" not in text, (errors, "".join(log)[-5000:])

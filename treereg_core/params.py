@@ -471,7 +471,7 @@ def _coerce(key: str, fld: dataclasses.Field, value: Any) -> Any:
                 out = tuple(_element(t, v) for t, v in zip(elem, seq))
             bad = [v for v in out if isinstance(v, float) and not math.isfinite(v)]
             if bad:
-                raise ConfigError(f"{key}: {format_value(bad[0])} is not a finite number")
+                raise ConfigError(f"{key}: {bad[0]:g} is not a finite number")
             _check_range(key, out, meta)
         else:
             out = value
@@ -494,17 +494,6 @@ def _check_range(key: str, values: tuple[Any, ...], meta: Any) -> None:
             allowed = f"{lo:g} to {hi:g}{unit}" if lo is not None and hi is not None else \
                 f"at least {lo:g}{unit}" if lo is not None else f"at most {hi:g}{unit}"
             raise ConfigError(f"{key}: {v:g}{unit} is outside the allowed range ({allowed})")
-
-
-def format_value(value: Any) -> str:
-    """A parameter value as a person writes it: 0.001, 1e-09, (0.1, 0.1) -> '0.1, 0.1', None -> 'none'."""
-    if value is None:
-        return "none"
-    if isinstance(value, tuple):
-        return ", ".join(format_value(v) for v in value)
-    if isinstance(value, float):
-        return f"{value:g}"
-    return str(value)
 
 
 def _element(typ: type, v: Any) -> Any:

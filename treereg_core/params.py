@@ -218,6 +218,16 @@ class SurfaceParams:
 
 
 @dataclass(frozen=True)
+class WindParams:
+    """Wind between the stations: the crown's motion estimated with the pose, as a nuisance."""
+
+    enabled: bool = _f(True, "", "when the crowns do not line up rigidly, fit the stem's bend between the stations (a cantilever: nothing at the base, the most at the top) with the pose")
+    min_sway_m: float = _f(0.02, "m", "a bend is fitted only when the stem top moved at least this much between the stations", lo=0.0, hi=10.0)
+    significance: float = _f(3.0, "", "...and by this many times its own noise", lo=0.0, hi=100.0)
+    stable_tolerance_m: float = _f(0.003, "m", "the stem 'stands where the reference's did' up to the height where the two differ by more than this", lo=0.0001, hi=1.0)
+
+
+@dataclass(frozen=True)
 class AcceptanceParams:
     """Fine pose: which candidate pose ends the stage, and whether it is kept at all."""
 
@@ -243,6 +253,7 @@ class VerifyParams:
     max_tilt_deg: float = _f(5.0, "deg", "plausibility: the transform tilts the target's scanner at most this much (scanners stand nearly level)", lo=0.0, hi=180.0)
     max_height_difference_m: float = _f(1.0, "m", "plausibility: both scanners' heights above the ground differ at most this much (when both see ground)", lo=0.0, hi=100.0)
     max_loop_m: float = _f(0.02, "m", "with 3 or more scans: loops of pairwise transforms close within this (mean displacement of the tree)", lo=0.0, hi=10.0)
+    max_motion_m: float = _f(0.1, "m", "wind: with the stem's bend taken out, the branches may still have moved this much on their own between the stations (beyond it the motion cannot be told from a wrong pose)", lo=0.0, hi=1.0)
 
 
 @dataclass(frozen=True)
@@ -300,6 +311,7 @@ class Params:
     fine: FineParams = field(default_factory=FineParams)
     joint: JointParams = field(default_factory=JointParams)
     surface: SurfaceParams = field(default_factory=SurfaceParams)
+    wind: WindParams = field(default_factory=WindParams)
     acceptance: AcceptanceParams = field(default_factory=AcceptanceParams)
     verify: VerifyParams = field(default_factory=VerifyParams)
     graph: GraphParams = field(default_factory=GraphParams)
@@ -353,6 +365,7 @@ def _paper() -> Params:
                         taper_check=True, taper_tolerance=0.0, min_arc_deg=0.0, max_rms_m=1.0),
         fine=replace(p.fine, method="ties", estimator="svd", max_iterations=1, gate_factor=None),
         acceptance=replace(p.acceptance, test=False),
+        wind=replace(p.wind, enabled=False),
         hypotheses=replace(p.hypotheses, enabled=False),
         icp=replace(p.icp, method="point_to_point"),
     )

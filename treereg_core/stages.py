@@ -23,7 +23,7 @@ from .fine.arcs import SliceArcs, separate_scan_slices, separate_slices
 from .fine.pose import FINE_SECTIONS, FineResult, FineStart, register_fine
 from .fine.sections import SectionsResult, fit_scan_sections, fit_sections
 from .fine.slicing import SliceResult, slice_scans
-from .fine.surface import scan_surface
+from .fine.surface import scan_surface, surface_of
 from .geometry.rigid import invert, mean_displacement, rotation_error_deg
 from .prepare.ground import PreparedScan, prepare_scans
 from .prepare.resolution import working_resolution
@@ -173,10 +173,16 @@ def _run_verify(ctx: StageContext) -> list[Any]:
     def one(k: int) -> PairVerification:
         p, f = ctx.pairs[k], ctx.item("fine", k)
         tgt = _scan(ctx, p.tgt)
+        # With wind, the surfaces compared are the target's unbent (as the reference's tree stood).
+        tgt_surf = (_surface(ctx, p.tgt, SURFACE_SAMPLE) if f.bend is None else
+                    surface_of(f.bend.warp(tgt, f.T_ref_target).points, ctx.params.surface.voxel_m, SURFACE_SAMPLE))
         e = gather_evidence(scan_range_image(_station(ctx, p.ref), hp.cell_steps), _surface(ctx, p.ref),
-                            _surface(ctx, p.tgt, SURFACE_SAMPLE), tgt.points, f.T_ref_target, ctx.item("coarse", k),
+                            tgt_surf, tgt.points, f.T_ref_target, ctx.item("coarse", k),
                             ctx.item("hypotheses", k), ctx.item("prepare", p.ref).plane, ctx.item("prepare", p.tgt).plane,
-                            hypotheses=hp, acceptance=ctx.params.acceptance)
+                            hypotheses=hp, acceptance=ctx.params.acceptance, bend=f.bend, profile=f.profile,
+                            max_motion_m=ctx.params.verify.max_motion_m,
+                            support_inlier_m=ctx.params.coarse.final_inlier_m or ctx.params.coarse.inlier_m,
+                            stable_tolerance_m=ctx.params.wind.stable_tolerance_m)
         return verification(f.T_ref_target, e, *judge(e, verify=ctx.params.verify, coarse=ctx.params.coarse))
     return ctx.each(one, lambda k: _label(ctx, k))
 
@@ -280,7 +286,7 @@ STAGES: tuple[Stage, ...] = (
     Stage("fine", "Fine", "The fine transform from the corresponding sections, iterated and checked against the surfaces.",
           "pair", FINE_SECTIONS, ("hypotheses",), FineResult, _run_fine, uses=("slices", "arcs", "sections")),
     Stage("verify", "Verify", "The evidence that each registration is right: support, free space, residual, ambiguity, plausibility.",
-          "pair", ("verify", "hypotheses", "acceptance"), ("fine",), PairVerification, _run_verify),
+          "pair", ("verify", "hypotheses", "acceptance", "wind"), ("fine",), PairVerification, _run_verify),
     Stage("graph", "Placement", "Every scan placed onto the reference from the verified pairs, loops closed, all poses solved together.",
           "scan", ("graph", "verify"), (), Placement, _run_graph, uses=("verify",)),
     Stage("icp", "ICP", "The ICP baseline, started from the coarse transform (3.3).",

@@ -9,6 +9,11 @@ sections at several heights fix the tilts.
 
 Gauss-Newton with IRLS weights (soft-L1 or Cauchy), analytic Jacobian; the five unknowns of each
 section are eliminated per section (Schur complement), leaving a 6 x 6 system for the update.
+
+Wind (`bend_shape`): the target's tree may stand bent relative to the reference's, its stem moved
+horizontally by `bend * shape(z)` (a cantilever: nothing at the base, the most at the top). The two
+horizontal components of that sway at the top are then two more unknowns beside the pose, so the
+crown's motion is not mistaken for a tilt of the scanner.
 """
 
 from __future__ import annotations
@@ -28,9 +33,16 @@ def _basis_rows(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return e1, np.cross(a, e1)
 
 
+def _scales(n: int, lever_m: float) -> np.ndarray:
+    """Per unknown of the update (rotation 3, translation 3, then any bend: 2), the factor that makes
+    it metres: rotations times the lever arm, translations and the top's sway as they are."""
+    return np.r_[[lever_m] * 3, [1.0] * (n - 3)]
+
+
 def solve_well_determined(S_data: np.ndarray, S_prior: np.ndarray, b: np.ndarray, lever_m: float,
                            sigma_m: float, max_sigma_m: float | None) -> tuple[np.ndarray, int]:
-    """Gauss-Newton step of the 6 pose unknowns, restricted to the directions the data determine.
+    """Gauss-Newton step of the 6 pose unknowns (8 with a bend), restricted to the directions the
+    data determine.
 
     Rotations are scaled by the lever arm `lever_m` so all six directions are in metres. A direction
     whose noise-propagated standard deviation sigma / sqrt(eigenvalue) exceeds `max_sigma_m` (a
@@ -38,16 +50,17 @@ def solve_well_determined(S_data: np.ndarray, S_prior: np.ndarray, b: np.ndarray
     it stays where coarse put it instead of wandering with noise and model error.
     Returns (step, held directions as a 6 x h basis of the unscaled pose parameters).
     """
-    D = np.r_[[lever_m] * 3, [1.0] * 3]
+    n = len(b)
+    D = _scales(n, lever_m)
     Sy = S_data / np.outer(D, D)
     lam, V = np.linalg.eigh((Sy + Sy.T) / 2.0)
     if max_sigma_m is None:
-        good = np.ones(6, dtype=bool)
+        good = np.ones(n, dtype=bool)
     else:
         good = sigma_m / np.sqrt(np.maximum(lam, 1e-300)) <= max_sigma_m
     held = V[:, ~good] / D[:, None]
     if not good.any():
-        return np.zeros(6), held
+        return np.zeros(n), held
     Vg = V[:, good]
     A = Vg.T @ ((Sy + S_prior / np.outer(D, D)) @ Vg)
     dy = -Vg @ np.linalg.solve(A, Vg.T @ (b / D))
@@ -74,9 +87,16 @@ class JointFit:
         The rotation centre of the update (centroid of the points) and the RMS distance of the
         points from it (rotations times the lever arm are metres).
     information
-        6 x 6 information matrix of the update from the sections alone (their own unknowns eliminated).
+        6 x 6 information matrix of the update from the sections alone (their own unknowns and the
+        bend eliminated).
     influence_m
         Per section, how far the update would move without it (see `_influence`).
+    bend_m
+        With `bend_shape`: the horizontal shift (x, y, reference frame) that the adjustment gave the
+        target's stem at its top (where the shape is 1) to line it up with the reference's; None
+        without. The target's crown had swayed by minus this between the stations.
+    bend_std_m
+        The noise standard deviation of `bend_m` (per component, for the loss scale as residual scale).
     """
 
     U: np.ndarray
@@ -90,6 +110,11 @@ class JointFit:
     information: np.ndarray
     lever_m: float
     influence_m: np.ndarray
+    bend_m: np.ndarray | None = None
+    bend_std_m: np.ndarray | None = None
+    #: With a bend: each kept section's own offset (m) after the adjustment (`section_offsets`):
+    #: how far the small branches moved on their own.
+    section_offsets_m: np.ndarray | None = None
 
     def weak_basis(self, sigma_m: float, max_sigma_m: float) -> tuple[np.ndarray, np.ndarray]:
         """The pose directions the sections determine worse than `max_sigma_m` (noise std at the
@@ -110,7 +135,8 @@ class JointFit:
 def adjust_joint(points: np.ndarray, section: np.ndarray, moving: np.ndarray, c0: np.ndarray, a0: np.ndarray,
                  r0: np.ndarray, loss_scale_m: float, prior_m: float, prior_deg: float,
                  loss: str = "soft_l1", max_sigma_m: float | None = None, prior_offset: np.ndarray | None = None,
-                 max_iterations: int = 30) -> JointFit:
+                 max_iterations: int = 30, bend_shape: np.ndarray | None = None,
+                 prior_bend_m: float = 1.0, section_weight: np.ndarray | None = None) -> JointFit:
     """Fit one cylinder per section to all its points while the `moving` points follow a rigid update.
 
     A Gauss-Newton (IRLS, soft-L1 or Cauchy loss) bundle adjustment with an analytic Jacobian. The section
@@ -139,6 +165,13 @@ def adjust_joint(points: np.ndarray, section: np.ndarray, moving: np.ndarray, c0
     prior_offset
         4x4 taking the prior pose of the moving points to the pose they are given in (the fine
         updates so far); None = they are given at the prior pose.
+    bend_shape, prior_bend_m
+        Per point, the share of the top's sway by which a moving point is shifted (its height on the
+        cantilever; ignored for fixed points): the two horizontal components of the top's shift are
+        then unknowns too, with a prior of std `prior_bend_m` about zero. None = rigid.
+    section_weight
+        Per section, a weight of all its points (a section that moved on its own in the wind counts
+        less); None = all 1.
 
     Returns
     -------
@@ -153,35 +186,52 @@ def adjust_joint(points: np.ndarray, section: np.ndarray, moving: np.ndarray, c0
     base = points[mv] - centre
     c, a, r = c0.astype(float).copy(), a0.astype(float).copy(), r0.astype(float).copy()
     R, tau = np.eye(3), np.zeros(3)
+    nb = 0 if bend_shape is None else 2
+    fz = np.zeros(len(mv)) if bend_shape is None else np.asarray(bend_shape, dtype=float)[mv]
+    sway = np.zeros(2)
     # The pose relative to the prior (coarse) one, in the same parametrisation: rotation about `centre`.
     Rp = np.eye(3) if prior_offset is None else prior_offset[:3, :3]
     tp = np.zeros(3) if prior_offset is None else Rp @ centre + prior_offset[:3, 3] - centre
-    prior = (loss_scale_m ** 2) * np.r_[[1 / np.radians(prior_deg) ** 2] * 3, [1 / prior_m ** 2] * 3]
+    prior = (loss_scale_m ** 2) * np.r_[[1 / np.radians(prior_deg) ** 2] * 3, [1 / prior_m ** 2] * 3,
+                                        [1 / prior_bend_m ** 2] * nb]
     eye5 = np.eye(5)
+    pw = None if section_weight is None else np.asarray(section_weight, dtype=float)[section]
 
-    def residuals(R_: np.ndarray, tau_: np.ndarray, c_: np.ndarray, a_: np.ndarray, r_: np.ndarray):
+    def prior_state(Rt: np.ndarray, t: np.ndarray, w_: np.ndarray) -> np.ndarray:
+        return np.r_[rotation_vector(Rt), t, w_[:nb]]
+
+    def residuals(R_: np.ndarray, tau_: np.ndarray, c_: np.ndarray, a_: np.ndarray, r_: np.ndarray,
+                  w_: np.ndarray = sway):
         cur = points.copy()
         cur[mv] = base @ R_.T + centre + tau_
+        if nb:
+            cur[mv, :2] += fz[:, None] * w_[None, :]
         d = cur - c_[section]
         along = np.einsum("ij,ij->i", d, a_[section])
         perp = d - along[:, None] * a_[section]
         nrm = np.sqrt(np.einsum("ij,ij->i", perp, perp))
         return cur, d, along, perp, nrm, nrm - r_[section]
 
-    def cost(res: np.ndarray, Rt: np.ndarray, t: np.ndarray) -> float:
-        return robust_cost(res, loss_scale_m, loss) + float(prior @ np.r_[rotation_vector(Rt), t] ** 2)
+    def cost(res: np.ndarray, Rt: np.ndarray, t: np.ndarray, w_: np.ndarray) -> float:
+        return robust_cost(res, loss_scale_m, loss, pw) + float(prior @ prior_state(Rt, t, w_) ** 2)
 
     def linearise(cur, along, perp, nrm, res, a):
         """Normal-equation blocks: per section (5 x 5, 5 x 6, 5) and per section's pose part."""
         w = robust_weight(res, loss_scale_m, loss)
+        if pw is not None:
+            w = w * pw
         n = perp / np.maximum(nrm, 1e-12)[:, None]
         e1, e2 = _basis_rows(a)
         ne1 = np.einsum("ij,ij->i", n, e1[section])
         ne2 = np.einsum("ij,ij->i", n, e2[section])
         Js = np.c_[-ne1, -ne2, -along * ne1, -along * ne2, -np.ones(len(res))]
-        Jp = np.zeros((len(res), 6))
-        Jp[mv, :3] = np.cross(cur[mv] - centre, n[mv])
-        Jp[mv, 3:] = n[mv]
+        Jp = np.zeros((len(res), 6 + nb))
+        # The bend is added after the rigid part, so a rotation turns the point without its bend.
+        Jp[mv, :3] = np.cross(cur[mv] - centre - (np.c_[fz[:, None] * sway[None, :], np.zeros(len(mv))] if nb else 0.0),
+                              n[mv])
+        Jp[mv, 3:6] = n[mv]
+        if nb:
+            Jp[mv, 6:8] = fz[:, None] * n[mv, :2]
         wJs, wJp = Js * w[:, None], Jp * w[:, None]
         Hss = np.add.reduceat(np.einsum("ni,nj->nij", wJs, Js), starts, axis=0)
         Hsp = np.add.reduceat(np.einsum("ni,nj->nij", wJs, Jp), starts, axis=0)
@@ -197,32 +247,33 @@ def adjust_joint(points: np.ndarray, section: np.ndarray, moving: np.ndarray, c0
         b_k = gp_k - np.einsum("kji,kj->ki", Hsp, np.einsum("kij,kj->ki", Hinv, gs))
         return e1, e2, Hinv, HinvHsp, gs, S_k, b_k
 
-    cur, d, along, perp, nrm, res = residuals(R, tau, c, a, r)
-    f = cost(res, Rp, tp)
+    cur, d, along, perp, nrm, res = residuals(R, tau, c, a, r, sway)
+    f = cost(res, Rp, tp, sway)
     it = 0
     for it in range(1, max_iterations + 1):
         e1, e2, Hinv, HinvHsp, gs, S_k, b_k = linearise(cur, along, perp, nrm, res, a)
         S = S_k.sum(axis=0) + np.diag(prior)
-        b = b_k.sum(axis=0) + prior * np.r_[rotation_vector(Rp), tp]
+        b = b_k.sum(axis=0) + prior * prior_state(Rp, tp, sway)
         dp, held = solve_well_determined(S - np.diag(prior), np.diag(prior), b, lever, loss_scale_m, max_sigma_m)
         ds = -(np.einsum("kij,kj->ki", Hinv, gs) + HinvHsp @ dp)
         step = 1.0
         for _ in range(8):  # backtracking: IRLS steps on a robust cost can overshoot
             Rd = rotation_from_vector(step * dp[:3])
-            R_n, tau_n = Rd @ R, Rd @ tau + step * dp[3:]
-            Rp_n, tp_n = Rd @ Rp, Rd @ tp + step * dp[3:]
+            R_n, tau_n = Rd @ R, Rd @ tau + step * dp[3:6]
+            Rp_n, tp_n = Rd @ Rp, Rd @ tp + step * dp[3:6]
+            w_n = sway + step * dp[6:8] if nb else sway
             c_n = c + step * (ds[:, :1] * e1 + ds[:, 1:2] * e2)
             a_n = a + step * (ds[:, 2:3] * e1 + ds[:, 3:4] * e2)
             a_n /= np.linalg.norm(a_n, axis=1, keepdims=True)
             r_n = r + step * ds[:, 4]
-            out = residuals(R_n, tau_n, c_n, a_n, r_n)
-            f_n = cost(out[-1], Rp_n, tp_n)
+            out = residuals(R_n, tau_n, c_n, a_n, r_n, w_n)
+            f_n = cost(out[-1], Rp_n, tp_n, w_n)
             if f_n <= f:
                 break
             step /= 2.0
         else:
             break
-        R, tau, Rp, tp, c, a, r = R_n, tau_n, Rp_n, tp_n, c_n, a_n, r_n
+        R, tau, Rp, tp, sway, c, a, r = R_n, tau_n, Rp_n, tp_n, w_n, c_n, a_n, r_n
         cur, d, along, perp, nrm, res = out
         # Converged when the cost stalls or the pose moves by less than about 10 micrometres.
         converged = f - f_n <= 1e-7 * max(f, 1e-12) or (
@@ -234,8 +285,58 @@ def adjust_joint(points: np.ndarray, section: np.ndarray, moving: np.ndarray, c0
     rms = np.sqrt(np.add.reduceat(res ** 2, starts) / counts)
     _, _, _, _, _, S_k, b_k = linearise(cur, along, perp, nrm, res, a)
     U = make_transform(R, centre - R @ centre + tau)
-    return JointFit(U, c, a, np.abs(r), rms, it, held, centre, S_k.sum(axis=0), lever,
-                    _influence(S_k, b_k, np.diag(prior), lever, loss_scale_m, max_sigma_m))
+    S = S_k.sum(axis=0)
+    bend = bend_std = None
+    if nb:
+        # The bend as a nuisance: the pose's information with it eliminated, and its own noise.
+        Sb = S[6:, 6:] + np.diag(prior[6:])
+        bend, bend_std = sway.copy(), loss_scale_m * np.sqrt(np.diag(np.linalg.inv(Sb)))
+        S = S[:6, :6] - S[:6, 6:] @ np.linalg.solve(Sb, S[6:, :6])
+    return JointFit(U, c, a, np.abs(r), rms, it, held, centre, S, lever,
+                    _influence(S_k, b_k, np.diag(prior), lever, loss_scale_m, max_sigma_m), bend, bend_std)
+
+
+def section_offsets(points: np.ndarray, section: np.ndarray, moving: np.ndarray, centres: np.ndarray,
+                    axes: np.ndarray, radii: np.ndarray, loss_scale_m: float,
+                    iterations: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """Per section, how far its moving (target) points sit off the fixed (reference) points.
+
+    In the plane across each section's axis, one circle (a shared radius) is fitted to the fixed
+    points and the same circle shifted by an offset to the moving ones (Gauss-Newton, Cauchy
+    weights at `loss_scale_m`, from the given cylinders). With the radius shared, a partial arc's
+    centre cannot slide along the view, so the offset is the section's own displacement: a twig that
+    moved in the wind, or a stem bent further than the model. Returns the offsets (K x 3, reference
+    frame, across the axes) and each offset's noise std (metres; inf where a scan's arc fixes nothing).
+    """
+    K = len(centres)
+    starts = np.flatnonzero(np.r_[True, section[1:] != section[:-1]])
+    e1, e2 = _basis_rows(axes)
+    d = points - centres[section]
+    u = np.c_[np.einsum("ij,ij->i", d, e1[section]), np.einsum("ij,ij->i", d, e2[section])]
+    m = moving.astype(float)
+    x = np.zeros((K, 5))  # centre shift (2), the moving points' offset (2), radius change
+    eye = np.eye(5)
+    H = np.zeros((K, 5, 5))
+    res = np.zeros(len(points))
+    for _ in range(iterations):
+        q = u - x[section, :2] - m[:, None] * x[section, 2:4]
+        nrm = np.maximum(np.linalg.norm(q, axis=1), 1e-12)
+        n = q / nrm[:, None]
+        res = nrm - (radii[section] + x[section, 4])
+        J = np.c_[-n, -m[:, None] * n, -np.ones(len(q))]
+        w = robust_weight(res, loss_scale_m, "cauchy")
+        H = np.add.reduceat(np.einsum("ni,nj->nij", J * w[:, None], J), starts, axis=0) + 1e-9 * eye
+        g = np.add.reduceat(J * (w * res)[:, None], starts, axis=0)
+        step = -np.linalg.solve(H, g[:, :, None])[:, :, 0]
+        x += step
+        if np.abs(step).max() < 1e-6:
+            break
+    counts = np.diff(np.r_[starts, len(res)])
+    sigma = np.sqrt(np.add.reduceat(res ** 2, starts) / np.maximum(counts - 5, 1))
+    cov = np.linalg.inv(H)
+    std = sigma * np.sqrt(np.maximum(cov[:, 2, 2] + cov[:, 3, 3], 0.0))
+    offset = x[:, 2:3] * e1 + x[:, 3:4] * e2
+    return offset, np.where(np.isfinite(std), std, np.inf)
 
 
 def _influence(S_k: np.ndarray, b_k: np.ndarray, S_prior: np.ndarray, lever_m: float, sigma_m: float,
@@ -248,9 +349,9 @@ def _influence(S_k: np.ndarray, b_k: np.ndarray, S_prior: np.ndarray, lever_m: f
     determine count; in the others the prior alone holds the pose and any gradient would look huge.
     """
     S = S_k.sum(axis=0)
-    D = np.r_[[lever_m] * 3, [1.0] * 3]
+    D = _scales(S.shape[0], lever_m)
     lam, V = np.linalg.eigh(S / np.outer(D, D))
-    good = np.ones(6, dtype=bool) if max_sigma_m is None else sigma_m / np.sqrt(np.maximum(lam, 1e-300)) <= max_sigma_m
+    good = np.ones(S.shape[0], dtype=bool) if max_sigma_m is None else sigma_m / np.sqrt(np.maximum(lam, 1e-300)) <= max_sigma_m
     Vg = V[:, good] / D[:, None]
     A = np.einsum("ia,kij,jb->kab", Vg, S[None] + S_prior - S_k, Vg)
     y = np.linalg.solve(A + 1e-12 * np.eye(A.shape[1]), (b_k @ Vg)[:, :, None])[:, :, 0]

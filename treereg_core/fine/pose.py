@@ -45,26 +45,31 @@ the coarse pose; it cannot rank millimetres but drops clearly when a pose is off
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from ..geometry import robust
 from ..geometry.rigid import apply_transform, invert, kabsch
-from ..params import AcceptanceParams, ArcParams, FineParams, FitParams, JointParams, SlicingParams, SurfaceParams
+from ..params import (
+    AcceptanceParams, ArcParams, FineParams, FitParams, JointParams, SlicingParams, SurfaceParams, WindParams,
+)
 from ..results import Metric, Progress, no_progress
 from ..scan import Scan
 from .arcs import SliceArcs, separate_scan_slices, separate_slices
 from .correspondence import Correspondences
-from .joint import JointFit, adjust_joint
+from .joint import JointFit, adjust_joint, section_offsets
 from .sections import ScanSections, SectionsResult, fit_sections, match_scan_sections, sections_at, tie_points
+from .bend import Bend
+from .stem import StemProfile, correction, stem_profile
+from ..prepare.ground import stem_position
 from .slicing import SliceResult, slice_scans
 from .surface import (
     Surface, align_narrowing, mean_move, pose_update, refine_along, surface_fitness, surface_of, trimmed_residuals,
 )
 
 #: The parameter sections `register_fine` reads (the pipeline passes exactly these).
-FINE_SECTIONS: tuple[str, ...] = ("fine", "joint", "surface", "acceptance", "slicing", "arcs", "fitting")
+FINE_SECTIONS: tuple[str, ...] = ("fine", "joint", "surface", "acceptance", "slicing", "arcs", "fitting", "wind")
 #: Points of the target used to measure how far an update moves it (and for the acceptance measure).
 _SAMPLE = 20_000
 #: Joint adjustment: a section pair whose RMS exceeds this multiple of the median RMS is dropped.
@@ -74,6 +79,8 @@ _TRIM_FACTOR = 2.5
 _REDRAW_M = 0.005
 #: Joint adjustment: rounds of dropping bad pairs and adjusting again.
 _TRIM_ROUNDS = 6
+#: Wind: rounds of weighing each section by its own offset (see `_estimate_joint`).
+_FLUTTER_ROUNDS = 4
 
 
 @dataclass(frozen=True)
@@ -120,6 +127,13 @@ class FineResult:
         reference's surface) at the coarse and at the final pose.
     slices, arcs, sections
         The slices, arcs and sections at the final pose (what the app draws for the fine stage).
+    bend
+        The target's stem bent against the reference's (wind between the stations), fitted with the
+        pose; None when the crowns lined up rigidly (or wind is not modelled).
+    profile
+        The target's stem against the reference's, height by height, at the final pose (not
+        unbent): flat at zero where the stem holds, bending off above where the crown moved; None
+        when no stem could be traced.
     """
 
     ok: bool
@@ -138,6 +152,8 @@ class FineResult:
     slices: SliceResult | None
     arcs: SliceArcs | None
     sections: SectionsResult | None
+    bend: Bend | None = None
+    profile: StemProfile | None = None
 
 
 @dataclass(frozen=True)
@@ -158,6 +174,7 @@ class _Iterations:
     joint: JointFit | None
     note: str
     last: _Fitted | None
+    bend: Bend | None = None
 
 
 def first_iteration(ref: Scan, tgt: Scan, T_coarse: np.ndarray, *, slicing: SlicingParams, arcs: ArcParams,
@@ -171,11 +188,14 @@ def first_iteration(ref: Scan, tgt: Scan, T_coarse: np.ndarray, *, slicing: Slic
 
 
 def _refit(ref: Scan, tgt: Scan, T: np.ndarray, ref_fitted: _Fitted, slicing: SlicingParams, arcs: ArcParams,
-           fitting: FitParams) -> _Fitted:
-    """Slices, target arcs and target sections again at the pose `T` (the reference's never move)."""
-    sl = slice_scans(ref, tgt, T, slicing=slicing)
+           fitting: FitParams, seen: Scan | None = None) -> _Fitted:
+    """Slices, target arcs and target sections again at the pose `T` (the reference's never move).
+    `seen`: the target unbent (`Bend.warp`), sliced and fitted instead of `tgt` (its arcs stay those
+    of its own grid)."""
+    seen = tgt if seen is None else seen
+    sl = slice_scans(ref, seen, T, slicing=slicing)
     ar = SliceArcs(True, "", (), ref_fitted.arcs.ref, separate_scan_slices(tgt, sl.tgt_indices, arcs))
-    return _Fitted(sl, ar, sections_at(ref, tgt, ref_fitted.sections.ref, ar.tgt, sl.heights_m, T, fitting))
+    return _Fitted(sl, ar, sections_at(ref, seen, ref_fitted.sections.ref, ar.tgt, sl.heights_m, T, fitting))
 
 
 def _estimate_ties(ref: ScanSections, tgt: ScanSections, corr: Correspondences, fp: FineParams) -> tuple[np.ndarray | None, str]:
@@ -197,8 +217,10 @@ def _subsample(idx: np.ndarray, n: int) -> np.ndarray:
 
 def _estimate_joint(ref_scan: Scan, tgt_scan: Scan, T: np.ndarray, ref: ScanSections, tgt: ScanSections,
                     corr: Correspondences, jp: JointParams, min_pairs: int, loss: str,
-                    T_prior: np.ndarray) -> tuple[JointFit | None, str]:
-    """Rigid update from one cylinder per section pair fitted to both scans' points at once.
+                    T_prior: np.ndarray, bend: Bend | None = None,
+                    flutter_m: float = 0.005) -> tuple[JointFit | None, str]:
+    """Rigid update from one cylinder per section pair fitted to both scans' points at once (with a
+    `bend`, the target's further bend too: `JointFit.bend_m`; `tgt_scan` is then already unbent).
 
     Pairs whose cylinder fits badly (RMS above `_TRIM_FACTOR` times the median and above the loss
     scale: a wrong pairing or a mis-separated arc) are dropped and the adjustment is repeated.
@@ -219,13 +241,17 @@ def _estimate_joint(ref_scan: Scan, tgt_scan: Scan, T: np.ndarray, ref: ScanSect
         c0[k] = (si.centre_m + sj.centre_m) / 2.0
         r0[k] = (si.radius_m + sj.radius_m) / 2.0
     P, S, M = np.vstack(pts), np.concatenate(sec), np.concatenate(mov)
+    shape = None if bend is None else bend.shape(P[:, 2])
     keep = np.ones(K, dtype=bool)
-    for _ in range(_TRIM_ROUNDS):
+    weight = np.ones(K)
+    rounds = _TRIM_ROUNDS + (_FLUTTER_ROUNDS if bend is not None else 0)
+    for rnd in range(rounds):
         idx = np.flatnonzero(keep[S])
         remap = np.cumsum(keep) - 1
         fit = adjust_joint(P[idx], remap[S[idx]], M[idx], c0[keep], a0[keep], r0[keep], jp.loss_scale_m,
                            jp.prior_m, jp.prior_deg, loss, jp.max_direction_sigma_m, T @ invert(T_prior),
-                           jp.max_solver_iterations)
+                           jp.max_solver_iterations, None if shape is None else shape[idx],
+                           section_weight=None if bend is None else weight[keep])
         bad = fit.rms_m > max(_TRIM_FACTOR * float(np.median(fit.rms_m)), jp.loss_scale_m)
         if jp.influence_factor is not None and len(fit.influence_m) > 2:
             # One wrong pair can bend a direction only a few branches fix while fitting well
@@ -234,9 +260,26 @@ def _estimate_joint(ref_scan: Scan, tgt_scan: Scan, T: np.ndarray, ref: ScanSect
             worst, second = fit.influence_m[order[-1]], fit.influence_m[order[-2]]
             if worst > max(jp.influence_min_m, jp.influence_factor * second):
                 bad[order[-1]] = True
-        if not bad.any() or keep.sum() - bad.sum() < min_pairs:
+        if bad.any() and keep.sum() - bad.sum() >= min_pairs:
+            keep[np.flatnonzero(keep)[bad]] = False
+            continue
+        if bend is None or rnd >= rounds - 1:
             break
-        keep[np.flatnonzero(keep)[bad]] = False
+        # Wind: a twig that fluttered on its own fits the shared cylinder well (the radius takes up
+        # its offset) yet pulls the pose. Each section's own offset, measured with the radius
+        # shared, weighs it down (Cauchy at `flutter_m`); the stem and what moved with it keep theirs.
+        moved = P[idx].copy()
+        mv = M[idx]
+        moved[mv] = apply_transform(fit.U, moved[mv])
+        moved[mv, :2] += shape[idx][mv, None] * fit.bend_m[None, :]
+        off, _ = section_offsets(moved, remap[S[idx]], mv, fit.points_m, fit.axes, fit.radii_m, jp.loss_scale_m)
+        off_m = np.linalg.norm(off, axis=1)
+        fit = replace(fit, section_offsets_m=off_m)
+        new = 1.0 / (1.0 + (off_m / flutter_m) ** 2)
+        settled = np.abs(new - weight[keep]).max() < 0.05
+        weight[keep] = new
+        if settled:
+            break
     if not np.isfinite(fit.U).all():
         return None, "the joint section adjustment diverged"
     return fit, ""
@@ -244,25 +287,33 @@ def _estimate_joint(ref_scan: Scan, tgt_scan: Scan, T: np.ndarray, ref: ScanSect
 
 def _iterate(ref: Scan, tgt: Scan, T0: np.ndarray, start: FineStart, sample: np.ndarray, fine: FineParams,
              joint: JointParams, slicing: SlicingParams, arcs: ArcParams, fitting: FitParams,
-             progress: Progress) -> _Iterations:
+             progress: Progress, bend: Bend | None = None, max_iterations: int | None = None,
+             T_prior: np.ndarray | None = None) -> _Iterations:
     """Estimate an update from the corresponding sections, re-slice at the new pose, repeat.
 
     Stops after `fine.max_iterations`, once an update moves the target by less than
     `fine.tolerance_m`, or when an iteration cannot estimate one (too few sections: `note` says why).
+    With a `bend` (wind), each iteration also estimates how much more the target's stem is bent, and
+    the next one slices and fits the target unbent by all of it (`_Iterations.bend`); `start` is then
+    the target unbent by `bend` at `T0`. The adjustment's prior is centred on `T_prior` (default `T0`).
     """
     fp = fine
     if start.arcs is None or start.sections is None:
-        return _Iterations(T0.copy(), (), None, start.slices.message or "the sections could not be fitted", None)
+        return _Iterations(T0.copy(), (), None, start.slices.message or "the sections could not be fitted", None, bend)
     cur = _Fitted(start.slices, start.arcs, start.sections)
     T = T0.copy()
     updates: list[float] = []
     fit: JointFit | None = None
     last: _Fitted | None = None
     note = ""
-    for it in range(1, fp.max_iterations + 1):
+    seen = tgt if bend is None or bend.sway_m == 0 else bend.warp(tgt, T0)
+    T_prior = T0 if T_prior is None else T_prior
+    n_max = fp.max_iterations if max_iterations is None else max_iterations
+    for it in range(1, n_max + 1):
         progress((it - 1) / (fp.max_iterations + 1), f"iteration {it}: slicing and fitting")
         if it > 1:
-            cur = _refit(ref, tgt, T, cur, slicing, arcs, fitting)
+            seen = tgt if bend is None or bend.sway_m == 0 else bend.warp(tgt, T)
+            cur = _refit(ref, tgt, T, cur, slicing, arcs, fitting, seen)
         last = cur
         ref_s, tgt_s, corr = cur.sections.ref, cur.sections.tgt, cur.sections.correspondences
         if it > 1 and corr.ok and fp.gate_factor is not None:
@@ -277,17 +328,21 @@ def _iterate(ref: Scan, tgt: Scan, T0: np.ndarray, start: FineStart, sample: np.
         if fp.method == "ties":
             U, note = _estimate_ties(ref_s, tgt_s, corr, fp)
         else:
-            fit, note = _estimate_joint(ref, tgt, T, ref_s, tgt_s, corr, joint, fp.min_pairs,
-                                        "soft_l1" if it == 1 else joint.refine_loss, T0)
+            fit, note = _estimate_joint(ref, seen, T, ref_s, tgt_s, corr, joint, fp.min_pairs,
+                                        "soft_l1" if it == 1 else joint.refine_loss, T_prior, bend)
             U = None if fit is None else fit.U
         if U is None:
             break
         move = mean_move(U, apply_transform(T, sample))
+        if bend is not None and fit is not None and fit.bend_m is not None:
+            # The top's extra shift counts as a move of the crown (half the stem, on average).
+            move = max(move, 0.5 * float(np.hypot(*fit.bend_m)))
+            bend = bend.plus(fit.bend_m, fit.bend_std_m)
         updates.append(move)
         T = U @ T
         if move < fp.tolerance_m:
             break
-    return _Iterations(T, tuple(updates), fit, note, last)
+    return _Iterations(T, tuple(updates), fit, note, last, bend)
 
 
 def _from_surfaces(ref_surf: Surface, tgt_surf: Surface, T: np.ndarray, centre: np.ndarray, B: np.ndarray,
@@ -373,7 +428,8 @@ def _verdict(n_updates: int, chosen: str, fallback: bool, note: str, residuals: 
 
 def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, *, fine: FineParams, joint: JointParams,
                   surface: SurfaceParams, acceptance: AcceptanceParams, slicing: SlicingParams, arcs: ArcParams,
-                  fitting: FitParams, start: FineStart | None = None, progress: Progress | None = None) -> FineResult:
+                  fitting: FitParams, wind: WindParams | None = None, start: FineStart | None = None,
+                  progress: Progress | None = None) -> FineResult:
     """Refine the coarse transform of `tgt` onto `ref` from stem and branch sections.
 
     Parameters
@@ -396,6 +452,7 @@ def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, *, fine: FineParam
     FineResult
     """
     progress = progress or no_progress
+    wind = wind or WindParams(enabled=False)
     T0 = np.asarray(T_coarse, dtype=float)
     if T0.shape != (4, 4) or not np.isfinite(T0).all():
         return failed_fine(T0, "the coarse transform is missing or not finite; run coarse registration first")
@@ -403,13 +460,35 @@ def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, *, fine: FineParam
         start = first_iteration(ref, tgt, T0, slicing=slicing, arcs=arcs, fitting=fitting)
     rng = np.random.default_rng(0)
     sample = tgt.points if tgt.n_points <= _SAMPLE else tgt.points[rng.choice(tgt.n_points, _SAMPLE, replace=False)]
-    its = _iterate(ref, tgt, T0, start, sample, fine, joint, slicing, arcs, fitting, progress)
+    its = None
+    if wind.enabled and fine.method == "joint":
+        # A stem bent far beyond what the sections' gates reach: start from the stem profile.
+        prof = profile_at(ref, tgt, T0, start.slices.z_extent_m, joint.loss_scale_m)
+        if prof.model is not None and _significant(_profile_bend(prof), wind):
+            bend0 = _profile_bend(prof)
+            T1 = correction(prof.model, prof_axis(prof, ref)) @ T0
+            its = _bent(ref, tgt, T1, T0, bend0, start, sample, fine, joint, slicing, arcs, fitting, wind)
+    if its is None:
+        its = _iterate(ref, tgt, T0, start, sample, fine, joint, slicing, arcs, fitting, progress)
+        probe = _bend_probe(ref, tgt, T0, its, fine, joint, wind)
+    else:
+        probe = None
+    if probe is not None and _significant(probe[1], wind):
+        # The crowns do not line up rigidly: iterate again, the stem's bend estimated with the pose
+        # each time, from where the probe put both (the rigid result tilted the target to line the
+        # crowns up; the probe's adjustment has already undone most of that).
+        progress(0.5, "the crown moved between the stations: fitting its bend with the pose")
+        bent = _bent(ref, tgt, probe[0], T0, probe[1], start, sample, fine, joint, slicing, arcs, fitting, wind)
+        if bent is not None:
+            its = bent
+    bend = its.bend
+    seen = tgt if bend is None else bend.warp(tgt, its.T)
     T, updates = its.T, list(its.updates_m)
     progress(fine.max_iterations / (fine.max_iterations + 1), "acceptance test")
     ref_surf = surface_of(ref.points, surface.voxel_m)
-    tgt_surf = surface_of(tgt.points, surface.voxel_m, _SAMPLE)
+    tgt_surf = surface_of(seen.points, surface.voxel_m, _SAMPLE)
     from_surface = 0
-    if its.joint is not None and updates and surface.refine:
+    if its.joint is not None and updates and surface.refine and bend is None:
         T, from_surface = _weak_from_surfaces(ref_surf, tgt_surf, T, its.joint, surface, joint.loss_scale_m)
     fallback = not updates and fine.method == "joint" and surface.fallback
     if fallback:
@@ -420,7 +499,7 @@ def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, *, fine: FineParam
         updates.append(mean_move(T @ invert(T0), apply_transform(T0, sample)))
         from_surface = 6
     chosen, residuals = ("surfaces" if fallback else "sections"), np.full(4, np.nan)
-    if updates and fine.method == "joint" and acceptance.select:
+    if updates and fine.method == "joint" and acceptance.select and bend is None:
         T, chosen, residuals = _select(ref_surf, tgt_surf, T0, T, chosen, surface, acceptance, joint.loss_scale_m)
         from_surface = 6 if chosen.endswith("by the surfaces") else from_surface
     m0 = surface_fitness(ref_surf, tgt_surf, T0, acceptance.gate_m, acceptance.tolerance_m)
@@ -428,8 +507,12 @@ def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, *, fine: FineParam
     accepted, message = _verdict(len(updates), chosen, fallback, its.note, residuals, m0, m1, acceptance)
     if not accepted:
         T = T0.copy()
-    drawn = _drawn_at(ref, tgt, T, start, its.last, sample, fine, slicing, arcs, fitting)
+    if accepted and bend is not None:
+        chosen = "sections, with the stem's bend"
+    drawn = _drawn_at(ref, tgt, T, start, its.last, sample, fine, slicing, arcs, fitting, bend)
     n_iter = len(its.updates_m)
+    profile = profile_at(ref, tgt, T, start.slices.z_extent_m, joint.loss_scale_m) if start.slices.ok else None
+    bend = bend if accepted else None
     metrics = (
         Metric("fine accepted", "", "yes" if accepted else "no"),
         Metric("fine iterations", "", n_iter),
@@ -443,6 +526,9 @@ def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, *, fine: FineParam
         Metric("surface residual (trimmed), sections", "m", float(residuals[1])),
         Metric("surface residual (trimmed), polished", "m", float(residuals[2])),
         Metric("surface residual (trimmed), coarse polished", "m", float(residuals[3])),
+        Metric("crown moved between the stations (stem top)", "m", bend.sway_m if bend is not None else 0.0),
+        Metric("stem stands as the reference's up to (above its base)", "m",
+               profile.stable_height_m(wind.stable_tolerance_m) if profile is not None else float("nan")),
     )
     progress(1.0, "done")
     return FineResult(
@@ -450,20 +536,86 @@ def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, *, fine: FineParam
         iterations=n_iter, updates_m=tuple(updates), chosen=chosen if accepted else "coarse",
         residuals_m=tuple(float(r) for r in residuals), from_surface=from_surface, measure_coarse=m0,
         measure_fine=m1, slices=drawn.slices if drawn else start.slices, arcs=drawn.arcs if drawn else None,
-        sections=drawn.sections if drawn else None,
+        sections=drawn.sections if drawn else None, bend=bend, profile=profile,
     )
 
 
 def _drawn_at(ref: Scan, tgt: Scan, T: np.ndarray, start: FineStart, last: _Fitted | None, sample: np.ndarray,
-              fine: FineParams, slicing: SlicingParams, arcs: ArcParams, fitting: FitParams) -> _Fitted | None:
+              fine: FineParams, slicing: SlicingParams, arcs: ArcParams, fitting: FitParams,
+              bend: Bend | None = None) -> _Fitted | None:
     """What the app draws for the fine stage: slices, arcs and fits at the pose finally returned
     (the last iteration's, unless the pose has moved since by more than the tolerance)."""
     if last is None:
         return None
     T_last = last.sections.T_ref_target
     if mean_move(T @ invert(T_last), apply_transform(T_last, sample)) > max(fine.tolerance_m, _REDRAW_M):
-        return _refit(ref, tgt, T, last, slicing, arcs, fitting)
+        return _refit(ref, tgt, T, last, slicing, arcs, fitting, None if bend is None else bend.warp(tgt, T))
     return last
+
+
+def _bend_probe(ref: Scan, tgt: Scan, T0: np.ndarray, its: _Iterations, fine: FineParams, joint: JointParams,
+                wind: WindParams) -> tuple[np.ndarray, Bend] | None:
+    """How bent the target's stem is against the reference's at the rigid result: one adjustment of
+    its last sections with the bend free; the pose and the bend it gives. None when wind is not
+    modelled or there is nothing to fit."""
+    if not wind.enabled or fine.method != "joint" or its.last is None or not its.updates_m:
+        return None
+    cur = its.last
+    corr = cur.sections.correspondences
+    if not corr.ok or len(corr.pairs) < fine.min_pairs:
+        return None
+    lo, hi = cur.slices.z_extent_m
+    stem = Bend(lo, max(hi - lo, 1e-3))
+    fit, _ = _estimate_joint(ref, tgt, its.T, cur.sections.ref, cur.sections.tgt, corr, joint, fine.min_pairs,
+                             joint.refine_loss, T0, stem)
+    if fit is None or fit.bend_m is None:
+        return None
+    return fit.U @ its.T, stem.plus(fit.bend_m, fit.bend_std_m)
+
+
+def _bent(ref: Scan, tgt: Scan, T1: np.ndarray, T0: np.ndarray, bend1: Bend, start: FineStart, sample: np.ndarray,
+          fine: FineParams, joint: JointParams, slicing: SlicingParams, arcs: ArcParams, fitting: FitParams,
+          wind: WindParams) -> _Iterations | None:
+    """The sections iterated with the stem's bend, from the pose `T1` and the bend `bend1` (the
+    target sliced and fitted unbent from the first iteration on); None when that finds no bend
+    worth modelling after all, or nothing to estimate."""
+    first = _refit(ref, tgt, T1, _Fitted(start.slices, start.arcs, start.sections), slicing, arcs, fitting,
+                   bend1.warp(tgt, T1))
+    bent = _iterate(ref, tgt, T1, FineStart(first.slices, first.arcs, first.sections), sample, fine, joint,
+                    slicing, arcs, fitting, no_progress, bend=bend1, max_iterations=fine.max_iterations + 3,
+                    T_prior=T1)
+    if bent.updates_m and bent.bend is not None and _significant(bent.bend, wind):
+        return bent
+    return None
+
+
+def profile_at(ref: Scan, tgt: Scan, T: np.ndarray, z_extent: tuple[float, float], loss_scale_m: float) -> StemProfile:
+    """The target's stem profile against the reference's with the target at the pose `T` (each stem
+    traced up from its base: the densest cell of its own lowest points)."""
+    lo = z_extent[0]
+    ref_xy = stem_position(ref.points, ref.points[:, 2] - lo)
+    tz = tgt.points[:, 2]
+    tgt_xy = apply_transform(T, np.r_[stem_position(tgt.points, tz - tz.min()), 0.0][None])[0, :2]
+    return stem_profile(ref.points, apply_transform(T, tgt.points), ref_xy, tgt_xy, z_extent, loss_scale_m)
+
+
+def prof_axis(prof: StemProfile, ref: Scan) -> np.ndarray:
+    """The reference's stem position near the profile model's mid height (where its tilt turns)."""
+    lo = prof.base_z_m
+    return stem_position(ref.points, ref.points[:, 2] - lo)
+
+
+def _profile_bend(prof: StemProfile) -> Bend:
+    """The bend the stem profile shows, as the fine stage models it."""
+    m = prof.model
+    return Bend(prof.base_z_m, prof.height_m, (-float(m.bend_m[0]), -float(m.bend_m[1])),
+                (float(m.std[4]), float(m.std[5])))
+
+
+def _significant(bend: Bend, wind: WindParams) -> bool:
+    """The stem's bend is worth modelling: its top moved more than `wind.min_sway_m` and clearly
+    more than its own noise."""
+    return bend.sway_m >= wind.min_sway_m and bend.sway_m >= wind.significance * max(bend.sway_std_m, 1e-12)
 
 
 def failed_fine(T0: np.ndarray, message: str) -> FineResult:

@@ -11,8 +11,8 @@ def robust_weight(res: np.ndarray, scale: float, loss: str) -> np.ndarray:
     return 1.0 / np.sqrt(1.0 + z) if loss == "soft_l1" else 1.0 / (1.0 + z)
 
 
-def robust_cost(res: np.ndarray, scale: float, loss: str) -> float:
-    """Sum of rho(z) * scale^2 for the loss of `robust_weight`."""
+def robust_cost(res: np.ndarray, scale: float, loss: str, weights: np.ndarray | None = None) -> float:
+    """Sum of rho(z) * scale^2 for the loss of `robust_weight` (each term times `weights`, if given)."""
     z = (res / scale) ** 2
     rho = 2.0 * (np.sqrt(1.0 + z) - 1.0) if loss == "soft_l1" else np.log1p(z)
-    return float(rho.sum()) * scale ** 2
+    return float(rho.sum() if weights is None else rho @ weights) * scale ** 2

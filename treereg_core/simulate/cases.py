@@ -36,6 +36,7 @@ from ..results import Metric, Progress
 from ..geometry.rigid import apply_transform, invert, make_transform, rotation_z
 from ..scan import Scan
 from .scanner import scan_scene, visible_points, visible_points_splat
+from .wind import Sway, draw_sway, sway_tree
 from .tree import (
     LABEL_OTHER_TREE,
     Scene,
@@ -82,6 +83,13 @@ class CaseSpec:
     splat_radius_m : with `from_points`, let each point also hide what lies behind it as a sphere
         of this radius (about the cloud's point spacing), so that a station does not see the back
         of a sparse trunk through the gaps between its points; None = cells only.
+    wind_m : wind between the stations (`simulate.wind`): before each station scans, every tree's
+        stem bends as a cantilever with this top sway, in a direction of the station's own (drawn);
+        the stem base and the ground stay put. 0 = still air.
+    flutter : with wind, small branches (order 2 and up) flutter on their own by up to this times
+        the top sway at their tips; leaves follow them and flutter a little more.
+    mixed_pixels : share of the edge returns (a grid neighbour empty or 0.3 m farther) that are
+        mixed pixels, strung out 2-80 cm behind the edge along their ray (`scanner.scan_scene`).
     """
 
     seed: int = 0
@@ -107,6 +115,9 @@ class CaseSpec:
     instrument_height_m: tuple[float, float] = (1.3, 1.7)
     from_points: str | None = None
     splat_radius_m: float | None = None
+    wind_m: float = 0.0
+    flutter: float = 0.5
+    mixed_pixels: float = 0.0
 
     def __post_init__(self) -> None:
         def pair(name: str) -> tuple[float, float]:
@@ -129,7 +140,7 @@ class CaseSpec:
         phi, vphi = self.angular_step_deg
         step_lo, step_hi = ANGULAR_STEP_RANGE_DEG
         for name in ("range_sigma_m", "dropout", "lean_deg", "tilt_deg", "ground_slope_deg", "ground_radius_m",
-                     "ground_front_m"):
+                     "ground_front_m", "wind_m", "flutter", "mixed_pixels"):
             if not np.isfinite(getattr(self, name)):
                 raise ConfigError(f"{name}: {getattr(self, name)} is not a finite number")
         checks = [
@@ -150,6 +161,9 @@ class CaseSpec:
             (self.station_distance_m[1] <= 200.0, "station_distance_m: stations farther than 200 m from the trunk see no tree"),
             (1.0 <= self.ground_radius_m <= 500.0, f"ground_radius_m: {self.ground_radius_m} is outside 1-500 m"),
             (0.0 <= self.ground_front_m <= 500.0, f"ground_front_m: {self.ground_front_m} is outside 0-500 m"),
+            (0.0 <= self.wind_m <= 5.0, f"wind_m: a top sway of {self.wind_m} m is outside 0-5 m"),
+            (0.0 <= self.flutter <= 2.0, f"flutter: {self.flutter} is outside 0-2 (times the top sway)"),
+            (0.0 <= self.mixed_pixels <= 1.0, f"mixed_pixels: {self.mixed_pixels} is outside 0-1 (share of the edge returns)"),
         ]
         checks.append((self.splat_radius_m is None or (self.from_points is not None and 0 < self.splat_radius_m <= 1),
                        "splat_radius_m: needs from_points and a radius in (0, 1] m"))
@@ -159,7 +173,8 @@ class CaseSpec:
         if self.from_points is not None:
             procedural = [n for n, v in (("height_m", self.height_m), ("dbh_m", self.dbh_m), ("bent", self.bent),
                                          ("lean_deg", self.lean_deg), ("leaves", self.leaves),
-                                         ("ground", self.ground), ("second_tree", self.second_tree)) if v]
+                                         ("ground", self.ground), ("second_tree", self.second_tree),
+                                         ("wind_m", self.wind_m), ("mixed_pixels", self.mixed_pixels)) if v]
             if procedural:
                 raise ConfigError(f"from_points: {', '.join(procedural)} only apply to procedural trees")
 
@@ -179,6 +194,10 @@ class CaseSpec:
             flags.append(f"lean {self.lean_deg:g} deg")
         if self.tilt_deg:
             flags.append(f"tilt {self.tilt_deg:g} deg")
+        if self.wind_m:
+            flags.append(f"wind {self.wind_m * 100:g} cm")
+        if self.mixed_pixels:
+            flags.append(f"mixed pixels {self.mixed_pixels:.0%}")
         what = Path(self.from_points).name if self.from_points else (
             f"{self.height_m:g} m" if self.height_m else f"{self.height_range_m[0]:g}-{self.height_range_m[1]:g} m")
         step = "x".join(f"{v:g}" for v in sorted(set(self.angular_step_deg)))
@@ -196,7 +215,8 @@ class Station:
 
     position_m: instrument centre; heading_deg: world azimuth of the scan frame's x axis;
     tilt_deg / tilt_axis_deg: how far the instrument is off level, about which horizontal axis;
-    T_world_scan: 4x4 mapping the scan's points into the world.
+    T_world_scan: 4x4 mapping the scan's points into the world; sway: the main tree's wind as this
+    station found it (None in still air).
     """
 
     position_m: np.ndarray
@@ -204,6 +224,7 @@ class Station:
     tilt_deg: float
     tilt_axis_deg: float
     T_world_scan: np.ndarray
+    sway: Sway | None = None
 
     @property
     def distance_m(self) -> float:
@@ -216,7 +237,7 @@ class Station:
         return float(np.degrees(np.arctan2(self.position_m[1], self.position_m[0])))
 
     def to_dict(self) -> dict[str, Any]:
-        return {
+        out = {
             "T_world_scan": [[float(v) for v in row] for row in self.T_world_scan],
             "position_m": [round(float(v), 6) for v in self.position_m],
             "heading_deg": round(self.heading_deg, 6),
@@ -225,6 +246,9 @@ class Station:
             "distance_m": round(self.distance_m, 6),
             "azimuth_deg": round(self.azimuth_deg, 6),
         }
+        if self.sway is not None:
+            out["wind"] = self.sway.to_dict()
+        return out
 
 
 @dataclass(frozen=True, eq=False)
@@ -239,6 +263,7 @@ class SimulatedCase:
     labels: per scan, a part label per point (`simulate_tree.LABEL_NAMES`; -1 for point clouds).
     tree_ids: per scan, the index into `trees` of the tree each point hit (-1 = ground); plots only.
     return_index: per scan, 0 for first returns, 1 for second returns; plots only.
+    mixed: per scan, True for the mixed pixels (`spec.mixed_pixels`); empty when there are none.
     """
 
     spec: CaseSpec
@@ -253,6 +278,16 @@ class SimulatedCase:
     metrics: tuple[Metric, ...]
     tree_ids: tuple[np.ndarray, ...] = ()
     return_index: tuple[np.ndarray, ...] = ()
+    mixed: tuple[np.ndarray, ...] = ()
+
+    def relative_sway_m(self, k: int) -> np.ndarray:
+        """How far the main tree's top had moved at station `k` from where station 1 saw it: a
+        horizontal 3-vector in scan 1's frame (zeros in still air)."""
+        s0, sk = self.stations[0].sway, self.stations[k].sway
+        if s0 is None or sk is None:
+            return np.zeros(3)
+        d = np.array([sk.top_m[0] - s0.top_m[0], sk.top_m[1] - s0.top_m[1], 0.0])
+        return self.stations[0].T_world_scan[:3, :3].T @ d
 
     @property
     def angular_step_deg(self) -> tuple[float, float]:
@@ -401,9 +436,10 @@ def _build(spec: CaseSpec, progress: Progress | None) -> SimulatedCase:
     say = progress or (lambda f, t: None)
     ss = np.random.SeedSequence(spec.seed)
     # Independent streams, so that e.g. switching leaves on keeps the same stations and noise.
-    s_tree, s_stations, s_ground, s_other, s_noise = ss.spawn(5)
+    s_tree, s_stations, s_ground, s_other, s_noise, s_wind = ss.spawn(6)
     rng_tree, rng_stations, rng_ground, rng_other = (np.random.default_rng(s) for s in (s_tree, s_stations, s_ground, s_other))
     rng_noise = [np.random.default_rng(s) for s in s_noise.spawn(spec.n_stations)]
+    rng_wind = [np.random.default_rng(s) for s in s_wind.spawn(spec.n_stations)]
     trees: tuple[TreeInfo, ...] = ()
     scene: Scene | None = None
     cloud: np.ndarray | None = None
@@ -429,12 +465,18 @@ def _build(spec: CaseSpec, progress: Progress | None) -> SimulatedCase:
             trees = (main, _second_tree(shape, stations, height, rng_other, sink))
         scene = merge_scenes([t.scene for t in trees], ground)
 
-    scans, labels = [], []
+    scans, labels, mixed = [], [], []
     n_rays = 0
     for k, st in enumerate(stations):
         name = f"scan{k + 1}.ply"
         T_scan_world = invert(st.T_world_scan)
         rng = rng_noise[k]
+        seen = scene
+        if spec.wind_m > 0 and trees:
+            # The tree as this station found it: each tree swayed its own way, the ground unmoved.
+            sways = [draw_sway(spec.wind_m, spec.flutter, rng_wind[k]) for _ in trees]
+            seen = merge_scenes([sway_tree(t, w, rng_wind[k]) for t, w in zip(trees, sways)], scene.ground)
+            stations[k] = st = replace(st, sway=sways[0])
 
         def sub(f: float, text: str, k: int = k) -> None:
             say((k + 0.1 + 0.9 * f) / len(stations), f"{name}: {text}")
@@ -450,10 +492,13 @@ def _build(spec: CaseSpec, progress: Progress | None) -> SimulatedCase:
             lab = np.full(len(pts), -1, dtype=np.int8)
         else:
             near = max(st.distance_m - spec.ground_front_m, 0.0)
-            rs = scan_scene(scene.transformed(T_scan_world), spec.angular_step_deg, rng,
-                            spec.range_sigma_m, spec.dropout, ground_near_m=near, progress=sub)
+            rs = scan_scene(seen.transformed(T_scan_world), spec.angular_step_deg, rng,
+                            spec.range_sigma_m, spec.dropout, ground_near_m=near, progress=sub,
+                            mixed_pixels=spec.mixed_pixels)
             pts, lab = rs.points, rs.labels
             n_rays += rs.n_rays
+            if spec.mixed_pixels > 0:
+                mixed.append(rs.mixed)
         scans.append(Scan.from_points(pts, name=name, angular_step_deg=spec.angular_step_deg))
         labels.append(lab)
     T_world_ref = stations[0].T_world_scan
@@ -467,7 +512,7 @@ def _build(spec: CaseSpec, progress: Progress | None) -> SimulatedCase:
                     Metric("rays cast", "", n_rays)]
     metrics.append(Metric("simulation time", "s", round(seconds, 3)))
     return SimulatedCase(spec, tuple(scans), T_ref_scan, tuple(stations), trees, scene, cloud,
-                         tuple(labels), seconds, tuple(metrics))
+                         tuple(labels), seconds, tuple(metrics), mixed=tuple(mixed))
 
 
 #: Feature sets of the awkward benchmark cases, in turn: every hard feature appears several times.

@@ -33,6 +33,7 @@ class RayScan:
     grid_ij: N x 2 integer ray indices (azimuth i, elevation j; angles i*phi, j*varphi);
     n_rays: rays cast over the window; window_ij: (i0, i1, j0, j1) inclusive ray index ranges;
     return_index: N, 0 for the first return of a ray, 1 for a second one (`second_returns`).
+    mixed: N bools, True for a mixed pixel (an edge return pushed back along its ray, `mixed_pixels`).
     """
 
     points: np.ndarray
@@ -42,6 +43,40 @@ class RayScan:
     n_rays: int
     window_ij: tuple[int, int, int, int]
     return_index: np.ndarray | None = None
+    mixed: np.ndarray | None = None
+
+
+#: Mixed pixels: a return is at an edge when a grid neighbour has no return or one this much farther.
+MIXED_EDGE_JUMP_M = 0.3
+#: A mixed pixel lies 2 cm to this far behind its edge (never beyond what lies behind it).
+MIXED_MAX_M = 0.8
+MIXED_MIN_M = 0.02
+
+
+def _mixed_pixels(key: np.ndarray, t: np.ndarray, first: np.ndarray, n_rows: int, share: float,
+                  rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Edge returns moved back along their rays, as a beam straddling an edge returns a range between
+    the edge and what lies behind it. `key` (sorted), `t`: the returns kept (ray key col*n_rows+row,
+    range); `first`: which are first returns. An edge return is a first return with a grid
+    neighbour (4-connected) that has no return or one farther by `MIXED_EDGE_JUMP_M`; each is
+    mixed with probability `share`, moved back by 2 cm up to `MIXED_MAX_M` (at most to the farther
+    neighbour). Returns (new ranges, mixed mask)."""
+    fk, ft = key[first], t[first]
+    gap = np.zeros(len(key))
+    for dk in (-1, 1, -n_rows, n_rows):  # rows within a column, then the neighbouring columns
+        nk = key + dk
+        i = np.minimum(np.searchsorted(fk, nk), max(len(fk) - 1, 0))
+        found = (fk[i] == nk) if len(fk) else np.zeros(len(key), bool)
+        if dk in (-1, 1):  # no wrap from the top of one column to the bottom of the next
+            found &= (nk // n_rows) == (key // n_rows)
+        behind = np.where(found, ft[i] - t, np.inf)
+        gap = np.maximum(gap, behind)
+    edge = first & (gap > MIXED_EDGE_JUMP_M)
+    mixed = edge & (rng.random(len(key)) < share)
+    cap = np.minimum(MIXED_MAX_M, gap[mixed])
+    out = t.copy()
+    out[mixed] += rng.uniform(0.0, 1.0, int(mixed.sum())) * (cap - MIXED_MIN_M) + MIXED_MIN_M
+    return out, mixed
 
 
 def _angles(p: np.ndarray, alpha_c: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -175,6 +210,7 @@ def scan_scene(
     second_returns: float = 0.0,
     second_return_labels: tuple[int, ...] = (3, 4, 5),
     second_return_gap_m: float = 0.8,
+    mixed_pixels: float = 0.0,
 ) -> RayScan:
     """Ray-cast `scene`, given in the instrument frame (scanner at the origin).
 
@@ -194,6 +230,9 @@ def scan_scene(
     second_returns : probability that a ray whose first hit is on a part in `second_return_labels`
         (thin branches and leaves, which a beam's footprint only partly covers) also returns the
         next surface at least `second_return_gap_m` behind it, as a real multi-return scanner does.
+    mixed_pixels : share of the edge returns (a grid neighbour empty or 0.3 m farther) that are
+        mixed pixels: the beam straddles the edge and the range lands 2-80 cm behind it, between the
+        edge and what lies behind (`RayScan.mixed` marks them).
 
     A window spanning 360 deg of azimuth is a full panorama: ray columns wrap around, so objects
     behind the scanner (across the cut) are scanned whole.
@@ -346,14 +385,17 @@ def scan_scene(
         ret[second] = 1
         first |= second
     key, tt, lab, pid, ret = key[first], tt[first], lab[first], pid[first], ret[first]
+    mixed = np.zeros(key.size, dtype=bool)
+    if mixed_pixels > 0:
+        tt, mixed = _mixed_pixels(key, tt, ret == 0, n_rows, mixed_pixels, rng)
 
     keep = rng.random(key.size) >= dropout
-    key, tt, lab, pid, ret = key[keep], tt[keep], lab[keep], pid[keep], ret[keep]
+    key, tt, lab, pid, ret, mixed = key[keep], tt[keep], lab[keep], pid[keep], ret[keep], mixed[keep]
     rng_m = tt + rng.normal(0.0, range_sigma_m, tt.size)
     col, row = np.divmod(key, n_rows)
     pts = np.stack([cb[row] * ca[col], cb[row] * sa[col], sb[row]], axis=1) * rng_m[:, None]
     grid = np.stack([col + i0, row + j0], axis=1)
-    return RayScan(pts, lab.astype(np.int8), pid, grid, n_rays, (i0, i1, j0, j1), ret)
+    return RayScan(pts, lab.astype(np.int8), pid, grid, n_rays, (i0, i1, j0, j1), ret, mixed)
 
 
 def visible_points(

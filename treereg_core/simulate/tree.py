@@ -12,7 +12,7 @@ base is at the world origin, z up.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -161,8 +161,37 @@ class TreeShape:
 
 
 @dataclass(frozen=True, eq=False)
+class Limbs:
+    """Where every primitive of a tree sits on its branching structure, so that wind can move the
+    small branches on their own (`simulate.wind`).
+
+    Flutter branches are the branches of order 2 and up, numbered 0..B-1 over all of them. Per
+    primitive (cylinders, spheres, disks, in the scene's order): the flutter branch it lies on (-1
+    for the trunk and order-1 branches, which move with the stem's bend) and the fraction of that
+    branch's length where it sits (`cyl_t0`, `cyl_t1`: at a cylinder's two ends). Per flutter
+    branch: the flutter branch it sprouts from (`parent`, -1 when it sprouts from an order-1
+    branch) and at which fraction of the parent (`attach`).
+    """
+
+    cyl_branch: np.ndarray
+    cyl_t0: np.ndarray
+    cyl_t1: np.ndarray
+    sph_branch: np.ndarray
+    sph_t: np.ndarray
+    disk_branch: np.ndarray
+    disk_t: np.ndarray
+    parent: np.ndarray
+    attach: np.ndarray
+
+    @property
+    def n_branches(self) -> int:
+        return int(self.parent.shape[0])
+
+
+@dataclass(frozen=True, eq=False)
 class TreeInfo:
-    """What was drawn for one tree: where it stands and its measured-like attributes."""
+    """What was drawn for one tree: where it stands and its measured-like attributes. `limbs`
+    places every primitive of `scene` on the branching structure (for wind)."""
 
     base_m: np.ndarray
     shape: TreeShape
@@ -171,6 +200,7 @@ class TreeInfo:
     n_branches: tuple[int, ...]
     n_leaves: int
     scene: Scene = field(repr=False)
+    limbs: Limbs | None = field(default=None, repr=False)
 
     def to_dict(self) -> dict:
         s = self.shape
@@ -217,6 +247,9 @@ class _Chains:
     points: np.ndarray
     radii: np.ndarray
     length: np.ndarray
+    #: Per branch: the parent branch it sprouts from and at which fraction of it (None for order 1).
+    parent: np.ndarray | None = None
+    attach: np.ndarray | None = None
 
     def point_at(self, b: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Axis point, direction and radius of branches `b` at fraction `f` of their length."""
@@ -288,12 +321,14 @@ def _children(parent: _Chains, per_m: float, max_per_branch: int, length_frac: t
     length = np.maximum(length, 0.08)
     r = np.maximum(r_par * rng.uniform(*radius_frac, b.size), _MIN_RADIUS_M)
     tropism = rng.uniform(-0.02, 0.06, b.size)
-    return _grow(p, d, length, r, _SEGMENTS[order], 0.08, tropism, rng)
+    ch = _grow(p, d, length, r, _SEGMENTS[order], 0.08, tropism, rng)
+    return replace(ch, parent=b, attach=f)
 
 
-def _leaves(chains: list[_Chains], shape: TreeShape, rng: np.random.Generator) -> Disks:
+def _leaves(chains: list[_Chains], shape: TreeShape, rng: np.random.Generator) -> tuple[Disks, np.ndarray, np.ndarray]:
     """Leaves along the segments of the outer-order chains, a short petiole away from the bark,
-    oriented at random but mostly facing up."""
+    oriented at random but mostly facing up. Also returns, per leaf, the segment it hangs on (an
+    index into the chains' segments, in order) and where along it (0-1)."""
     p0 = np.concatenate([c.points[:, :-1].reshape(-1, 3) for c in chains])
     p1 = np.concatenate([c.points[:, 1:].reshape(-1, 3) for c in chains])
     rad = np.concatenate([c.radii[:, :-1].reshape(-1) for c in chains])
@@ -302,7 +337,7 @@ def _leaves(chains: list[_Chains], shape: TreeShape, rng: np.random.Generator) -
     s = np.repeat(np.arange(len(n)), n)
     if s.size == 0:
         empty = np.zeros((0, 3))
-        return Disks(empty, empty.copy(), np.zeros(0), np.zeros(0, dtype=np.int8))
+        return Disks(empty, empty.copy(), np.zeros(0), np.zeros(0, dtype=np.int8)), s, np.zeros(0)
     u = _unit(p1[s] - p0[s])
     e1, e2 = _perpendicular_frame(u)
     az = rng.uniform(0, 2 * np.pi, s.size)
@@ -311,7 +346,7 @@ def _leaves(chains: list[_Chains], shape: TreeShape, rng: np.random.Generator) -
     radius = rng.uniform(*shape.leaf_radius_m, s.size)
     centre = p0[s] * (1 - w) + p1[s] * w + out * (rad[s] + radius + rng.uniform(0.01, 0.04, s.size))[:, None]
     normal = _unit(rng.normal(0, 1, (s.size, 3)) + np.array([0.0, 0.0, 1.2]))
-    return Disks(centre, normal, radius, np.full(s.size, LABEL_LEAF, dtype=np.int8))
+    return Disks(centre, normal, radius, np.full(s.size, LABEL_LEAF, dtype=np.int8)), s, w[:, 0]
 
 
 def _trunk_axis(shape: TreeShape, rng: np.random.Generator, sink_m: float) -> tuple[np.ndarray, np.ndarray]:
@@ -393,10 +428,12 @@ def make_tree(shape: TreeShape, rng: np.random.Generator, base: np.ndarray | Non
             cyl.append(c)
             sph.append(sp)
 
+    leaf_seg, leaf_w = np.zeros(0, dtype=np.int64), np.zeros(0)
     if shape.leaves and chains:
-        disks = _leaves(chains[-2:], shape, leaf_rng)  # the outer two orders carry the leaves
+        disks, leaf_seg, leaf_w = _leaves(chains[-2:], shape, leaf_rng)  # the outer two orders carry the leaves
     else:
         disks = Disks(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(0, dtype=np.int8))
+    limbs = _limbs(trunk, chains, len(chains[-2:]) if chains else 0, leaf_seg, leaf_w)
 
     scene = Scene(
         Cylinders(*(np.concatenate([getattr(c, f) for c in cyl]) for f in ("p0", "p1", "r0", "r1", "label"))),
@@ -417,7 +454,52 @@ def make_tree(shape: TreeShape, rng: np.random.Generator, base: np.ndarray | Non
             Disks(scene.disks.centre, scene.disks.normal, scene.disks.radius,
                   np.full(len(scene.disks), label_override, dtype=np.int8)),
         )
-    return TreeInfo(base, shape, float(crown_base), float(lean_axis), tuple(n_branches), len(disks), scene)
+    return TreeInfo(base, shape, float(crown_base), float(lean_axis), tuple(n_branches), len(disks), scene, limbs)
+
+
+def _limbs(trunk: _Chains, chains: list[_Chains], n_leaf_chains: int, leaf_seg: np.ndarray,
+           leaf_w: np.ndarray) -> Limbs:
+    """The `Limbs` of a tree grown as `trunk` + `chains` (orders 1, 2, ...), primitives in the order
+    `make_tree` lays them out; leaves hang on the segments of the last `n_leaf_chains` chains."""
+    all_chains = [trunk] + chains
+    # Flutter branch ids: orders 2 and up, numbered in order; -1 for the trunk and order 1.
+    first_id, nxt = [], 0
+    for k, ch in enumerate(all_chains):
+        first_id.append(nxt if k >= 2 else -1)
+        nxt += len(ch.length) if k >= 2 else 0
+    cyl_b, cyl_t0, cyl_t1 = [], [], []
+    for k, ch in enumerate(all_chains):
+        B, n = ch.points.shape[0], ch.points.shape[1] - 1
+        ids = np.repeat(np.arange(B) + first_id[k], n) if k >= 2 else np.full(B * n, -1)
+        t = np.tile(np.arange(n + 1) / n, B).reshape(B, n + 1)
+        cyl_b.append(ids)
+        cyl_t0.append(t[:, :-1].reshape(-1))
+        cyl_t1.append(t[:, 1:].reshape(-1))
+    cyl_b_all, t0_all, t1_all = (np.concatenate(v) for v in (cyl_b, cyl_t0, cyl_t1))
+    parent, attach = [], []
+    for k, ch in enumerate(all_chains[2:], start=2):
+        # A branch of order 3+ sprouts from a flutter branch; one of order 2 from an order-1 branch.
+        parent.append(ch.parent + first_id[k - 1] if k >= 3 else np.full(len(ch.length), -1))
+        attach.append(ch.attach if k >= 3 else np.zeros(len(ch.length)))
+    # Leaves: the segment index runs over the segments of the leaf-bearing chains, in order.
+    leaf_chains = all_chains[len(all_chains) - n_leaf_chains:] if n_leaf_chains else []
+    seg_b, seg_t0, seg_t1 = [], [], []
+    for k0, ch in enumerate(leaf_chains):
+        k = len(all_chains) - n_leaf_chains + k0
+        B, n = ch.points.shape[0], ch.points.shape[1] - 1
+        seg_b.append(np.repeat(np.arange(B) + first_id[k], n) if k >= 2 else np.full(B * n, -1))
+        t = np.tile(np.arange(n) / n, B)
+        seg_t0.append(t)
+        seg_t1.append(t + 1.0 / n)
+    if seg_b and leaf_seg.size:
+        sb, st0, st1 = (np.concatenate(v) for v in (seg_b, seg_t0, seg_t1))
+        disk_b = sb[leaf_seg]
+        disk_t = st0[leaf_seg] * (1 - leaf_w) + st1[leaf_seg] * leaf_w
+    else:
+        disk_b, disk_t = np.zeros(0, dtype=np.int64), np.zeros(0)
+    cat = (lambda v: np.concatenate(v) if v else np.zeros(0))
+    return Limbs(cyl_b_all.astype(np.int64), t0_all, t1_all, cyl_b_all.astype(np.int64).copy(), t1_all.copy(),
+                 disk_b.astype(np.int64), disk_t, cat(parent).astype(np.int64), cat(attach))
 
 
 def _axis_angle(axis_azimuth: float, angle: float) -> np.ndarray:

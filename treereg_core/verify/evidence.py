@@ -13,6 +13,14 @@ inliers as two different look-alike trees):
 * plausibility — the scanner stays nearly level; both scanners stand at the heights above the
   ground their own scans show.
 
+Wind: when the fine stage fitted a bend of the target's stem (its crown moved between the
+stations), the crown's motion is a nuisance, not evidence against the pose. The target is then
+judged unbent (as the reference's tree stood); its points the reference saw through but that lie
+within the branches' measured motion of a surface the reference saw count as moved, not as
+contradictions; the support is counted at the final pose, unbent; the competing hypotheses are
+judged the same way; and a crown that moved more than can be told from a wrong pose is refused
+with that reason.
+
 With three or more scans the pose graph adds loop closure (`graph`).
 """
 
@@ -22,12 +30,19 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..fine.bend import Bend
+from ..fine.stem import StemProfile
 from ..fine.surface import Surface, noise_floor, trimmed_residuals
 from ..geometry.rigid import apply_transform
 from ..params import AcceptanceParams, CoarseParams, HypothesesParams, VerifyParams
 from ..results import Metric
-from .hypotheses import SCORE_POINTS, HypothesesResult
-from .visibility import RangeImage, Visibility, visibility
+from .hypotheses import SCORE_POINTS, HypothesesResult, distinct
+from .visibility import RangeImage, Visibility, violation_distances, visibility
+
+#: Wind: the share of the disagreeing points the motion allowance must cover (the rest count against).
+MOTION_QUANTILE = 0.75
+#: Wind: fewest disagreeing points from which their motion is measured (below it: no allowance needed).
+MIN_MOTION_POINTS = 20
 
 VERIFIED, UNVERIFIED, FAILED = "verified", "unverified", "failed"
 
@@ -50,6 +65,18 @@ class Evidence:
     tilt_deg: float
     height_difference_m: float | None
     chosen_by_hand: bool = False
+    #: Wind: how far the target's stem top had moved from the reference's (0 in still air), towards
+    #: which azimuth (reference frame), its noise, and the height up to which the stems agree.
+    sway_m: float = 0.0
+    sway_direction_deg: float = float("nan")
+    sway_std_m: float = float("nan")
+    stable_height_m: float = float("nan")
+    #: Wind: how far the points that still disagree once the stem is unbent lie from a surface the
+    #: reference saw (the branches' own motion, a quartile of them beyond it), the allowance used
+    #: (capped at verify.max_motion_m), and the points counted as moved.
+    motion_needed_m: float = 0.0
+    motion_m: float = 0.0
+    moved: int = 0
 
     def as_dict(self) -> dict[str, float | int | str | None]:
         return dict(self.__dict__)
@@ -82,11 +109,31 @@ def gather_evidence(ref_image: RangeImage, ref_surf: Surface, tgt_surf: Surface,
                     T: np.ndarray, coarse: object, hyp: HypothesesResult | None,
                     ref_plane: tuple[float, float, float, float] | None,
                     tgt_plane: tuple[float, float, float, float] | None, *, hypotheses: HypothesesParams,
-                    acceptance: AcceptanceParams) -> Evidence:
-    """Measure every kind of evidence for the pose `T` of the target (prepared points, own frame)."""
+                    acceptance: AcceptanceParams, bend: Bend | None = None, profile: StemProfile | None = None,
+                    max_motion_m: float = 0.1, support_inlier_m: float = 0.05,
+                    stable_tolerance_m: float = 0.003) -> Evidence:
+    """Measure every kind of evidence for the pose `T` of the target (prepared points, own frame).
+
+    With a `bend` (the crown moved between the stations; `tgt_surf` is then the target's surface
+    unbent), the target is judged unbent, with the branches' own motion measured and allowed up to
+    `max_motion_m`, its support counted at `T` (ties within `support_inlier_m`) and its rivals
+    judged alike. `profile`: the stem profile at `T` (for the height the stems agree up to).
+    """
     rng = np.random.default_rng(0)
     pts = tgt_points if len(tgt_points) <= SCORE_POINTS else tgt_points[rng.choice(len(tgt_points), SCORE_POINTS, replace=False)]
-    vis: Visibility = visibility(ref_image, pts, T, hypotheses.tolerance_m)
+    unbend = bend.unbend if bend is not None else None
+    needed = motion = 0.0
+    if bend is not None:
+        reach = 2.0 * max_motion_m
+        d, _ = violation_distances(ref_image, pts, T, hypotheses.tolerance_m, unbend, ref_surf.cloud_tree, reach)
+        needed = float(np.quantile(np.minimum(d, reach), MOTION_QUANTILE)) if len(d) >= MIN_MOTION_POINTS else 0.0
+        motion = min(max(needed, hypotheses.tolerance_m), max_motion_m)
+
+    def judged(T_: np.ndarray) -> Visibility:
+        return visibility(ref_image, pts, T_, hypotheses.tolerance_m, unbend=unbend, surface_tree=ref_surf.cloud_tree,
+                          motion_m=motion)
+
+    vis: Visibility = judged(T)
     residual = float(trimmed_residuals(ref_surf, tgt_surf, [T], acceptance.gate_m, acceptance.select_trim)[0])
     noise = float(np.nanmax([noise_floor(ref_surf), noise_floor(tgt_surf)]))
     tilt = float(np.degrees(np.arccos(np.clip(T[2, 2], -1.0, 1.0))))
@@ -97,14 +144,47 @@ def gather_evidence(ref_image: RangeImage, ref_surf: Surface, tgt_surf: Surface,
         station = apply_transform(T, np.zeros((1, 3)))[0]
         n, d = np.asarray(ref_plane[:3]), float(ref_plane[3])
         dh = float(station @ n + d - h_tgt)
+    inliers = int(getattr(coarse, "n_inliers", 0))
+    rival = hyp.runner_up if hyp is not None else ""
+    margin = float(hyp.margin) if hyp is not None else float("nan")
+    if bend is not None:
+        match = getattr(coarse, "match", None)
+        if match is not None and match.n_ties:
+            # The coarse transform was fitted rigidly to ties of a moving crown: count the ties that
+            # agree with the final pose, the target unbent.
+            q = bend.unbend(apply_transform(T, match.tgt_xyz))
+            inliers = int(np.count_nonzero(np.linalg.norm(q - match.ref_xyz, axis=1) < support_inlier_m))
+        if hyp is not None and hyp.candidates and not hyp.chosen_by_hand:
+            rival, margin = _rival_under_wind(hyp, T, pts, judged, vis, hypotheses)
     return Evidence(
-        inliers=int(getattr(coarse, "n_inliers", 0)), ties=int(getattr(coarse, "n_ties", 0)),
+        inliers=inliers, ties=int(getattr(coarse, "n_ties", 0)),
         chance_inliers=int(getattr(coarse, "chance_inliers", -1)), consistency=float(vis.consistency),
         seen_by_both=vis.seen_by_both, violations=vis.violations, residual_m=residual, noise_m=noise,
-        chosen=hyp.chosen if hyp is not None else "coarse", rival=hyp.runner_up if hyp is not None else "",
-        margin=float(hyp.margin) if hyp is not None else float("nan"), tilt_deg=tilt, height_difference_m=dh,
+        chosen=hyp.chosen if hyp is not None else "coarse", rival=rival,
+        margin=margin, tilt_deg=tilt, height_difference_m=dh,
         chosen_by_hand=bool(hyp is not None and hyp.chosen_by_hand),
+        sway_m=bend.sway_m if bend is not None else 0.0,
+        sway_direction_deg=bend.sway_direction_deg if bend is not None else float("nan"),
+        sway_std_m=bend.sway_std_m if bend is not None else float("nan"),
+        stable_height_m=profile.stable_height_m(stable_tolerance_m) if profile is not None else float("nan"),
+        motion_needed_m=needed, motion_m=motion, moved=vis.moved,
     )
+
+
+def _rival_under_wind(hyp: HypothesesResult, T: np.ndarray, pts: np.ndarray, judged, best: Visibility,
+                      p: HypothesesParams) -> tuple[str, float]:
+    """The best distinct competing hypothesis judged as the final pose is (unbent, motion allowed),
+    and the margin of the final pose's consistency over it (negative: the rival explains the scans
+    better)."""
+    centre = pts.mean(axis=0)
+    rivals = [c for c in hyp.candidates if distinct(c.T_ref_target, T, centre, p.distinct_deg, p.distinct_m)]
+    if not rivals:
+        return "", 1.0
+    scored = [(judged(c.T_ref_target).consistency, c.label) for c in rivals]
+    scored = [(c if np.isfinite(c) else 0.0, lab) for c, lab in scored]
+    cons, label = max(scored)
+    base = best.consistency if np.isfinite(best.consistency) else 0.0
+    return label, float(base - cons)
 
 
 def judge(e: Evidence, *, verify: VerifyParams, coarse: CoarseParams) -> tuple[str, tuple[str, ...], str]:
@@ -120,14 +200,26 @@ def judge(e: Evidence, *, verify: VerifyParams, coarse: CoarseParams) -> tuple[s
         reasons.append(f"only {e.seen_by_both} of the target's points lie where both stations could see them "
                        f"(verify.min_seen = {p.min_seen}): too little overlap to judge")
         hints.append("add a station between these two")
+    elif e.sway_m > 0 and e.motion_needed_m > p.max_motion_m:
+        reasons.append(f"the crown moved between the stations (the stem top by {e.sway_m:.2f} m), and with the stem's "
+                       f"bend taken out its branches still stand {100 * e.motion_needed_m:.0f} cm or more from where the "
+                       f"reference saw them (verify.max_motion_m = {p.max_motion_m:g}): too much motion to tell the "
+                       "wind from a wrong pose")
+        hints.append("rescan these stations in calmer air, or add a station scanned soon after the reference")
     elif not e.consistency >= p.min_consistency:
+        moved = (f", after the crown's motion was taken out ({e.moved} points within {100 * e.motion_m:.0f} cm of a "
+                 "surface the reference saw counted as moved)") if e.sway_m > 0 else ""
         reasons.append(f"{1 - e.consistency:.1%} of the points both stations see lie in space the reference saw "
-                       f"through (consistency {e.consistency:.3f} < verify.min_consistency = {p.min_consistency:g})")
+                       f"through{moved} (consistency {e.consistency:.3f} < verify.min_consistency = {p.min_consistency:g})")
         hints.append("check that both scans show the same tree, or pick another hypothesis in the app")
     # A hypothesis picked by hand settles the ambiguity: the person looked at both.
     if np.isfinite(e.margin) and e.margin < p.min_margin and not e.chosen_by_hand:
-        reasons.append(f"another hypothesis ({e.rival}) explains the scans almost as well (consistency margin "
-                       f"{e.margin:.3f} < verify.min_margin = {p.min_margin:g}): the heading is ambiguous")
+        if e.margin < 0:
+            reasons.append(f"another hypothesis ({e.rival}) explains the scans better (its consistency is "
+                           f"{-e.margin:.3f} higher): the heading is wrong or ambiguous")
+        else:
+            reasons.append(f"another hypothesis ({e.rival}) explains the scans almost as well (consistency margin "
+                           f"{e.margin:.3f} < verify.min_margin = {p.min_margin:g}): the heading is ambiguous")
         hints.append("compare the competing poses in the app (treereg view) and pick one, or add a station")
     if np.isfinite(e.noise_m) and e.noise_m > 0 and not e.residual_m <= p.max_residual_factor * e.noise_m:
         what = "do not pair up" if not np.isfinite(e.residual_m) else f"lie {e.residual_m * 1000:.1f} mm apart"
@@ -158,5 +250,8 @@ def verification(T: np.ndarray, e: Evidence, verdict: str, reasons: tuple[str, .
         Metric("best rival hypothesis", "", e.rival or "none"),
         Metric("scanner tilt", "deg", e.tilt_deg),
         Metric("scanner height difference", "m", e.height_difference_m if e.height_difference_m is not None else float("nan")),
-    )
+        Metric("crown moved between the stations (stem top)", "m", e.sway_m),
+        Metric("stems agree up to (above the base)", "m", e.stable_height_m),
+    ) + ((Metric("branches moved on their own by (allowed)", "m", e.motion_m),
+          Metric("points counted as moved", "", e.moved)) if e.sway_m > 0 else ())
     return PairVerification(True, "; ".join(reasons), metrics, np.asarray(T, dtype=float), verdict, reasons, hint, e)

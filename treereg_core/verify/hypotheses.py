@@ -86,7 +86,7 @@ def _score(v: Visibility, p: HypothesesParams) -> float:
     return v.consistent - p.violation_weight * v.violations
 
 
-def _distinct(a: np.ndarray, b: np.ndarray, centre: np.ndarray, deg: float, m: float) -> bool:
+def distinct(a: np.ndarray, b: np.ndarray, centre: np.ndarray, deg: float, m: float) -> bool:
     """Two poses of the target are different hypotheses (another heading or another position)."""
     d_pos = float(np.linalg.norm(apply_transform(a, centre[None])[0] - apply_transform(b, centre[None])[0]))
     return rotation_angle_deg(a[:3, :3] @ b[:3, :3].T) >= deg or d_pos >= m
@@ -149,7 +149,7 @@ def score_hypotheses(ref_image: RangeImage, ref_surf: Surface, tgt_surf: Surface
     cands = rank
     best = cands[0]
     rivals = [c for c in rank[1:len(eligible)]
-              if _distinct(c.T_ref_target, best.T_ref_target, centre, p.distinct_deg, p.distinct_m)]
+              if distinct(c.T_ref_target, best.T_ref_target, centre, p.distinct_deg, p.distinct_m)]
     runner = rivals[0] if rivals else None
     cons = best.visibility.consistency
     margin = cons - runner.visibility.consistency if runner is not None else 1.0

@@ -24,8 +24,10 @@ import threading
 import weakref
 from dataclasses import dataclass
 from functools import cached_property
+from typing import Callable
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from ..geometry.rigid import apply_transform
 
@@ -108,13 +110,16 @@ class Visibility:
 
     Counts of consistent, violating (in the reference's free space), occluded and unseen points;
     `consistency` = consistent / (consistent + violations): 1 when the two views agree wherever both
-    could see, low when the target sits in space the reference saw through.
+    could see, low when the target sits in space the reference saw through. With wind, `moved`
+    counts the points in the reference's free space that lie within the crown's measured motion of
+    a surface the reference saw (a twig that moved): neither agreement nor contradiction.
     """
 
     consistent: int
     violations: int
     occluded: int
     unseen: int
+    moved: int = 0
 
     @property
     def seen_by_both(self) -> int:
@@ -125,23 +130,56 @@ class Visibility:
         return self.consistent / self.seen_by_both if self.seen_by_both else float("nan")
 
 
-def visibility(ref_image: RangeImage, target_points: np.ndarray, T_ref_target: np.ndarray,
-               tolerance_m: float) -> Visibility:
-    """Check every target point (its own frame), mapped by `T_ref_target`, against the reference's view.
-
-    The tolerance grows with range as a cell does (a surface oblique to the ray spans a range of
-    depths within one cell): `tolerance_m + r * cell size`.
-    """
-    p = apply_transform(np.asarray(T_ref_target, dtype=float), np.asarray(target_points, dtype=float))
+def _classes(ref_image: RangeImage, p: np.ndarray, tolerance_m: float) -> tuple[np.ndarray, ...]:
+    """Masks (consistent, violation, occluded, seen) of points `p` in the reference frame."""
     alpha, beta, r = _angles(p)
     col, row = ref_image.cells(alpha, beta)
     near = ref_image.nearest(col, row)
     tol = tolerance_m + r * np.radians(max(ref_image.cell_deg)) * 2.0
     seen = np.isfinite(near)
-    consistent = seen & (np.abs(r - near) <= tol)
-    violation = seen & (r < near - tol)
-    occluded = seen & (r > near + tol)
-    return Visibility(int(consistent.sum()), int(violation.sum()), int(occluded.sum()), int((~seen).sum()))
+    return seen & (np.abs(r - near) <= tol), seen & (r < near - tol), seen & (r > near + tol), seen
+
+
+def placed(target_points: np.ndarray, T_ref_target: np.ndarray,
+           unbend: Callable[[np.ndarray], np.ndarray] | None = None) -> np.ndarray:
+    """Target points (their own frame) in the reference frame: mapped by the transform and, with
+    wind, moved back to where the reference's tree stood (`fine.bend.Bend.unbend`)."""
+    p = apply_transform(np.asarray(T_ref_target, dtype=float), np.asarray(target_points, dtype=float))
+    return p if unbend is None else unbend(p)
+
+
+def visibility(ref_image: RangeImage, target_points: np.ndarray, T_ref_target: np.ndarray,
+               tolerance_m: float, *, unbend: Callable[[np.ndarray], np.ndarray] | None = None,
+               surface_tree: cKDTree | None = None, motion_m: float = 0.0) -> Visibility:
+    """Check every target point (its own frame), mapped by `T_ref_target`, against the reference's view.
+
+    The tolerance grows with range as a cell does (a surface oblique to the ray spans a range of
+    depths within one cell): `tolerance_m + r * cell size`. With wind, the points are first unbent
+    (`unbend`), and a point in the reference's free space within `motion_m` of a surface point the
+    reference saw (`surface_tree`) counts as moved, not as a violation.
+    """
+    p = placed(target_points, T_ref_target, unbend)
+    consistent, violation, occluded, seen = _classes(ref_image, p, tolerance_m)
+    moved = 0
+    if motion_m > 0 and surface_tree is not None and violation.any():
+        idx = np.flatnonzero(violation)
+        d, _ = surface_tree.query(p[idx], distance_upper_bound=motion_m)
+        near = np.isfinite(d)
+        violation[idx[near]] = False
+        moved = int(near.sum())
+    return Visibility(int(consistent.sum()), int(violation.sum()), int(occluded.sum()), int((~seen).sum()), moved)
+
+
+def violation_distances(ref_image: RangeImage, target_points: np.ndarray, T_ref_target: np.ndarray,
+                        tolerance_m: float, unbend: Callable[[np.ndarray], np.ndarray] | None,
+                        surface_tree: cKDTree, reach_m: float) -> tuple[np.ndarray, int]:
+    """How far each target point in the reference's free space lies from the nearest surface point
+    the reference saw (inf beyond `reach_m`), and how many points both stations see: what the
+    crown's motion beyond the stem's bend looks like."""
+    p = placed(target_points, T_ref_target, unbend)
+    consistent, violation, _, _ = _classes(ref_image, p, tolerance_m)
+    d, _ = surface_tree.query(p[violation], distance_upper_bound=reach_m)
+    return d, int(consistent.sum() + violation.sum())
 
 
 _images: "weakref.WeakKeyDictionary[object, dict]" = weakref.WeakKeyDictionary()

@@ -58,6 +58,9 @@ class PrepareParams:
     crop_z_max_m: float | None = _f(None, "m", "keep points below this height in the scanner frame (None = no limit)")
     returns: str = _f("first", "", "several returns per pulse: keep the first of each pulse, or all (applies when a file is read; files without return numbers keep every point)",
                       choices=("first", "all"))
+    mixed_pixels: bool = _f(True, "", "remove mixed pixels: returns just behind a range jump on the scan's angular grid with no neighbour at their own range (the comet tails behind every stem's edge)")
+    mixed_tolerance_m: float = _f(0.02, "m", "mixed pixels: a neighbouring return continues a surface when its range differs by at most this (plus the slope allowance)", lo=0.001, hi=1.0)
+    mixed_slope: float = _f(4.0, "", "mixed pixels: steepest surface kept, as the range change per cell over the cell's width (4 = 76 deg incidence)", lo=0.5, hi=100.0)
 
 
 @dataclass(frozen=True)
@@ -355,7 +358,7 @@ def _paper() -> Params:
     p = Params()
     return replace(
         p,
-        prepare=replace(p.prepare, remove_ground=False),
+        prepare=replace(p.prepare, remove_ground=False, mixed_pixels=False),
         projection=replace(p.projection, relative_azimuth=False, max_image_px=None, min_span_deg=0.0, square_pixels=False),
         matching=replace(p.matching, n_pairs=3, matches_per_pair=5, beta_check=True, image_mode="binary", snap_px=0),
         coarse=replace(p.coarse, estimator="svd", dof=6, refit_6dof=False, final_inlier_m=None),

@@ -20,12 +20,13 @@ from .evaluate.branches import find_branches
 from .evaluate.icp import IcpResult, align_icp, icp_off
 from .evaluate.report import PairReport, evaluate_registration
 from .fine.arcs import SliceArcs, separate_scan_slices, separate_slices
-from .fine.pose import FINE_SECTIONS, FineResult, FineStart, register_fine
+from .fine.pose import FINE_SECTIONS, FineResult, FineStart, profile_bend, register_fine, straightened
 from .fine.sections import SectionsResult, fit_scan_sections, fit_sections
 from .fine.slicing import SliceResult, slice_scans
 from .fine.surface import scan_surface, surface_of
 from .geometry.rigid import invert, mean_displacement, rotation_error_deg
 from .prepare.ground import PreparedScan, prepare_scans
+from .prepare.mixed import remove_mixed
 from .prepare.resolution import working_resolution
 from .results import Metric
 from .scan import Scan
@@ -33,7 +34,7 @@ from .stage import Stage, StageContext
 from .verify.evidence import VERIFIED, PairVerification, gather_evidence, judge, verification
 from .verify.graph import Edge, Placement, place_scans
 from .verify.hypotheses import HypothesesResult, pass_through, score_hypotheses
-from .verify.visibility import scan_range_image
+from .verify.visibility import range_image, scan_range_image
 
 
 def _scan(ctx: StageContext, i: int) -> Scan:
@@ -56,12 +57,17 @@ def _run_prepare(ctx: StageContext) -> list[Any]:
         s = ctx.scans[i]
         return s.with_angular_step(given) if given is not None and tuple(given) != s.angular_step_deg else s
 
+    pp = ctx.params.prepare
     work = ctx.each(lambda i: working_resolution(station(i), resolution=ctx.params.resolution),
                     lambda i: f"working resolution: {ctx.scans[i].name}")
+    ctx.progress(0.8, "mixed pixels")
+    mixed = [remove_mixed(w.scan, enabled=pp.mixed_pixels, tolerance_m=pp.mixed_tolerance_m, slope=pp.mixed_slope)
+             for w in work]
     ctx.progress(0.9, "ground, stems and the target tree")
-    preps = prepare_scans([w.scan for w in work], **ctx.params.pick("prepare", "target"))
-    return [replace(p, station=w.scan, metrics=(w.metrics + p.metrics) if w.reduced else p.metrics)
-            for w, p in zip(work, preps)]
+    preps = prepare_scans([m.scan for m in mixed], **ctx.params.pick("prepare", "target"))
+    return [replace(p, station=m.scan, mixed_points=w.scan.points[m.mixed],
+                    metrics=(w.metrics if w.reduced else ()) + m.metrics + p.metrics)
+            for w, m, p in zip(work, mixed, preps)]
 
 
 def _run_projection(ctx: StageContext) -> list[Any]:
@@ -88,6 +94,11 @@ def _surface(ctx: StageContext, i: int, max_points: int | None = None) -> Any:
     return scan_surface(scan, scan.points, ctx.params.surface.voxel_m, max_points)
 
 
+def _range_image(ctx: StageContext, i: int) -> Any:
+    """Scan i's station as a range image for the free-space test, blind where its mixed pixels were."""
+    return scan_range_image(_station(ctx, i), ctx.params.hypotheses.cell_steps, ctx.item("prepare", i).mixed_points)
+
+
 def _station(ctx: StageContext, i: int) -> Scan:
     """Scan i's whole station at the working resolution (ground and neighbours included): what the
     free-space test compares with."""
@@ -101,10 +112,23 @@ def _run_hypotheses(ctx: StageContext) -> list[Any]:
         p, c = ctx.pairs[k], ctx.item("coarse", k)
         if not hp.enabled:
             return pass_through(c.T_ref_target)
-        tgt = _scan(ctx, p.tgt)
-        return score_hypotheses(scan_range_image(_station(ctx, p.ref), hp.cell_steps), _surface(ctx, p.ref),
-                                _surface(ctx, p.tgt, hp.polish_points), tgt.points, c.T_ref_target, list(c.modes),
-                                hypotheses=hp, choose=ctx.choices.get(_label(ctx, k)), axis_xy=_stem_xy(ctx, p.tgt))
+        tgt, ref = _scan(ctx, p.tgt), _scan(ctx, p.ref)
+        image, ref_surf = _range_image(ctx, p.ref), _surface(ctx, p.ref)
+        bend = profile_bend(ref, tgt, c.T_ref_target, ctx.params.wind, ctx.params.joint.loss_scale_m)
+        adjust = None
+        if bend is not None:
+            # The crown moved between the stations: every candidate is judged against the reference
+            # bent as the target's tree stood (the stems' bend does not depend on the heading).
+            station = _station(ctx, p.ref)
+            image = range_image(bend.bend(station.points), tuple(hp.cell_steps * s for s in station.angular_step_deg),
+                                ctx.item("prepare", p.ref).mixed_points)
+            ref_surf = surface_of(bend.bend(ref.points), ctx.params.surface.voxel_m)
+
+            def adjust(T: np.ndarray) -> np.ndarray:
+                return straightened(ref, tgt, T, ctx.params.joint.loss_scale_m)
+        return score_hypotheses(image, ref_surf, _surface(ctx, p.tgt, hp.polish_points), tgt.points, c.T_ref_target,
+                                list(c.modes), hypotheses=hp, choose=ctx.choices.get(_label(ctx, k)),
+                                axis_xy=_stem_xy(ctx, p.tgt), adjust=adjust)
     return ctx.each(one, lambda k: _label(ctx, k))
 
 
@@ -176,13 +200,14 @@ def _run_verify(ctx: StageContext) -> list[Any]:
         # With wind, the surfaces compared are the target's unbent (as the reference's tree stood).
         tgt_surf = (_surface(ctx, p.tgt, SURFACE_SAMPLE) if f.bend is None else
                     surface_of(f.bend.warp(tgt, f.T_ref_target).points, ctx.params.surface.voxel_m, SURFACE_SAMPLE))
-        e = gather_evidence(scan_range_image(_station(ctx, p.ref), hp.cell_steps), _surface(ctx, p.ref),
+        e = gather_evidence(_range_image(ctx, p.ref), _surface(ctx, p.ref),
                             tgt_surf, tgt.points, f.T_ref_target, ctx.item("coarse", k),
                             ctx.item("hypotheses", k), ctx.item("prepare", p.ref).plane, ctx.item("prepare", p.tgt).plane,
                             hypotheses=hp, acceptance=ctx.params.acceptance, bend=f.bend, profile=f.profile,
                             max_motion_m=ctx.params.verify.max_motion_m,
                             support_inlier_m=ctx.params.coarse.final_inlier_m or ctx.params.coarse.inlier_m,
-                            stable_tolerance_m=ctx.params.wind.stable_tolerance_m)
+                            stable_tolerance_m=ctx.params.wind.stable_tolerance_m,
+                            min_consistency=ctx.params.verify.min_consistency)
         return verification(f.T_ref_target, e, *judge(e, verify=ctx.params.verify, coarse=ctx.params.coarse))
     return ctx.each(one, lambda k: _label(ctx, k))
 
@@ -276,7 +301,7 @@ STAGES: tuple[Stage, ...] = (
     Stage("coarse", "Coarse", "The rigid transform that maps the target's tie points onto the reference's (2.1.4).",
           "pair", ("coarse",), ("matching",), CoarseResult, _run_coarse),
     Stage("hypotheses", "Hypotheses", "Competing poses (other headings, other RANSAC modes) polished and scored by the surfaces.",
-          "pair", ("hypotheses",), ("coarse",), HypothesesResult, _run_hypotheses),
+          "pair", ("hypotheses", "wind"), ("coarse",), HypothesesResult, _run_hypotheses),
     Stage("slices", "Slices", "Both scans cut into thin horizontal slices at the coarse pose (2.2.1).",
           "pair", ("slicing",), ("hypotheses",), SliceResult, _run_slices),
     Stage("arcs", "Arcs", "Each slice separated into arcs by angular connectivity (2.2.2).",

@@ -71,6 +71,16 @@ class Bend:
         out[:, :2] += self.shape(out[:, 2])[:, None] * np.asarray(self.top_m)[None, :]
         return out
 
+    def bend(self, points_ref: np.ndarray) -> np.ndarray:
+        """Reference points moved to where the target's tree stood (the inverse of `unbend`)."""
+        out = np.array(points_ref, dtype=float, copy=True)
+        out[:, :2] -= self.shape(out[:, 2])[:, None] * np.asarray(self.top_m)[None, :]
+        return out
+
+    def significant(self, min_sway_m: float, significance: float) -> bool:
+        """Worth modelling: the top moved at least `min_sway_m`, and `significance` times its noise."""
+        return self.sway_m >= min_sway_m and self.sway_m >= significance * max(self.sway_std_m, 1e-12)
+
     def warp(self, scan: Scan, T_ref_target: np.ndarray) -> Scan:
         """The target scan (its own frame) as it would have been seen had its tree stood as the
         reference saw it: each point mapped by `T_ref_target`, unbent, and mapped back."""

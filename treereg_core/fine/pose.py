@@ -63,7 +63,7 @@ from .sections import ScanSections, SectionsResult, fit_sections, match_scan_sec
 from .bend import Bend
 from .stem import StemProfile, correction, stem_profile
 from ..prepare.ground import stem_position
-from .slicing import SliceResult, slice_scans
+from .slicing import SliceResult, slice_scans, tree_extent
 from .surface import (
     Surface, align_narrowing, mean_move, pose_update, refine_along, surface_fitness, surface_of, trimmed_residuals,
 )
@@ -615,7 +615,26 @@ def _profile_bend(prof: StemProfile) -> Bend:
 def _significant(bend: Bend, wind: WindParams) -> bool:
     """The stem's bend is worth modelling: its top moved more than `wind.min_sway_m` and clearly
     more than its own noise."""
-    return bend.sway_m >= wind.min_sway_m and bend.sway_m >= wind.significance * max(bend.sway_std_m, 1e-12)
+    return bend.significant(wind.min_sway_m, wind.significance)
+
+
+def straightened(ref: Scan, tgt: Scan, T: np.ndarray, loss_scale_m: float) -> np.ndarray:
+    """`T` with the stem profile's shift and tilt taken out (the stems lined up at the base and
+    upright against each other, the bend left to the crown); `T` itself without a profile."""
+    prof = profile_at(ref, tgt, T, tree_extent(ref.points[:, 2]), loss_scale_m)
+    return T if prof.model is None else correction(prof.model, prof_axis(prof, ref)) @ T
+
+
+def profile_bend(ref: Scan, tgt: Scan, T: np.ndarray, wind: WindParams, loss_scale_m: float) -> Bend | None:
+    """The bend of the target's stem against the reference's that the stem profile at `T` shows,
+    when it is significant (None in still air, or when wind is not modelled)."""
+    if not wind.enabled:
+        return None
+    prof = profile_at(ref, tgt, T, tree_extent(ref.points[:, 2]), loss_scale_m)
+    if prof.model is None:
+        return None
+    bend = _profile_bend(prof)
+    return bend if _significant(bend, wind) else None
 
 
 def failed_fine(T0: np.ndarray, message: str) -> FineResult:

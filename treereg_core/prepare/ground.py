@@ -50,8 +50,11 @@ class PreparedScan:
     target : how the target tree was chosen (or why the scan keeps all its points), or "".
     T_stem_map : 4 x 4 placing this station's stems onto the reference's (yaw + horizontal shift),
         when its stem map matched; None otherwise (and for the reference).
-    station : the whole station at the working resolution, before ground removal and crops (what
-        the masks index; the free-space test needs everything the scanner saw); None = as read.
+    station : the whole station at the working resolution, before ground removal and crops, its
+        mixed pixels removed (what the masks index; the free-space test needs everything the scanner
+        saw); None = as read.
+    mixed_points : M x 3, the mixed pixels the prepare stage removed from the station (its frame):
+        drawn in the Scans stage; the free-space test is blind where they were.
     """
 
     ok: bool
@@ -66,6 +69,7 @@ class PreparedScan:
     target: str = ""
     T_stem_map: np.ndarray | None = None
     station: Scan | None = None
+    mixed_points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
 
 def cell_minima(points: np.ndarray, cell_m: float) -> np.ndarray:

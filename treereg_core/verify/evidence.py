@@ -39,10 +39,7 @@ from ..results import Metric
 from .hypotheses import SCORE_POINTS, HypothesesResult, distinct
 from .visibility import RangeImage, Visibility, violation_distances, visibility
 
-#: Wind: the share of the disagreeing points the motion allowance must cover (the rest count against).
-MOTION_QUANTILE = 0.75
-#: Wind: fewest disagreeing points from which their motion is measured (below it: no allowance needed).
-MIN_MOTION_POINTS = 20
+
 
 VERIFIED, UNVERIFIED, FAILED = "verified", "unverified", "failed"
 
@@ -71,9 +68,9 @@ class Evidence:
     sway_direction_deg: float = float("nan")
     sway_std_m: float = float("nan")
     stable_height_m: float = float("nan")
-    #: Wind: how far the points that still disagree once the stem is unbent lie from a surface the
-    #: reference saw (the branches' own motion, a quartile of them beyond it), the allowance used
-    #: (capped at verify.max_motion_m), and the points counted as moved.
+    #: Wind: how far the points that still disagree once the stem is unbent must be allowed to lie
+    #: from a surface the reference saw for the views to agree (the branches' own motion), the
+    #: allowance used (capped at verify.max_motion_m), and the points counted as moved.
     motion_needed_m: float = 0.0
     motion_m: float = 0.0
     moved: int = 0
@@ -111,23 +108,24 @@ def gather_evidence(ref_image: RangeImage, ref_surf: Surface, tgt_surf: Surface,
                     tgt_plane: tuple[float, float, float, float] | None, *, hypotheses: HypothesesParams,
                     acceptance: AcceptanceParams, bend: Bend | None = None, profile: StemProfile | None = None,
                     max_motion_m: float = 0.1, support_inlier_m: float = 0.05,
-                    stable_tolerance_m: float = 0.003) -> Evidence:
+                    stable_tolerance_m: float = 0.003, min_consistency: float = 0.95) -> Evidence:
     """Measure every kind of evidence for the pose `T` of the target (prepared points, own frame).
 
     With a `bend` (the crown moved between the stations; `tgt_surf` is then the target's surface
-    unbent), the target is judged unbent, with the branches' own motion measured and allowed up to
-    `max_motion_m`, its support counted at `T` (ties within `support_inlier_m`) and its rivals
-    judged alike. `profile`: the stem profile at `T` (for the height the stems agree up to).
+    unbent), the target is judged unbent: the branches' own motion is the distance within which
+    points the reference saw through must lie of a surface it saw for `min_consistency` of the
+    points both see to agree (allowed up to `max_motion_m`); its support also counts the ties that
+    agree with `T` (within `support_inlier_m`), and its rivals are judged alike. `profile`: the stem
+    profile at `T` (for the height the stems agree up to).
     """
     rng = np.random.default_rng(0)
     pts = tgt_points if len(tgt_points) <= SCORE_POINTS else tgt_points[rng.choice(len(tgt_points), SCORE_POINTS, replace=False)]
     unbend = bend.unbend if bend is not None else None
     needed = motion = 0.0
     if bend is not None:
-        reach = 2.0 * max_motion_m
-        d, _ = violation_distances(ref_image, pts, T, hypotheses.tolerance_m, unbend, ref_surf.cloud_tree, reach)
-        needed = float(np.quantile(np.minimum(d, reach), MOTION_QUANTILE)) if len(d) >= MIN_MOTION_POINTS else 0.0
-        motion = min(max(needed, hypotheses.tolerance_m), max_motion_m)
+        needed = _motion_needed(*violation_distances(ref_image, pts, T, hypotheses.tolerance_m, unbend,
+                                                     ref_surf.cloud_tree, 2.0 * max_motion_m), min_consistency)
+        motion = min(max(needed, hypotheses.tolerance_m), max_motion_m) * (1.0 + 1e-9)
 
     def judged(T_: np.ndarray) -> Visibility:
         return visibility(ref_image, pts, T_, hypotheses.tolerance_m, unbend=unbend, surface_tree=ref_surf.cloud_tree,
@@ -153,7 +151,7 @@ def gather_evidence(ref_image: RangeImage, ref_surf: Surface, tgt_surf: Surface,
             # The coarse transform was fitted rigidly to ties of a moving crown: count the ties that
             # agree with the final pose, the target unbent.
             q = bend.unbend(apply_transform(T, match.tgt_xyz))
-            inliers = int(np.count_nonzero(np.linalg.norm(q - match.ref_xyz, axis=1) < support_inlier_m))
+            inliers = max(inliers, int(np.count_nonzero(np.linalg.norm(q - match.ref_xyz, axis=1) < support_inlier_m)))
         if hyp is not None and hyp.candidates and not hyp.chosen_by_hand:
             rival, margin = _rival_under_wind(hyp, T, pts, judged, vis, hypotheses)
     return Evidence(
@@ -169,6 +167,17 @@ def gather_evidence(ref_image: RangeImage, ref_surf: Surface, tgt_surf: Surface,
         stable_height_m=profile.stable_height_m(stable_tolerance_m) if profile is not None else float("nan"),
         motion_needed_m=needed, motion_m=motion, moved=vis.moved,
     )
+
+
+def _motion_needed(distances_m: np.ndarray, seen: int, min_consistency: float) -> float:
+    """The smallest distance within which the points the reference saw through must lie of a surface
+    it saw, for `min_consistency` of the `seen` points to agree (0 when they agree already)."""
+    d = np.sort(distances_m)
+    consistent = seen - len(d)
+    allowed = int(np.floor(consistent * (1.0 - min_consistency) / max(min_consistency, 1e-9)))
+    if len(d) <= allowed:
+        return 0.0
+    return float(d[len(d) - allowed - 1])
 
 
 def _rival_under_wind(hyp: HypothesesResult, T: np.ndarray, pts: np.ndarray, judged, best: Visibility,

@@ -14,6 +14,7 @@ kept; the margin to the best *distinct* runner-up is the ambiguity evidence.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
@@ -114,13 +115,16 @@ def candidate_starts(T_best: np.ndarray, modes: list[tuple[np.ndarray, int]], tg
 def score_hypotheses(ref_image: RangeImage, ref_surf: Surface, tgt_surf: Surface, tgt_points: np.ndarray,
                      T_best: np.ndarray, modes: list[tuple[np.ndarray, int]], *,
                      hypotheses: HypothesesParams, choose: str | None = None,
-                     axis_xy: np.ndarray | None = None) -> HypothesesResult:
+                     axis_xy: np.ndarray | None = None,
+                     adjust: Callable[[np.ndarray], np.ndarray] | None = None) -> HypothesesResult:
     """Polish every candidate with the surfaces and score it against the reference's view. `choose`
     names a candidate the user picked: it wins whatever the scores (and says so). `axis_xy`: the
     target's stem (its frame), which the turned candidates turn about.
 
     A candidate keeps the better of its start and its polished pose: the cheap alignment can drift
     by a few centimetres on a pose that was right already, and must not cost it the comparison.
+    `adjust` moves each candidate's start first (with wind: the stem profile's shift and tilt taken
+    out, the rigid fit to a moving crown having tilted it).
     """
     p = hypotheses
     rng = np.random.default_rng(0)
@@ -128,6 +132,7 @@ def score_hypotheses(ref_image: RangeImage, ref_surf: Surface, tgt_surf: Surface
     centre = pts.mean(axis=0)
     cands = []
     for label, T0, n in candidate_starts(T_best, modes, pts, p, axis_xy):
+        T0 = T0 if adjust is None else adjust(T0)
         c = apply_transform(T0, tgt_surf.points).mean(axis=0)
         T = align_narrowing(ref_surf, tgt_surf, T0, c, np.eye(6), p.polish_gate_m, p.polish_iterations, p.loss_scale_m,
                             gates_m=POLISH_GATES_M, gate_iterations=p.polish_iterations)

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import threading
 import weakref
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Callable
 
@@ -48,6 +48,9 @@ class RangeImage:
     n_cols: int
     keys: np.ndarray
     ranges_m: np.ndarray
+    #: Sorted flat cells (with their neighbourhood) where the prepare stage removed mixed pixels:
+    #: the station did return something there, so a point there is no proof of free space.
+    blind_keys: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
 
     def cells(self, alpha_deg: np.ndarray, beta_deg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         col = np.floor((np.mod(alpha_deg - self.alpha0_deg, 360.0)) / self.cell_deg[0]).astype(np.int64)
@@ -71,6 +74,14 @@ class RangeImage:
         first = np.r_[True, key[1:] != key[:-1]] if len(key) else np.zeros(0, bool)
         return key[first], r[first]
 
+    def blind(self, col: np.ndarray, row: np.ndarray) -> np.ndarray:
+        """True where a removed mixed pixel lies within `_REACH` cells."""
+        if not len(self.blind_keys):
+            return np.zeros(len(col), dtype=bool)
+        key = row * self.n_cols + col
+        i = np.minimum(np.searchsorted(self.blind_keys, key), len(self.blind_keys) - 1)
+        return self.blind_keys[i] == key
+
     def nearest(self, col: np.ndarray, row: np.ndarray) -> np.ndarray:
         """Nearest range among the cells within `_REACH` of (col, row); inf where none has a return."""
         keys, ranges = self._reach
@@ -90,8 +101,9 @@ def _angles(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return np.degrees(np.arctan2(y, x)), np.degrees(np.arctan2(z, h)), np.sqrt(h * h + z * z)
 
 
-def range_image(points: np.ndarray, cell_deg: tuple[float, float]) -> RangeImage:
-    """The range image of a station's points (in its own frame, scanner at the origin)."""
+def range_image(points: np.ndarray, cell_deg: tuple[float, float], blind_points: np.ndarray | None = None) -> RangeImage:
+    """The range image of a station's points (in its own frame, scanner at the origin); the cells
+    of `blind_points` (mixed pixels removed from them) and their neighbours are marked blind."""
     alpha, beta, r = _angles(np.asarray(points, dtype=float))
     beta0 = float(beta.min()) - cell_deg[1]
     n_cols = int(np.ceil(360.0 / cell_deg[0])) + 1
@@ -101,7 +113,12 @@ def range_image(points: np.ndarray, cell_deg: tuple[float, float]) -> RangeImage
     order = np.lexsort((r, key))
     key, r = key[order], r[order]
     first = np.r_[True, key[1:] != key[:-1]]
-    return RangeImage(cell_deg, -180.0, beta0, n_cols, key[first], r[first])
+    blind = np.zeros(0, dtype=np.int64)
+    if blind_points is not None and len(blind_points):
+        ba, bb, _ = _angles(np.asarray(blind_points, dtype=float))
+        bc, br = img.cells(ba, bb)
+        blind = np.setdiff1d(np.unique(br * n_cols + bc), key[first])
+    return RangeImage(cell_deg, -180.0, beta0, n_cols, key[first], r[first], blind)
 
 
 @dataclass(frozen=True)
@@ -137,7 +154,9 @@ def _classes(ref_image: RangeImage, p: np.ndarray, tolerance_m: float) -> tuple[
     near = ref_image.nearest(col, row)
     tol = tolerance_m + r * np.radians(max(ref_image.cell_deg)) * 2.0
     seen = np.isfinite(near)
-    return seen & (np.abs(r - near) <= tol), seen & (r < near - tol), seen & (r > near + tol), seen
+    # Where the station's mixed pixels were removed it did return something: blind, not free space.
+    violation = seen & (r < near - tol) & ~ref_image.blind(col, row)
+    return seen & (np.abs(r - near) <= tol), violation, seen & (r > near + tol), seen
 
 
 def placed(target_points: np.ndarray, T_ref_target: np.ndarray,
@@ -186,13 +205,14 @@ _images: "weakref.WeakKeyDictionary[object, dict]" = weakref.WeakKeyDictionary()
 _images_lock = threading.Lock()
 
 
-def scan_range_image(scan: object, cell_steps: float) -> RangeImage:
+def scan_range_image(scan: object, cell_steps: float, blind_points: np.ndarray | None = None) -> RangeImage:
     """The range image of a scan (all its points as measured, ground included: the ground, too, is
-    where rays stopped), cells of `cell_steps` angular steps; made once per scan and shared."""
+    where rays stopped), cells of `cell_steps` angular steps, blind where `blind_points` (the mixed
+    pixels removed from the scan) were; made once per scan and shared."""
     with _images_lock:
         found = _images.get(scan, {}).get(cell_steps)
     if found is None:
-        found = range_image(scan.points, tuple(cell_steps * s for s in scan.angular_step_deg))
+        found = range_image(scan.points, tuple(cell_steps * s for s in scan.angular_step_deg), blind_points)
         with _images_lock:
             _images.setdefault(scan, {})[cell_steps] = found
     return found

@@ -44,10 +44,12 @@ from treereg_core.params import PRESETS, Params  # noqa: E402
 from treereg_core.pipeline import Pipeline  # noqa: E402
 from treereg_core.scan import Scan  # noqa: E402
 from treereg_core.simulate.cases import CaseSpec, SimulatedCase, benchmark_cases, simulate_case  # noqa: E402
+from treereg_core.simulate.symmetric import symmetric_case  # noqa: E402
 from treereg_core.verify.evidence import VERIFIED, Evidence, judge  # noqa: E402
 
 MAX_ROT_DEG = 0.5
 MAX_DISP_M = 0.03
+CLOSE_DISP_M = 0.015
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -64,19 +66,28 @@ class Outcome:
     disp_m: float = float("nan")
     evidence: Evidence | None = None
     reasons: tuple[str, ...] = ()
+    sway_true_m: float = float("nan")  # wind: how far the crown's top had moved between the pair's stations
+    condition: str = ""  # wind / mixed pixels: the setting the case was simulated at
 
     @property
     def verified(self) -> bool:
         return self.verdict == VERIFIED
+
+    @property
+    def close(self) -> bool:
+        """Within 0.5 deg and 1.5 cm (the wind criteria)."""
+        return bool(self.right) and self.rot_deg < MAX_ROT_DEG and self.disp_m < CLOSE_DISP_M
 
 
 def _rename(scan: Scan, name: str) -> Scan:
     return Scan(scan.points, name, scan.angular_step_deg, None, scan.step_estimated)
 
 
-def run(family: str, label: str, scans: list[Scan], truth: dict[str, np.ndarray], params: Params) -> tuple[list[Outcome], Pipeline]:
+def run(family: str, label: str, scans: list[Scan], truth: dict[str, np.ndarray], params: Params,
+        case: SimulatedCase | None = None, condition: str = "") -> tuple[list[Outcome], Pipeline]:
     """One case through the pipeline to the placement; its scans and pairs judged against `truth`
-    (a scan missing from `truth` has no right transform)."""
+    (a scan missing from `truth` has no right transform). With the simulated `case`, each pair
+    records how far the crown's top had moved between its stations (wind)."""
     pipe = Pipeline(scans, params, {k: v for k, v in truth.items()})
     pipe.run("graph")
     out: list[Outcome] = []
@@ -110,8 +121,11 @@ def run(family: str, label: str, scans: list[Scan], truth: dict[str, np.ndarray]
             out.append(Outcome(family, label, what, verdict, False, evidence=ev))
             continue
         rot, disp = rotation_error_deg(T, T_true), mean_displacement(T, T_true, b.points)
+        sway = float(np.linalg.norm(case.relative_sway_m(p.tgt, p.ref))) if case is not None else float("nan")
         out.append(Outcome(family, label, what, verdict, rot < MAX_ROT_DEG and disp < MAX_DISP_M, rot, disp, ev,
-                           getattr(it, "reasons", ())))
+                           getattr(it, "reasons", ()), sway, condition))
+    for o in out:
+        o.condition = condition
     return out, pipe
 
 
@@ -183,27 +197,27 @@ def evidence_table(rows: list[Outcome]) -> str:
                      "consistency (seen)", "margin (rival)", "residual / noise (mm)", "hypothesis", "why not verified"), out)
 
 
-def different_trees(n: int, seed: int) -> list[tuple[str, list[Scan], dict]]:
+def different_trees(n: int, seed: int, wind_m: float = 0.0) -> list[tuple[str, list[Scan], dict]]:
     """Pairs of scans of two different trees of look-alike height (within 15%)."""
     rng = np.random.default_rng(seed + 77)
     out = []
     for k in range(n):
         h = float(rng.uniform(8.0, 13.0))
         step = round(0.04 * h / 11.0, 4)
-        a = CaseSpec(seed=seed * 1000 + 500 + k, height_m=h, angular_step_deg=(step, step)).build()
+        a = CaseSpec(seed=seed * 1000 + 500 + k, height_m=h, angular_step_deg=(step, step), wind_m=wind_m).build()
         b = CaseSpec(seed=seed * 1000 + 600 + k, height_m=round(h * float(rng.uniform(0.87, 1.13)), 2),
-                     angular_step_deg=(step, step)).build()
+                     angular_step_deg=(step, step), wind_m=wind_m).build()
         scans = [a.scans[0], _rename(b.scans[1], "other_tree.ply")]
         out.append((f"d{k:02d}", scans, {a.scans[0].name: np.eye(4)}))
     return out
 
 
-def intruders(n: int, seed: int) -> list[tuple[str, list[Scan], dict]]:
+def intruders(n: int, seed: int, wind_m: float = 0.0) -> list[tuple[str, list[Scan], dict]]:
     """Three stations where the third sees another tree entirely."""
     out = []
     for k in range(n):
-        a = CaseSpec(seed=seed * 1000 + 700 + k, height_m=10.0, angular_step_deg=(0.04, 0.04)).build()
-        b = CaseSpec(seed=seed * 1000 + 800 + k, height_m=10.5, angular_step_deg=(0.04, 0.04)).build()
+        a = CaseSpec(seed=seed * 1000 + 700 + k, height_m=10.0, angular_step_deg=(0.04, 0.04), wind_m=wind_m).build()
+        b = CaseSpec(seed=seed * 1000 + 800 + k, height_m=10.5, angular_step_deg=(0.04, 0.04), wind_m=wind_m).build()
         scans = [a.scans[0], a.scans[1], _rename(b.scans[2], "intruder.ply")]
         out.append((f"i{k:02d}", scans, {a.scans[0].name: a.T_ref_scan[0], a.scans[1].name: a.T_ref_scan[1]}))
     return out
@@ -263,15 +277,109 @@ def multi_table(cases: list[tuple[str, SimulatedCase]], params: Params) -> tuple
 
 
 #: The families of cases (`--families`).
-FAMILIES = ("benchmark", "different", "intruder", "symmetric", "leaf-on", "six")
+FAMILIES = ("benchmark", "different", "intruder", "symmetric", "leaf-on", "six", "wind", "mixed", "wind+mixed",
+            "wind negatives")
+#: Top sways (m) of the wind family, and the mixed-pixel rates (share of the edge returns).
+SWAYS_M = (0.0, 0.05, 0.10, 0.20, 0.35)
+MIXED_RATES = (0.1, 0.25, 0.5)
+#: Stations per tree of the wind family, in turn: mostly three, and two to six.
+WIND_STATIONS = (3, 3, 3, 2, 3, 3, 4, 6)
+
+
+def _windy_spec(k: int, seed: int, **options) -> CaseSpec:
+    """The k-th tree of the wind and mixed-pixel families: 8-12 m, every third leaf-on, 8-15 m away."""
+    rng = np.random.default_rng([seed, 31, k])
+    h = round(float(rng.uniform(8.0, 12.0)), 2)
+    leaves = k % 3 == 2
+    step = round(0.04 * h / 10.0 * (1.2 if leaves else 1.0), 4)
+    return CaseSpec(seed=seed * 1000 + 1200 + k, height_m=h, angular_step_deg=(step, step), leaves=leaves, **options)
+
+
+def windy(n: int, seed: int, sways: tuple[float, ...] = SWAYS_M):
+    """The same `n` trees at each top sway (a new direction per station): (sway, label, case)."""
+    for w in sways:
+        for k in range(n):
+            case = _windy_spec(k, seed, wind_m=w, n_stations=WIND_STATIONS[k % len(WIND_STATIONS)]).build()
+            yield w, f"w{k:02d}{' leaves' if case.spec.leaves else ''}", case
+
+
+def mixed(n: int, seed: int, rates: tuple[float, ...] = MIXED_RATES, wind_m: float = 0.0):
+    """The same `n` trees with this share of their edge returns mixed pixels: (rate, label, case)."""
+    for rate in rates:
+        for k in range(n):
+            case = _windy_spec(k, seed, mixed_pixels=rate, wind_m=wind_m).build()
+            yield rate, f"x{k:02d}{' leaves' if case.spec.leaves else ''}", case
+
+
+def wind_negatives(n: int, seed: int, sways: tuple[float, ...] = (0.10, 0.20)):
+    """Under wind: scans of two different trees; a crown alike after a third turn; a station that
+    sees another tree."""
+    for w in sways:
+        for label, scans, truth in different_trees(n, seed, wind_m=w):
+            yield w, "different trees (wind)", label, scans, truth
+        for k in range(max(1, n // 4)):
+            scans, truth = symmetric_case(3, seed=seed + k, wind_m=w)
+            yield w, "symmetric crowns (wind)", f"3-fold s{seed + k}", scans, truth
+        for label, scans, truth in intruders(max(1, n // 4), seed, wind_m=w):
+            yield w, "third station sees another tree (wind)", label, scans, truth
+
+
+def condition_table(rows: list[Outcome], what: str) -> str:
+    """Pairs per condition (top sway, mixed-pixel rate): right and verified (and within 0.5 deg / 1.5
+    cm), verified but wrong, refused but right, refused and wrong; the errors of the verified."""
+    out = []
+    for cond in dict.fromkeys(r.condition for r in rows):
+        sel = [r for r in rows if r.condition == cond and r.what.startswith("pair") and r.right is not None]
+        if not sel:
+            continue
+        vr = [r for r in sel if r.verified and r.right]
+        vw = sum(r.verified and not r.right for r in sel)
+        rr = sum(not r.verified and r.right for r in sel)
+        rw = sum(not r.verified and not r.right for r in sel)
+        close = sum(r.verified and r.close for r in sel)
+        d = np.array([r.disp_m for r in vr]) * 1000
+        a = np.array([r.rot_deg for r in vr])
+        out.append([cond, len(sel), len(vr), f"**{vw}**" if vw else "0", rr, rw,
+                    f"{close} ({close / len(sel):.0%})",
+                    f"{np.median(d):.1f} / {d.max():.1f}" if len(d) else "-",
+                    f"{a.max():.2f}" if len(a) else "-"])
+    return md_table((what, "pairs", "verified and right", "verified but wrong", "refused but right",
+                     "refused and wrong", "verified within 0.5° and 1.5 cm", "verified: median / max disp (mm)",
+                     "verified: max rot (deg)"), out)
+
+
+def refusal_table(rows: list[Outcome]) -> str:
+    """Why the right pairs that were refused were refused (first reason, shortened)."""
+    out = []
+    for r in rows:
+        if r.what.startswith("pair") and r.right and not r.verified:
+            out.append([r.condition, r.case, r.what, f"{r.sway_true_m:.2f}" if np.isfinite(r.sway_true_m) else "-",
+                        f"{r.rot_deg:.2f} / {r.disp_m * 1000:.1f}", "; ".join(r.reasons)[:160]])
+    return md_table(("condition", "case", "pair", "crown moved (m, simulated)", "rot (deg) / disp (mm)", "why refused"),
+                    out) if out else "None."
+
+
+def sway_table(rows: list[Outcome]) -> str:
+    """The crown's motion the verification reports against the simulated one, on verified right pairs."""
+    sel = [r for r in rows if r.what.startswith("pair") and r.verified and r.right and r.evidence is not None
+           and np.isfinite(r.sway_true_m) and r.sway_true_m > 0]
+    out = []
+    for cond in dict.fromkeys(r.condition for r in sel):
+        s = [r for r in sel if r.condition == cond]
+        true = np.array([r.sway_true_m for r in s])
+        rep = np.array([r.evidence.sway_m for r in s])
+        err = np.abs(rep - true)
+        within = np.sum(err <= np.maximum(0.3 * true, 0.02))
+        out.append([cond, len(s), f"{np.median(true):.3f}", f"{np.median(rep):.3f}", f"{np.median(err) * 100:.1f}",
+                    f"{err.max() * 100:.1f}", f"{within} / {len(s)}"])
+    return md_table(("top sway (m)", "verified right pairs", "simulated motion, median (m)", "reported, median (m)",
+                     "|reported - simulated|, median (cm)", "max (cm)", "within 30% or 2 cm"), out)
 
 
 def symmetric_crowns(n: int, seed: int):
     """Crowns alike after a half, third or quarter turn (`simulate.symmetric`): a registration is
     right only by luck and must not be verified at a wrong heading; and the same crowns with their
     symmetry broken (each branch turned by up to 40 deg), which must register and verify."""
-    from treereg_core.simulate.symmetric import symmetric_case
-
     for fold in (2, 3, 4):
         for k in range(n):
             scans, truth = symmetric_case(fold, seed=seed + k)
@@ -318,6 +426,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--multi", type=int, default=3, help="cases of six stations")
     ap.add_argument("--symmetric", type=int, default=2, help="cases per symmetry (2-, 3-, 4-fold crowns) and controls")
     ap.add_argument("--families", nargs="*", default=list(FAMILIES), choices=list(FAMILIES), help="which families to run")
+    ap.add_argument("--windy", type=int, default=8, help="trees per top sway and per mixed-pixel rate")
     a = ap.parse_args(argv)
     report = Report()
     say = report.say
@@ -340,6 +449,25 @@ def main(argv: list[str] | None = None) -> int:
     rows += leaf_rows
     multi, multi_rows = multi_table(multi_station(a.multi, a.seed), params) if "six" in fam else ("Not run.", [])
     rows += multi_rows
+    wind_rows: list[Outcome] = []
+    for w, label, case in windy(a.windy, a.seed) if "wind" in fam else ():
+        wind_rows += run("wind", label, list(case.scans), case.truth(), params, case, f"{w:.2f}")[0]
+        print(f"  wind {w:.2f} {label} done", file=sys.stderr, flush=True)
+    mixed_rows: list[Outcome] = []
+    for rate, label, case in mixed(a.windy, a.seed) if "mixed" in fam else ():
+        mixed_rows += run("mixed pixels", label, list(case.scans), case.truth(), params, case, f"{rate:.0%}")[0]
+        print(f"  mixed {rate:.2f} {label} done", file=sys.stderr, flush=True)
+    both_rows: list[Outcome] = []
+    for w in (0.05, 0.10) if "wind+mixed" in fam else ():
+        for rate, label, case in mixed(a.windy, a.seed, rates=(0.4,), wind_m=w):
+            both_rows += run("wind and mixed pixels", label, list(case.scans), case.truth(), params, case,
+                             f"{w:.2f} m, {rate:.0%}")[0]
+            print(f"  wind {w:.2f} + mixed {rate:.2f} {label} done", file=sys.stderr, flush=True)
+    neg_rows: list[Outcome] = []
+    for w, family, label, scans, truth in wind_negatives(a.windy, a.seed) if "wind negatives" in fam else ():
+        neg_rows += run(family, label, scans, truth, params, condition=f"{w:.2f}")[0]
+        print(f"  {family} {w:.2f} {label} done", file=sys.stderr, flush=True)
+    rows += wind_rows + mixed_rows + both_rows + neg_rows
 
     say("## Verification: confusion table (`treereg register`'s path to the placement)")
     say()
@@ -363,6 +491,29 @@ def main(argv: list[str] | None = None) -> int:
     say("## Six stations around one tree (evenly spread: scan 4 opposite scan 1)")
     say()
     say(multi)
+    if wind_rows or mixed_rows or both_rows:
+        say()
+        say("## Wind and mixed pixels")
+        say()
+        say(f"Pairs against the truth (right = within {MAX_ROT_DEG} deg and {MAX_DISP_M * 100:.0f} cm). Wind: before each "
+            "station scans, the stem bends as a cantilever with this top sway in a direction of the station's own; "
+            "small branches flutter by up to half of it, leaves a little more. Mixed pixels: this share of the edge "
+            "returns strung out 2-80 cm behind the edge along their ray.")
+        for title, sel, what in (("Wind", wind_rows, "top sway (m)"), ("Mixed pixels", mixed_rows, "mixed-pixel rate"),
+                                 ("Wind and mixed pixels together", both_rows, "top sway, mixed-pixel rate")):
+            if sel:
+                say()
+                say(f"### {title}")
+                say()
+                say(condition_table(sel, what))
+        say()
+        say("### The crown's motion reported against the simulated (verified right pairs)")
+        say()
+        say(sway_table(wind_rows + both_rows))
+        say()
+        say("### Right pairs refused, and why")
+        say()
+        say(refusal_table(wind_rows + mixed_rows + both_rows))
     if not a.no_timing:
         say()
         say("## Time of `treereg register` (wall, fresh process, reading the files included)")

@@ -20,7 +20,7 @@ from treereg_core.io.scans import WRITE_EXTENSIONS, extension
 from treereg_core.io.transforms import export_paths, registration_file, write_exports, write_transforms
 from treereg_core.pipeline import register
 from treereg_core.stages import UNTIL
-from treereg_core.verify.report import quality_report, verdict_lines
+from treereg_core.verify.report import motion_lines, quality_report, verdict_lines
 
 from .common import add_param_args, load_params, read_scans
 from .progress import ProgressBar
@@ -109,6 +109,8 @@ def run(args: argparse.Namespace) -> int:
     print()
     for name, (verdict, _, _) in verdicts.items():
         print(f"  {name:<30} {verdict}")
+    for line in motion_lines(scans, pipe.pairs, pipe.outputs):
+        print(f"  wind: {line}")
     print(f"\nwrote {', '.join(str(w) for w in written)} in {seconds:.1f} s")
     lines = verdict_lines(verdicts)
     for line in lines:

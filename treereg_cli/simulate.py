@@ -38,6 +38,15 @@ def add(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--second-tree", action="store_true", help="add a smaller tree nearby")
     p.add_argument("--tilt", type=float, nargs="?", const=0.3, default=0.0, metavar="DEG",
                    help="instruments not perfectly levelled, by up to DEG (0.3 when given without a value)")
+    p.add_argument("--wind", type=float, default=0.0, metavar="TOP_SWAY_M",
+                   help="wind between the stations: before each station scans, the stem bends with this sway at "
+                   "its top (m) in a direction of the station's own; small branches and leaves flutter by up to "
+                   "half of it (truth.json records each station's sway; default: 0, still air)")
+    p.add_argument("--flutter", type=float, default=0.5, metavar="SHARE",
+                   help="with --wind: how far small branches flutter, as a share of the top sway (default: 0.5)")
+    p.add_argument("--mixed-pixels", type=float, default=0.0, metavar="SHARE",
+                   help="this share of the returns at a silhouette's edge are mixed pixels, strung out 2-80 cm "
+                   "behind the edge along their ray (default: 0)")
     p.add_argument("--noise", type=float, default=0.003, metavar="M", help="range noise sigma in metres (default: 0.003)")
     p.add_argument("--dropout", type=float, default=0.02, help="fraction of returns lost (default: 0.02)")
     p.add_argument("--distance", type=float, nargs=2, default=[8.0, 15.0], metavar=("MIN", "MAX"),
@@ -59,7 +68,8 @@ def run(args: argparse.Namespace) -> int:
         leaves=args.leaves, ground=args.ground, ground_radius_m=args.ground_radius,
         ground_front_m=args.ground_front, second_tree=args.second_tree, tilt_deg=args.tilt,
         range_sigma_m=args.noise, dropout=args.dropout, station_distance_m=tuple(args.distance),
-        from_points=args.from_points, splat_radius_m=args.splat,
+        from_points=args.from_points, splat_radius_m=args.splat, wind_m=args.wind, flutter=args.flutter,
+        mixed_pixels=args.mixed_pixels,
     )
     for path in case_paths(args.out, spec.n_stations):  # before the (long) simulation
         check_output_file(path)

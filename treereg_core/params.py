@@ -227,7 +227,7 @@ class WindParams:
     enabled: bool = _f(True, "", "when the crowns do not line up rigidly, fit the stem's bend between the stations (a cantilever: nothing at the base, the most at the top) with the pose")
     min_sway_m: float = _f(0.02, "m", "a bend is fitted only when the stem top moved at least this much between the stations", lo=0.0, hi=10.0)
     significance: float = _f(3.0, "", "...and by this many times its own noise", lo=0.0, hi=100.0)
-    stable_tolerance_m: float = _f(0.003, "m", "the stem 'stands where the reference's did' up to the height where the two differ by more than this", lo=0.0001, hi=1.0)
+    stable_tolerance_m: float = _f(0.005, "m", "the stem 'stands where the reference's did' up to the height where the two differ by more than this", lo=0.0001, hi=1.0)
 
 
 @dataclass(frozen=True)
@@ -256,6 +256,9 @@ class VerifyParams:
     max_tilt_deg: float = _f(5.0, "deg", "plausibility: the transform tilts the target's scanner at most this much (scanners stand nearly level)", lo=0.0, hi=180.0)
     max_height_difference_m: float = _f(1.0, "m", "plausibility: both scanners' heights above the ground differ at most this much (when both see ground)", lo=0.0, hi=100.0)
     max_loop_m: float = _f(0.02, "m", "with 3 or more scans: loops of pairwise transforms close within this (mean displacement of the tree)", lo=0.0, hi=10.0)
+    max_stem_tilt_deg: float = _f(0.15, "deg", "the stem profile at the final pose: the target's stem may lean at most this much against the reference's (or 3 times the profile's noise)", lo=0.0, hi=90.0)
+    max_stem_shift_m: float = _f(0.005, "m", "...and the two stems may stand at most this far apart (or 3 times the noise)", lo=0.0, hi=10.0)
+    max_heading_deg: float = _f(0.5, "deg", "wind, when the sections leave the turn about the stem open: the free-space evidence must pin the heading within this", lo=0.0, hi=180.0)
     max_motion_m: float = _f(0.1, "m", "wind: with the stem's bend taken out, the branches may still have moved this much on their own between the stations (beyond it the motion cannot be told from a wrong pose)", lo=0.0, hi=1.0)
 
 

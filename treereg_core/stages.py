@@ -25,7 +25,7 @@ from .fine.sections import SectionsResult, fit_scan_sections, fit_sections
 from .fine.slicing import SliceResult, slice_scans
 from .fine.surface import scan_surface, surface_of
 from .geometry.rigid import invert, mean_displacement, rotation_error_deg
-from .prepare.ground import PreparedScan, prepare_scans
+from .prepare.ground import PreparedScan, prepare_scans, stem_position
 from .prepare.mixed import remove_mixed
 from .prepare.resolution import working_resolution
 from .results import Metric
@@ -143,6 +143,12 @@ def _stem_xy(ctx: StageContext, i: int) -> np.ndarray | None:
     return stems[int(d.argmin()), :2] if d.min() <= 2.0 else None
 
 
+def _ref_stem_xy(ctx: StageContext, i: int) -> np.ndarray:
+    """Scan i's stem at its base (its own frame): what a turn about the stem turns about."""
+    pts = _scan(ctx, i).points
+    return stem_position(pts, pts[:, 2] - float(np.quantile(pts[:, 2], 0.001)))
+
+
 def _start(ctx: StageContext, k: int) -> Any:
     """Where fine registration starts for pair k: the hypothesis the surfaces preferred."""
     return ctx.item("hypotheses", k).T_ref_target
@@ -207,7 +213,8 @@ def _run_verify(ctx: StageContext) -> list[Any]:
                             max_motion_m=ctx.params.verify.max_motion_m,
                             support_inlier_m=ctx.params.coarse.final_inlier_m or ctx.params.coarse.inlier_m,
                             stable_tolerance_m=ctx.params.wind.stable_tolerance_m,
-                            min_consistency=ctx.params.verify.min_consistency)
+                            min_consistency=ctx.params.verify.min_consistency, turn_held=f.turn_held,
+                            axis_xy=_ref_stem_xy(ctx, p.ref), max_heading_deg=ctx.params.verify.max_heading_deg)
         return verification(f.T_ref_target, e, *judge(e, verify=ctx.params.verify, coarse=ctx.params.coarse))
     return ctx.each(one, lambda k: _label(ctx, k))
 

@@ -84,6 +84,19 @@ def height_range(snap: Snapshot) -> tuple[float, float] | None:
     return float(lo), float(hi)
 
 
+def target_bends(snap: Snapshot) -> list[Any]:
+    """Per scan, the bend of its stem against the reference's that the fine stage fitted (its pair
+    with the reference; wind between the stations), None for the reference and where none was."""
+    fine = snap.output("fine")
+    out: list[Any] = [None] * len(snap.scans)
+    if fine is None:
+        return out
+    for k, p in enumerate(snap.pairs):
+        if p.ref == 0 and k < len(fine.items):
+            out[p.tgt] = getattr(fine.items[k], "bend", None)
+    return out
+
+
 def evaluated_branches(snap: Snapshot, target: int) -> list[Any]:
     """The branches the Result stage evaluated for a target (its fine evaluation's, bottom to top)."""
     ev = snap.output("evaluation")
@@ -163,5 +176,31 @@ class Derived:
             samples = [display_subset(len(s.points), max_points, seed=i) if T is not None else np.empty(0, dtype=int)
                        for i, (T, s) in enumerate(zip(Ts, scans))]
             return overlap_residuals(clouds, samples, reach_m=reach)
+
+        return self._get(key, make)
+
+    def wind_moved(self, snap: Snapshot, pose: str, max_points: int, top_m: float = 0.02) -> list[np.ndarray] | None:
+        """Per scan, which of its displayed points moved with the wind: beyond the colour map's top
+        from the other scans' surface as registered, within it once every target is unbent by its
+        crown's measured motion (`fine.bend`); None when no target's crown moved."""
+        scans = prepared_scans(snap)
+        bends = target_bends(snap)
+        raw = self.residuals(snap, pose, max_points, top_m)
+        if scans is None or raw is None or not any(b is not None for b in bends):
+            return None
+        Ts = pose_transforms(snap, pose)
+        reach = max(MIN_REACH_M, REACH_FACTOR * top_m)
+        key = ("moved", id(snap.output("prepare")), id(pose_output(snap, pose)), id(snap.output("fine")), pose,
+               max_points, round(reach, 4), round(top_m, 5))
+
+        def make() -> list[np.ndarray]:
+            clouds = []
+            for T, s, b in zip(Ts, scans, bends):
+                pts = apply_transform(T, s.points) if T is not None else np.empty((0, 3))
+                clouds.append(b.unbend(pts) if b is not None and len(pts) else pts)
+            samples = [display_subset(len(s.points), max_points, seed=i) if T is not None else np.empty(0, dtype=int)
+                       for i, (T, s) in enumerate(zip(Ts, scans))]
+            unbent = overlap_residuals(clouds, samples, reach_m=reach)
+            return [(~(r <= top_m)) & (u <= top_m) for r, u in zip(raw, unbent)]
 
         return self._get(key, make)

@@ -143,6 +143,8 @@ class Drawer:
         # the connection's other messages are not held back meanwhile.
         residuals = (self.derived.residuals(snap, view.result_pose, view.max_points, view.residual_max_m)
                      if residual_mode(view) else None)
+        moved = (self.derived.wind_moved(snap, view.result_pose, view.max_points, view.residual_max_m)
+                 if residual_mode(view) else None)
         sectioning = section_available(snap, view.stage) and view.panel == "section"
         branch = None
         cs = None
@@ -154,7 +156,7 @@ class Drawer:
             # The scan layer: points change only with the scans, preparation and display options.
             key = scan_layer_key(snap, view)
             if self._keys.get("scans") != key:
-                self._replace("scans", draw_scan_layer(scene, snap, view, residuals))
+                self._replace("scans", draw_scan_layer(scene, snap, view, residuals, moved))
                 self._scan_frames = {
                     i: h for i, h in enumerate(h for h in self._handles["scans"] if _is_scan_frame(h))
                 }

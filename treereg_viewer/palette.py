@@ -50,6 +50,11 @@ def hex_color(rgb: tuple[int, int, int]) -> str:
 
 #: Points without a residual (seen by their scan alone, or not registered under the pose shown).
 NO_RESIDUAL = (215, 215, 215)
+#: Points that moved with the wind: off the other scans' surface as registered, on it once the
+#: crown's measured motion is taken out (never a scan's colour, nor one of the residual ramp's).
+MOVED = (255, 80, 180)
+#: Mixed pixels the preparation removed (the Scans stage, on request).
+MIXED = (25, 25, 25)
 #: The residual colour map, from 0 to its top: dark blue, teal, green, yellow, red (a perceptually
 #: ordered ramp, as viridis ends in yellow; red marks the top and beyond).
 _RAMP = np.array([(40, 30, 120), (30, 120, 160), (40, 170, 90), (240, 210, 30), (215, 40, 40)], dtype=float)

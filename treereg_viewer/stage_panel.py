@@ -113,6 +113,11 @@ class StagePanel:
     def _view_controls(self, gui: viser.GuiApi, name: str) -> None:
         app, c = self.app, self.view_controls
         wanted = view_of(name).controls
+        if "mixed" in wanted:
+            c["mixed"] = gui.add_checkbox("Show removed mixed pixels", True,
+                                          hint="Draw (near-black) the returns behind the stems' and branches' edges "
+                                          "that the preparation removed as mixed pixels (prepare.mixed_pixels).")
+            c["mixed"].on_update(lambda _: self._set(show_mixed=bool(c["mixed"].value)))
         if "projection_step" in wanted:
             # Counted from 1, as the panel's "Step k of n" reads.
             c["projection_step"] = gui.add_slider("Rotation step", 1, 2, 1, 1,
@@ -176,6 +181,8 @@ class StagePanel:
                 c["projection_step"].value = view.projection_step + 1
             if "projection_3d" in c:
                 c["projection_3d"].value = view.projection_3d
+            if "mixed" in c:
+                c["mixed"].value = view.show_mixed
             if "match_pair" in c and view.match_pair + 1 <= c["match_pair"].max:
                 c["match_pair"].value = view.match_pair + 1
             for key, h in c.items():

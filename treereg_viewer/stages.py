@@ -41,12 +41,15 @@ class StageView:
 
 VIEWS: dict[str, StageView] = {
     "prepare": StageView(
-        None, controls=(),
+        None, controls=("mixed",),
         explanation="Each station's points in its own scanner frame (scan 1 green, 2 red, 3 blue, as in the paper); "
         "the axes mark the scanners (before registration they all sit at the origin). Scan 1 is the "
         "reference: every other scan is registered onto it (2 → 1, 3 → 1). The paper's trees hold no ground; "
         "real scans do, and ground fills the projection images and pulls the rotation centre off the stem, "
-        "so treereg removes it (grey) before projection, and a crop can keep the tree alone.",
+        "so treereg removes it (grey) before projection, and a crop can keep the tree alone. Where a beam straddles "
+        "a stem's edge, the range lands between the edge and what lies behind (a mixed pixel): every silhouette "
+        "trails a comet tail. Those returns, just behind a range jump with no neighbour at their own range, are "
+        "removed first (near-black).",
     ),
     "projection": StageView(
         None, controls=("projection_step",),

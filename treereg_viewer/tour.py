@@ -115,6 +115,15 @@ STEPS: tuple[TourStep, ...] = (
         view={"panel": "section", "section_poses": "Coarse and fine", "branch": None, "section_height": None},
         camera="trunk", highlight="trunk"),
     TourStep(
+        "fine", "Wind: what moved and what did not",
+        "Stations are scanned minutes apart; in wind the crown is never where it was, while the stem base and the "
+        "ground stay put, and the instrument's pose is in them. treereg fits the stem's bend (a cantilever) with the "
+        "pose, so the crown's motion is not taken for a tilt of the scanner; the plot shows the target's stem offset "
+        "by height: at zero where the stem holds, bending off above where the crown moved.",
+        "Read the plot below the text; in still air it stands at zero all the way up. In *13 Result*, colour by "
+        "distance: pink points moved with the wind.",
+        view={"panel": "stage"}),
+    TourStep(
         "verify", "Evidence before trust",
         "A registration is trusted only with its evidence. Enough tie points must agree compared with chance, the "
         "target's points lie where the reference saw a surface and not where it saw through, the surfaces fit "
@@ -138,7 +147,8 @@ STEPS: tuple[TourStep, ...] = (
         "evaluation", "Judging the result",
         "The paper judges a registration by its branches: three layers per branch, the distance between the scans' "
         "fitted centres, averaged (eq. 8, Table 2). Here each point is also coloured by its distance to the other "
-        "scans' surface: blue where they agree, red where they do not.",
+        "scans' surface: blue where they agree, red where they do not, pink where they moved with the wind (they fit "
+        "once the crown's measured motion is taken out).",
         "Switch *Targets at* between Final, Coarse and ICP and watch the colours change.",
         view={"panel": "stage", "result_colour": "residual", "result_pose": "final"}),
 )

@@ -36,6 +36,7 @@ class ViewState:
     result_colour: str = "scan"  # Result stage: "scan" colours or "residual" (distance to the other scans)
     residual_max_m: float = 0.02  # the residual colour map's top
     show_rejected: bool = False  # Fits and Fine: also draw the fits judged implausible
+    show_mixed: bool = True  # Scans: draw the mixed pixels the preparation removed (near-black)
     focus_section: int | None = None  # Fits and Fine: the table row (0-based) picked to look at
     panel: str = "stage"  # the docked panel shows "stage" details or the "section" inspector
     section_height: float | None = None  # cross-section height (m, reference frame); None = the trunk slice

@@ -46,11 +46,12 @@ the coarse pose; it cannot rank millimetres but drops clearly when a pose is off
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 
 from ..geometry import robust
-from ..geometry.rigid import apply_transform, invert, kabsch
+from ..geometry.rigid import apply_transform, invert, kabsch, rotation_vector
 from ..params import (
     AcceptanceParams, ArcParams, FineParams, FitParams, JointParams, SlicingParams, SurfaceParams, WindParams,
 )
@@ -79,6 +80,10 @@ _TRIM_FACTOR = 2.5
 _REDRAW_M = 0.005
 #: Joint adjustment: rounds of dropping bad pairs and adjusting again.
 _TRIM_ROUNDS = 6
+#: A held direction is a turn about the vertical when that makes up this share of it (metres at the lever).
+HELD_TURN_SHARE = 0.7
+#: Wind: stems tilted against each other by more than this at the rigid result are a sign of a moved crown.
+TILT_SIGN_DEG = 0.05
 #: Wind: rounds of weighing each section by its own offset (see `_estimate_joint`).
 _FLUTTER_ROUNDS = 4
 
@@ -134,6 +139,10 @@ class FineResult:
         The target's stem against the reference's, height by height, at the final pose (not
         unbent): flat at zero where the stem holds, bending off above where the crown moved; None
         when no stem could be traced.
+    turn_held
+        With a bend: the sections left the turn about the vertical undetermined (a bare stem once
+        the fluttering twigs are set aside), so the heading is the start's (the hypotheses stage's):
+        the verification must then show the evidence pins it.
     """
 
     ok: bool
@@ -154,6 +163,7 @@ class FineResult:
     sections: SectionsResult | None
     bend: Bend | None = None
     profile: StemProfile | None = None
+    turn_held: bool = False
 
 
 @dataclass(frozen=True)
@@ -342,7 +352,31 @@ def _iterate(ref: Scan, tgt: Scan, T0: np.ndarray, start: FineStart, sample: np.
         T = U @ T
         if move < fp.tolerance_m:
             break
+    if bend is not None and fit is not None and fit.held_directions:
+        # Directions the sections left undetermined in the end (a turn about a bare stem once the
+        # fluttering twigs are set aside) go back to where the iterations started: earlier
+        # iterations may have moved them on sections since dropped.
+        T = _held_to_prior(T, T_prior, fit)
     return _Iterations(T, tuple(updates), fit, note, last, bend)
+
+
+def _turn_held(fit: JointFit) -> bool:
+    """Whether a direction the adjustment held is mostly a turn about the vertical."""
+    D = np.r_[[fit.lever_m] * 3, [1.0] * 3]
+    for v in (fit.held_basis[:6] * D[:, None]).T:
+        if abs(v[2]) >= HELD_TURN_SHARE * float(np.linalg.norm(v)):
+            return True
+    return False
+
+
+def _held_to_prior(T: np.ndarray, T_prior: np.ndarray, fit: JointFit) -> np.ndarray:
+    """`T` with its offset from `T_prior` removed along the adjustment's held directions."""
+    c = fit.centre_m
+    D = T @ invert(T_prior)
+    delta = np.r_[rotation_vector(D[:3, :3]), D[:3, :3] @ c + D[:3, 3] - c]
+    B = fit.held_basis[:6]  # the pose part of the held directions (a bend component is no pose)
+    y = np.linalg.lstsq(B, delta, rcond=None)[0]
+    return pose_update(-(B @ y), c) @ T
 
 
 def _from_surfaces(ref_surf: Surface, tgt_surf: Surface, T: np.ndarray, centre: np.ndarray, B: np.ndarray,
@@ -460,25 +494,9 @@ def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, *, fine: FineParam
         start = first_iteration(ref, tgt, T0, slicing=slicing, arcs=arcs, fitting=fitting)
     rng = np.random.default_rng(0)
     sample = tgt.points if tgt.n_points <= _SAMPLE else tgt.points[rng.choice(tgt.n_points, _SAMPLE, replace=False)]
-    its = None
+    its = _iterate(ref, tgt, T0, start, sample, fine, joint, slicing, arcs, fitting, progress)
     if wind.enabled and fine.method == "joint":
-        # A stem bent far beyond what the sections' gates reach: start from the stem profile.
-        prof = profile_at(ref, tgt, T0, start.slices.z_extent_m, joint.loss_scale_m)
-        if prof.model is not None and _significant(_profile_bend(prof), wind):
-            bend0 = _profile_bend(prof)
-            T1 = correction(prof.model, prof_axis(prof, ref)) @ T0
-            its = _bent(ref, tgt, T1, T0, bend0, start, sample, fine, joint, slicing, arcs, fitting, wind)
-    if its is None:
-        its = _iterate(ref, tgt, T0, start, sample, fine, joint, slicing, arcs, fitting, progress)
-        probe = _bend_probe(ref, tgt, T0, its, fine, joint, wind)
-    else:
-        probe = None
-    if probe is not None and _significant(probe[1], wind):
-        # The crowns do not line up rigidly: iterate again, the stem's bend estimated with the pose
-        # each time, from where the probe put both (the rigid result tilted the target to line the
-        # crowns up; the probe's adjustment has already undone most of that).
-        progress(0.5, "the crown moved between the stations: fitting its bend with the pose")
-        bent = _bent(ref, tgt, probe[0], T0, probe[1], start, sample, fine, joint, slicing, arcs, fitting, wind)
+        bent = _with_bend(ref, tgt, T0, its, start, sample, fine, joint, slicing, arcs, fitting, wind, progress)
         if bent is not None:
             its = bent
     bend = its.bend
@@ -537,6 +555,7 @@ def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, *, fine: FineParam
         residuals_m=tuple(float(r) for r in residuals), from_surface=from_surface, measure_coarse=m0,
         measure_fine=m1, slices=drawn.slices if drawn else start.slices, arcs=drawn.arcs if drawn else None,
         sections=drawn.sections if drawn else None, bend=bend, profile=profile,
+        turn_held=bend is not None and its.joint is not None and _turn_held(its.joint),
     )
 
 
@@ -571,6 +590,46 @@ def _bend_probe(ref: Scan, tgt: Scan, T0: np.ndarray, its: _Iterations, fine: Fi
     if fit is None or fit.bend_m is None:
         return None
     return fit.U @ its.T, stem.plus(fit.bend_m, fit.bend_std_m)
+
+
+def _with_bend(ref: Scan, tgt: Scan, T0: np.ndarray, rigid: _Iterations, start: FineStart, sample: np.ndarray,
+               fine: FineParams, joint: JointParams, slicing: SlicingParams, arcs: ArcParams, fitting: FitParams,
+               wind: WindParams, progress: Progress) -> _Iterations | None:
+    """The sections iterated with the stem's bend, when there is a sign the crown moved (None when
+    there is none, or when the bend fitted turns out not to be worth modelling: the rigid result
+    then stands, unchanged).
+
+    Signs, any of: the stem profile at the start shows a bend (twice its noise: the profile is
+    coarse, the iteration decides); the profile at the rigid result shows the stems tilted against
+    each other (a rigid fit lines a moved crown up by tilting the scan); one adjustment of the rigid
+    result's sections with the bend free finds one. The iteration starts from the stem profile's
+    pose and bend when the profile saw a bend, else from the adjustment's.
+    """
+    loose = replace(wind, significance=wind.significance / 1.5)
+    prof = profile_at(ref, tgt, T0, start.slices.z_extent_m, joint.loss_scale_m)
+    seen_start = prof.model is not None and _significant(_profile_bend(prof), loose)
+    after = profile_at(ref, tgt, rigid.T, start.slices.z_extent_m, joint.loss_scale_m) if rigid.updates_m else None
+    tilted = after is not None and after.model is not None and _tilted(after.model, wind)
+    probe = _bend_probe(ref, tgt, T0, rigid, fine, joint, wind)
+    probed = probe is not None and probe[1].significant(wind.min_sway_m / 2.0, wind.significance)
+    if not (seen_start or tilted or probed):
+        return None
+    progress(0.5, "the crown may have moved between the stations: fitting the stem's bend with the pose")
+    if prof.model is not None and _profile_bend(prof).sway_m >= wind.min_sway_m:
+        T1, bend1 = correction(prof.model, prof_axis(prof, ref)) @ T0, _profile_bend(prof)
+    elif probe is not None:
+        T1, bend1 = probe
+    else:
+        T1, bend1 = correction(after.model, prof_axis(after, ref)) @ rigid.T, _profile_bend(after)
+    return _bent(ref, tgt, T1, T0, bend1, start, sample, fine, joint, slicing, arcs, fitting, wind)
+
+
+def _tilted(model: Any, wind: WindParams) -> bool:
+    """The stem profile shows the two stems tilted against each other (beyond 3 times its noise and
+    `TILT_SIGN_DEG`)."""
+    tilt = float(np.degrees(np.hypot(*model.tilt)))
+    std = float(np.degrees(np.hypot(*model.std[2:4])))
+    return tilt >= max(TILT_SIGN_DEG, wind.significance * std)
 
 
 def _bent(ref: Scan, tgt: Scan, T1: np.ndarray, T0: np.ndarray, bend1: Bend, start: FineStart, sample: np.ndarray,

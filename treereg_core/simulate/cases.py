@@ -280,14 +280,14 @@ class SimulatedCase:
     return_index: tuple[np.ndarray, ...] = ()
     mixed: tuple[np.ndarray, ...] = ()
 
-    def relative_sway_m(self, k: int) -> np.ndarray:
-        """How far the main tree's top had moved at station `k` from where station 1 saw it: a
-        horizontal 3-vector in scan 1's frame (zeros in still air)."""
-        s0, sk = self.stations[0].sway, self.stations[k].sway
+    def relative_sway_m(self, k: int, ref: int = 0) -> np.ndarray:
+        """How far the main tree's top had moved at station `k` from where station `ref` saw it: a
+        horizontal 3-vector in scan `ref`'s frame (zeros in still air)."""
+        s0, sk = self.stations[ref].sway, self.stations[k].sway
         if s0 is None or sk is None:
             return np.zeros(3)
         d = np.array([sk.top_m[0] - s0.top_m[0], sk.top_m[1] - s0.top_m[1], 0.0])
-        return self.stations[0].T_world_scan[:3, :3].T @ d
+        return self.stations[ref].T_world_scan[:3, :3].T @ d
 
     @property
     def angular_step_deg(self) -> tuple[float, float]:
@@ -510,6 +510,11 @@ def _build(spec: CaseSpec, progress: Progress | None) -> SimulatedCase:
     if trees:
         metrics += [Metric("tree height", "m", trees[0].shape.height_m), Metric("tree DBH", "m", trees[0].shape.dbh_m),
                     Metric("rays cast", "", n_rays)]
+    if spec.wind_m > 0:
+        metrics += [Metric(f"top sway, {s.name}", "m", round(st.sway.magnitude_m, 4)) for s, st in zip(scans, stations)
+                    if st.sway is not None]
+    if mixed:
+        metrics += [Metric(f"mixed pixels, {s.name}", "", int(m.sum())) for s, m in zip(scans, mixed)]
     metrics.append(Metric("simulation time", "s", round(seconds, 3)))
     return SimulatedCase(spec, tuple(scans), T_ref_scan, tuple(stations), trees, scene, cloud,
                          tuple(labels), seconds, tuple(metrics), mixed=tuple(mixed))

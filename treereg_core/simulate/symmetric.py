@@ -15,7 +15,8 @@ import numpy as np
 from ..geometry.rigid import invert, make_transform, rotation_z
 from ..scan import Scan
 from .scanner import scan_scene
-from .tree import Cylinders, Disks, GroundPlane, Scene, Spheres
+from .tree import Cylinders, Disks, GroundPlane, Scene, Spheres, TreeInfo, TreeShape
+from .wind import draw_sway, sway_tree
 
 
 def symmetric_tree(fold: int, whorls: int = 5, height_m: float = 8.0, whorl_jitter_deg: float = 0.0,
@@ -44,18 +45,22 @@ def symmetric_tree(fold: int, whorls: int = 5, height_m: float = 8.0, whorl_jitt
 
 
 def symmetric_case(fold: int, azimuths_deg: tuple[float, ...] = (0.0, 100.0, 215.0), distance_m: float = 8.0,
-                   step_deg: float = 0.1, whorl_jitter_deg: float = 0.0, seed: int = 0
+                   step_deg: float = 0.1, whorl_jitter_deg: float = 0.0, seed: int = 0, wind_m: float = 0.0
                    ) -> tuple[list[Scan], dict[str, np.ndarray]]:
     """Scans of `symmetric_tree(fold)` from stations at these azimuths (none a multiple of the
     symmetry apart, so their views differ), each turned at random about its vertical axis; and the
-    truth {name: T_ref_scan}."""
+    truth {name: T_ref_scan}. `wind_m`: before each station scans, the stem bends with this top sway
+    in a direction of the station's own (`simulate.wind`; the ground stays)."""
     scene = symmetric_tree(fold, whorl_jitter_deg=whorl_jitter_deg, seed=seed)
+    tree = TreeInfo(np.zeros(3), TreeShape(height_m=8.0), 2.0, 0.0, (), 0, scene)
     rng = np.random.default_rng(seed)
+    rng_wind = np.random.default_rng([seed, 11])
     scans, poses = [], []
     for k, az in enumerate(np.radians(azimuths_deg)):
         T_world_scan = make_transform(rotation_z(rng.uniform(0.0, 360.0)),
                                       np.array([distance_m * np.cos(az), distance_m * np.sin(az), 1.5]))
-        rays = scan_scene(scene.transformed(invert(T_world_scan)), (step_deg, step_deg), rng,
+        seen = scene if wind_m <= 0 else sway_tree(tree, draw_sway(wind_m, 0.0, rng_wind), rng_wind)
+        rays = scan_scene(seen.transformed(invert(T_world_scan)), (step_deg, step_deg), rng,
                           ground_near_m=distance_m - 2.0)
         scans.append(Scan.from_points(rays.points, name=f"scan{k + 1}.ply", angular_step_deg=(step_deg, step_deg)))
         poses.append(T_world_scan)

@@ -4,7 +4,8 @@ Independent kinds of evidence, each measured and reported, because no single num
 right registration from a wrong one (a correct pair with neighbouring trees can have as few coarse
 inliers as two different look-alike trees):
 
-* support — the coarse stage's inliers against what RANSAC reaches on randomly re-paired ties;
+* support — the coarse tie points that agree with the coarse transform or with the final pose,
+  against what RANSAC reaches on randomly re-paired ties;
 * agreement — the free-space test at the final pose (`visibility`): of the target's points that
   both stations could see, the share lying where the reference saw a surface (not in space it saw
   through), and enough of them to judge;
@@ -33,11 +34,11 @@ import numpy as np
 from ..fine.bend import Bend
 from ..fine.stem import StemProfile
 from ..fine.surface import Surface, noise_floor, trimmed_residuals
-from ..geometry.rigid import apply_transform
+from ..geometry.rigid import apply_transform, make_transform, rotation_z
 from ..params import AcceptanceParams, CoarseParams, HypothesesParams, VerifyParams
 from ..results import Metric
 from .hypotheses import SCORE_POINTS, HypothesesResult, distinct
-from .visibility import RangeImage, Visibility, violation_distances, visibility
+from .visibility import RangeImage, Visibility, placed, violation_distances, visibility
 
 
 
@@ -74,6 +75,15 @@ class Evidence:
     motion_needed_m: float = 0.0
     motion_m: float = 0.0
     moved: int = 0
+    #: The stem profile at the final pose: how far the target's stem leans against the reference's
+    #: and how far apart they stand (at the profile's mid height), each with its noise std.
+    stem_tilt_deg: float = float("nan")
+    stem_tilt_std_deg: float = float("nan")
+    stem_shift_m: float = float("nan")
+    stem_shift_std_m: float = float("nan")
+    #: Wind, the sections leaving the turn about the stem open: how far the heading can turn with the
+    #: free-space evidence as good within its noise (deg; NaN when not measured).
+    heading_spread_deg: float = float("nan")
 
     def as_dict(self) -> dict[str, float | int | str | None]:
         return dict(self.__dict__)
@@ -108,7 +118,8 @@ def gather_evidence(ref_image: RangeImage, ref_surf: Surface, tgt_surf: Surface,
                     tgt_plane: tuple[float, float, float, float] | None, *, hypotheses: HypothesesParams,
                     acceptance: AcceptanceParams, bend: Bend | None = None, profile: StemProfile | None = None,
                     max_motion_m: float = 0.1, support_inlier_m: float = 0.05,
-                    stable_tolerance_m: float = 0.003, min_consistency: float = 0.95) -> Evidence:
+                    stable_tolerance_m: float = 0.003, min_consistency: float = 0.95, turn_held: bool = False,
+                    axis_xy: np.ndarray | None = None, max_heading_deg: float = 0.5) -> Evidence:
     """Measure every kind of evidence for the pose `T` of the target (prepared points, own frame).
 
     With a `bend` (the crown moved between the stations; `tgt_surf` is then the target's surface
@@ -116,7 +127,9 @@ def gather_evidence(ref_image: RangeImage, ref_surf: Surface, tgt_surf: Surface,
     points the reference saw through must lie of a surface it saw for `min_consistency` of the
     points both see to agree (allowed up to `max_motion_m`); its support also counts the ties that
     agree with `T` (within `support_inlier_m`), and its rivals are judged alike. `profile`: the stem
-    profile at `T` (for the height the stems agree up to).
+    profile at `T` (the height the stems agree up to, and whether they lean or stand apart). With
+    `turn_held` (the fine stage could not fix the turn about the stem, at `axis_xy`), the heading's
+    spread is measured: how far `T` turns about the stem before the evidence worsens.
     """
     rng = np.random.default_rng(0)
     pts = tgt_points if len(tgt_points) <= SCORE_POINTS else tgt_points[rng.choice(len(tgt_points), SCORE_POINTS, replace=False)]
@@ -125,11 +138,12 @@ def gather_evidence(ref_image: RangeImage, ref_surf: Surface, tgt_surf: Surface,
     if bend is not None:
         needed = _motion_needed(*violation_distances(ref_image, pts, T, hypotheses.tolerance_m, unbend,
                                                      ref_surf.cloud_tree, 2.0 * max_motion_m), min_consistency)
-        motion = min(max(needed, hypotheses.tolerance_m), max_motion_m) * (1.0 + 1e-9)
+        motion = min(max(needed, hypotheses.tolerance_m), max_motion_m)
 
     def judged(T_: np.ndarray) -> Visibility:
+        # (a hair over the allowance: the point that set it counts as moved)
         return visibility(ref_image, pts, T_, hypotheses.tolerance_m, unbend=unbend, surface_tree=ref_surf.cloud_tree,
-                          motion_m=motion)
+                          motion_m=motion * (1.0 + 1e-9))
 
     vis: Visibility = judged(T)
     residual = float(trimmed_residuals(ref_surf, tgt_surf, [T], acceptance.gate_m, acceptance.select_trim)[0])
@@ -145,15 +159,21 @@ def gather_evidence(ref_image: RangeImage, ref_surf: Surface, tgt_surf: Surface,
     inliers = int(getattr(coarse, "n_inliers", 0))
     rival = hyp.runner_up if hyp is not None else ""
     margin = float(hyp.margin) if hyp is not None else float("nan")
+    match = getattr(coarse, "match", None)
+    if match is not None and match.n_ties:
+        # The ties that agree with the final pose count too (the coarse transform is RANSAC's best on
+        # them alone, fitted rigidly even to a crown that moved): the target unbent under wind.
+        q = placed(match.tgt_xyz, T, unbend)
+        inliers = max(inliers, int(np.count_nonzero(np.linalg.norm(q - match.ref_xyz, axis=1) < support_inlier_m)))
     if bend is not None:
-        match = getattr(coarse, "match", None)
-        if match is not None and match.n_ties:
-            # The coarse transform was fitted rigidly to ties of a moving crown: count the ties that
-            # agree with the final pose, the target unbent.
-            q = bend.unbend(apply_transform(T, match.tgt_xyz))
-            inliers = max(inliers, int(np.count_nonzero(np.linalg.norm(q - match.ref_xyz, axis=1) < support_inlier_m)))
         if hyp is not None and hyp.candidates and not hyp.chosen_by_hand:
             rival, margin = _rival_under_wind(hyp, T, pts, judged, vis, hypotheses)
+    model = profile.model if profile is not None else None
+    stem = dict(stem_tilt_deg=float(np.degrees(np.hypot(*model.tilt))), stem_tilt_std_deg=float(np.degrees(np.hypot(*model.std[2:4]))),
+                stem_shift_m=float(np.hypot(*model.shift_m)), stem_shift_std_m=float(np.hypot(*model.std[0:2]))) if model else {}
+    spread = float("nan")
+    if bend is not None and turn_held and axis_xy is not None:
+        spread = _heading_spread(ref_image, pts, T, axis_xy, unbend, hypotheses.tolerance_m, 4.0 * max_heading_deg)
     return Evidence(
         inliers=inliers, ties=int(getattr(coarse, "n_ties", 0)),
         chance_inliers=int(getattr(coarse, "chance_inliers", -1)), consistency=float(vis.consistency),
@@ -165,8 +185,33 @@ def gather_evidence(ref_image: RangeImage, ref_surf: Surface, tgt_surf: Surface,
         sway_direction_deg=bend.sway_direction_deg if bend is not None else float("nan"),
         sway_std_m=bend.sway_std_m if bend is not None else float("nan"),
         stable_height_m=profile.stable_height_m(stable_tolerance_m) if profile is not None else float("nan"),
-        motion_needed_m=needed, motion_m=motion, moved=vis.moved,
+        motion_needed_m=needed, motion_m=motion, moved=vis.moved, heading_spread_deg=spread, **stem,
     )
+
+
+#: Steps of the heading scan (deg), as fractions of its reach.
+_HEADING_STEPS = 8
+
+
+def _heading_spread(ref_image: RangeImage, pts: np.ndarray, T: np.ndarray, axis_xy: np.ndarray, unbend,
+                    tolerance_m: float, reach_deg: float) -> float:
+    """How far the pose can turn about the stem (at `axis_xy`, reference frame) with the free-space
+    consistency of the unbent target within two of its noise std of the best: the heading's spread
+    (deg, `reach_deg` when it is flat all the way, or when a turn agrees better than `T`)."""
+    offsets = np.linspace(-reach_deg, reach_deg, 2 * _HEADING_STEPS + 1)
+    c = np.array([axis_xy[0], axis_xy[1], 0.0])
+    cons, seen = [], []
+    for d in offsets:
+        R = rotation_z(float(d))
+        v = visibility(ref_image, pts, make_transform(R, c - R @ c) @ T, tolerance_m, unbend=unbend)
+        cons.append(v.consistency if np.isfinite(v.consistency) else 0.0)
+        seen.append(v.seen_by_both)
+    cons = np.array(cons)
+    best = int(np.argmax(cons))
+    noise = 2.0 * np.sqrt(max(cons[best] * (1.0 - cons[best]), 1e-6) / max(seen[best], 1))
+    if cons[_HEADING_STEPS] < cons[best] - noise:  # a turn agrees better than the pose itself
+        return float(reach_deg)
+    return float(np.abs(offsets[cons >= cons[best] - noise]).max())
 
 
 def _motion_needed(distances_m: np.ndarray, seen: int, min_consistency: float) -> float:
@@ -202,7 +247,7 @@ def judge(e: Evidence, *, verify: VerifyParams, coarse: CoarseParams) -> tuple[s
     reasons: list[str] = []
     hints: list[str] = []
     if e.chance_inliers >= 0 and e.inliers < max(coarse.min_ties, p.chance_factor * e.chance_inliers):
-        reasons.append(f"only {e.inliers} of {e.ties} tie points agree with the coarse transform, against "
+        reasons.append(f"only {e.inliers} of {e.ties} tie points agree with the coarse transform or the final pose, against "
                        f"{e.chance_inliers} when the ties are re-paired at random (verify.chance_factor = {p.chance_factor:g})")
         hints.append("check that both scans show the same tree")
     if not e.seen_by_both >= p.min_seen:
@@ -234,6 +279,18 @@ def judge(e: Evidence, *, verify: VerifyParams, coarse: CoarseParams) -> tuple[s
         what = "do not pair up" if not np.isfinite(e.residual_m) else f"lie {e.residual_m * 1000:.1f} mm apart"
         reasons.append(f"the two surfaces {what}, more than {p.max_residual_factor:g} times the scans' own noise "
                        f"({e.noise_m * 1000:.1f} mm)")
+    if np.isfinite(e.stem_tilt_deg) and e.stem_tilt_deg > max(p.max_stem_tilt_deg, 3.0 * e.stem_tilt_std_deg):
+        reasons.append(f"the target's stem leans {e.stem_tilt_deg:.2f}° against the reference's (verify.max_stem_tilt_deg "
+                       f"= {p.max_stem_tilt_deg:g}; noise {e.stem_tilt_std_deg:.2f}°): the pose tilts the scan against the "
+                       "tree both stations saw")
+    if np.isfinite(e.stem_shift_m) and e.stem_shift_m > max(p.max_stem_shift_m, 3.0 * e.stem_shift_std_m):
+        reasons.append(f"the two stems stand {e.stem_shift_m * 1000:.1f} mm apart (verify.max_stem_shift_m = "
+                       f"{p.max_stem_shift_m * 1000:g} mm; noise {e.stem_shift_std_m * 1000:.1f} mm)")
+    if np.isfinite(e.heading_spread_deg) and e.heading_spread_deg > p.max_heading_deg:
+        reasons.append(f"the crown moved (the stem top by {e.sway_m:.2f} m) and the sections leave the turn about the "
+                       f"stem open: the evidence fixes the heading only within ±{e.heading_spread_deg:.1f}° "
+                       f"(verify.max_heading_deg = {p.max_heading_deg:g})")
+        hints.append("rescan these stations in calmer air, or add a station scanned soon after the reference")
     if e.tilt_deg > p.max_tilt_deg:
         reasons.append(f"the transform tilts the scanner by {e.tilt_deg:.1f}° (verify.max_tilt_deg = {p.max_tilt_deg:g}); "
                        "scanners stand nearly level")

@@ -35,6 +35,9 @@ def quality_report(scans: Sequence[Scan], pairs: Sequence[Pair], outputs: Mappin
                  "placed_through": [scans[v].name for v in pl.via]}
         entry.update({m.description: _num(m.value) for m in pl.metrics
                       if m.description not in ("verdict", "placed through scans")})
+        motion = crown_motion(scans, pairs, outputs, i)
+        if motion is not None:
+            entry["crown_motion"] = motion
         per_scan[s.name] = entry
     edges = []
     graph_edges = graph.items[0].edges if graph is not None and graph.items else ()
@@ -54,6 +57,48 @@ def quality_report(scans: Sequence[Scan], pairs: Sequence[Pair], outputs: Mappin
                 row["used_in_placement"] = e.used
         edges.append(row)
     return {"scans": per_scan, "edges": edges}
+
+
+def _motion_pair(pairs: Sequence[Pair], outputs: Mapping[str, StageOutput], i: int) -> int | None:
+    """The pair that tells scan i's crown motion: its pair with the reference, else its first."""
+    verify = outputs.get("verify")
+    if verify is None:
+        return None
+    ks = [k for k, p in enumerate(pairs) if p.tgt == i and hasattr(verify.items[k], "evidence")]
+    ks.sort(key=lambda k: pairs[k].ref != 0)
+    return ks[0] if ks else None
+
+
+def crown_motion(scans: Sequence[Scan], pairs: Sequence[Pair], outputs: Mapping[str, StageOutput],
+                 i: int) -> dict[str, Any] | None:
+    """How far scan i's crown had moved from where its pair's reference saw it (wind between the
+    stations), when it moved measurably: top sway (m), its direction (deg, that scan's frame), its
+    noise, the height above the stem's base up to which the two stems agree, and how far the small
+    branches moved beyond the stem's bend (the allowance the verification needed); None otherwise."""
+    k = _motion_pair(pairs, outputs, i)
+    if k is None:
+        return None
+    e = outputs["verify"].items[k].evidence
+    if not e.sway_m > 0:
+        return None
+    return {"relative_to": scans[pairs[k].ref].name, "top_sway_m": _num(e.sway_m),
+            "direction_deg": _num(e.sway_direction_deg), "sway_std_m": _num(e.sway_std_m),
+            "stems_agree_up_to_m": _num(e.stable_height_m), "branches_moved_m": _num(e.motion_needed_m)}
+
+
+def motion_lines(scans: Sequence[Scan], pairs: Sequence[Pair], outputs: Mapping[str, StageOutput]) -> list[str]:
+    """One line per scan whose crown moved measurably between its station and its pair's reference."""
+    out = []
+    for i, s in enumerate(scans):
+        m = crown_motion(scans, pairs, outputs, i) if i else None
+        if m is None:
+            continue
+        stable = m["stems_agree_up_to_m"]
+        out.append(f"{s.name}: the crown moved {m['top_sway_m']:.2f} m (stem top, towards {m['direction_deg']:.0f}° in "
+                   f"{m['relative_to']}'s frame) between the stations of {m['relative_to']} and {s.name}"
+                   + (f"; the stems agree up to {stable:.1f} m above the base" if stable is not None else "")
+                   + "; the pose rests on what did not move")
+    return out
 
 
 def verdict_lines(verdicts: Mapping[str, tuple[str, tuple[str, ...], str]]) -> list[str]:

@@ -24,7 +24,8 @@ from ..controller import Snapshot
 from ..palette import GREY, HIGHLIGHT, categorical, scan_color
 from ..view_panel import PanelContent
 from ..view_state import ViewState
-from .common import md_table, metrics_table, pair_label, plural, target_index, title
+from .common import md_table, metrics_table, pair_label, pair_scans, plural, target_index, title
+from .motion import motion_sentence, profile_figure
 from .scans import target_pose
 
 
@@ -325,7 +326,14 @@ def render_fine(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewStat
                  "coincide. The *Cross-section* view (left panel, top) shows the scans' stem arcs at the coarse "
                  "and the fine pose side by side.")
     table = metrics_table({pair_label(snap, t): f.metrics}) + ("\n\n" + table if table else "")
-    return handles, PanelContent(title("fine", snap, t), text=text, table=table)
+    i, j = pair_scans(snap, t)
+    tol = snap.params.wind.stable_tolerance_m
+    motion = motion_sentence(f, snap.scans[i].name, snap.scans[j].name, tol)
+    if motion:
+        text += "\n\n" + motion
+    fig = profile_figure(f, snap.scans[i].name, snap.scans[j].name, j, tol)
+    plots = ((fig, 1.2),) if fig is not None else ()
+    return handles, PanelContent(title("fine", snap, t), text=text, plots=plots, table=table)
 
 
 def focus_rows(snap: Snapshot, stage: str, view: ViewState) -> list[FitRow]:

@@ -22,7 +22,8 @@ from ..controller import Snapshot
 from ..palette import HIGHLIGHT, residual_legend, scan_color
 from ..view_panel import PanelContent
 from ..view_state import ViewState
-from .common import md_table, metrics_table, pair_label, target_index, title
+from .common import md_table, metrics_table, pair_label, pair_scans, target_index, title
+from .motion import motion_sentence, profile_figure
 
 #: Colours of the three registrations in plots (coarse, fine, ICP).
 METHOD_COLORS = {"coarse": "#9e9e9e", "fine": "#1e8c3c", "ICP": "#3050c8"}
@@ -126,6 +127,10 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
                  f"{max(30, 1.5 * view.residual_max_m * 1000):.0f} mm (seen by its own scan only).")
         images.append((residual_legend(view.residual_max_m),
                        f"0 mm — {view.residual_max_m * 1000 / 2:.0f} mm — {view.residual_max_m * 1000:.0f} mm and more"))
+        if any(getattr(f, "bend", None) is not None for f in (fine.items if fine is not None else ())):
+            text += (f" **Pink: moved with the wind**: farther than {view.residual_max_m * 1000:.0f} mm from the other "
+                     "scans as registered, within it once each target's crown motion (its stem's fitted bend) is taken "
+                     "out. Red points do not fit even then.")
     truth = truth_rows(snap)
     if truth:  # the analyst's first question, answered above the plot
         text += "\n\n" + md_table(
@@ -140,6 +145,15 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
     if not report.ok and report.message:
         text += f"\n\n**Evaluation:** {report.message}"
     plots = []
+    fine_item = fine.items[t] if fine is not None and t < len(fine.items) else None
+    i, j = pair_scans(snap, t)
+    tol = snap.params.wind.stable_tolerance_m
+    motion = motion_sentence(fine_item, snap.scans[i].name, snap.scans[j].name, tol) if fine_item is not None else ""
+    if motion and getattr(fine_item, "bend", None) is not None:
+        text += "\n\n" + motion
+        prof_fig = profile_figure(fine_item, snap.scans[i].name, snap.scans[j].name, j, tol)
+        if prof_fig is not None:
+            plots.append((prof_fig, 1.2))
     fig = branch_figure(evs, pair_label(snap, t))
     if fig is not None:
         plots.append((fig, 1.6))

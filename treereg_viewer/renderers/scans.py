@@ -13,7 +13,7 @@ import numpy as np
 import viser
 
 from ..controller import Snapshot
-from ..palette import GREY, NO_RESIDUAL, residual_colors, scan_color
+from ..palette import GREY, MIXED, MOVED, NO_RESIDUAL, residual_colors, scan_color
 from ..stages import POSE_STAGE, registered, view_of
 from ..view_panel import PanelContent
 from ..view_state import ViewState
@@ -97,14 +97,16 @@ def scan_layer_key(snap: Snapshot, view: ViewState) -> tuple[Any, ...]:
     residual = ((view.result_pose, view.residual_max_m, id(snap.output(POSE_STAGE.get(view.result_pose, view.result_pose))))
                 if residual_mode(view) else None)
     return (tuple(id(s) for s in snap.scans), id(snap.output("prepare")), view.stage == "prepare", context_only(view),
-            view.point_size, view.max_points, view.show_stations, registered(view.stage), residual, see_through(view))
+            view.point_size, view.max_points, view.show_stations, registered(view.stage), residual, see_through(view),
+            view.show_mixed and view.stage == "prepare")
 
 
 def draw_scan_layer(scene: viser.SceneApi, snap: Snapshot, view: ViewState,
-                    residuals: list[np.ndarray] | None = None) -> list[Any]:
+                    residuals: list[np.ndarray] | None = None, moved: list[np.ndarray] | None = None) -> list[Any]:
     """Every scan's points in its colour (ground grey on stage 1) or, given `residuals` (per scan,
-    the distances of its displayed points to the other scans), coloured by distance; its station
-    axes and name."""
+    the distances of its displayed points to the other scans), coloured by distance, the points that
+    `moved` with the wind in their own colour; its station axes and name. On the Scans stage the
+    mixed pixels the preparation removed are drawn too, when the view asks."""
     handles: list[Any] = []
     prepared = snap.output("prepare")
     apart = not registered(view.stage)
@@ -113,20 +115,28 @@ def draw_scan_layer(scene: viser.SceneApi, snap: Snapshot, view: ViewState,
         color = np.array(scan_color(i), dtype=np.uint8)
         if context_only(view):  # slices, arcs and fits are the subject: the scans fade to a tint
             color = (0.3 * color + 0.7 * 255).astype(np.uint8)
+        mixed = None
         if view.stage == "prepare" or prep is None or not getattr(prep, "ok", False):
-            # The Scans stage shows what was measured, with what preparation removes in grey.
-            pts = scan.points
+            # The Scans stage shows the station as the stages take it (at the working resolution),
+            # with what preparation removes in grey and, on request, its mixed pixels.
+            station = getattr(prep, "station", None) if prep is not None else None
+            pts = station.points if station is not None else scan.points
             idx = display_subset(len(pts), view.max_points, seed=i)
             colors = np.broadcast_to(color, (len(idx), 3)).copy()
             if prep is not None and getattr(prep, "kept_mask", None) is not None and len(prep.kept_mask) == len(pts):
                 colors[~prep.kept_mask[idx]] = CROPPED
                 colors[prep.ground_mask[idx]] = GREY
+            removed = getattr(prep, "mixed_points", None) if prep is not None else None
+            if view.stage == "prepare" and view.show_mixed and removed is not None and len(removed):
+                mixed = removed[display_subset(len(removed), view.max_points // 4, seed=i)]
         else:
             pts = prep.scan.points
             idx = display_subset(len(pts), view.max_points, seed=i)
             colors = color
             if residuals is not None and i < len(residuals) and len(residuals[i]) == len(idx):
                 colors = residual_colors(residuals[i], view.residual_max_m)
+                if moved is not None and i < len(moved) and len(moved[i]) == len(idx):
+                    colors[moved[i]] = MOVED
             elif residuals is not None:
                 colors = np.array(NO_RESIDUAL, dtype=np.uint8)  # not registered under this pose
         node = scan_node(i)
@@ -148,6 +158,9 @@ def draw_scan_layer(scene: viser.SceneApi, snap: Snapshot, view: ViewState,
                     point_shape="circle", precision="float32",
                 )
             )
+        if mixed is not None:
+            handles.append(scene.add_point_cloud(f"{node}/mixed", mixed, MIXED, point_size=view.point_size * 1.2,
+                                                 point_shape="circle", precision="float32"))
         if view.show_stations:
             handles.append(scene.add_frame(f"{node}/station", axes_length=1.0, axes_radius=0.04))
             # Before registration every scanner sits at the origin of its own frame, i.e. at the same
@@ -215,8 +228,10 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
         # estimate in the prepare stage), else the scan's own (read off its grid, or estimated).
         given = snap.params.prepare.angular_step_deg
         phi, vphi = given or scan.angular_step_deg
-        kept = ground = target = ""
+        kept = ground = target = mixed = ""
         if prep is not None:
+            removed = getattr(prep, "mixed_points", None)
+            mixed = f"{len(removed):,}" if removed is not None and snap.params.prepare.mixed_pixels else "off"
             kept = f"{prep.scan.n_points:,}" if getattr(prep, "scan", None) is not None else ""
             if getattr(prep, "ground_mask", None) is not None:
                 ground = f"{int(np.count_nonzero(prep.ground_mask)):,}"
@@ -226,14 +241,18 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
         how = "" if given or step is None or step.source == "given" else (" (grid)" if step.source == "grid" else f" (est., {step.confidence:.2f})")
         rows.append((
             f"{i + 1}{' (reference)' if i == 0 else ''}", scan.name, f"{scan.n_points:,}",
-            f"{phi:.3g} / {vphi:.3g}{how}", kept, ground, target,
+            f"{phi:.3g} / {vphi:.3g}{how}", mixed, kept, ground, target,
         ))
-    table = md_table(("#", "scan", "points", "φ / ϕ (deg)", "kept", "ground", "target stem x, y (m)"), rows)
+    table = md_table(("#", "scan", "points", "φ / ϕ (deg)", "mixed pixels removed", "kept", "ground",
+                      "target stem x, y (m)"), rows)
     text = not_ready_text(snap, "prepare")
     if prepared is not None:
         bad = [f"**{snap.scans[i].name}:** {it.message}" for i, it in enumerate(prepared.items) if not it.ok]
         notes = [f"{snap.scans[i].name}: {it.message}" for i, it in enumerate(prepared.items) if it.ok and it.message]
         text = "\n\n".join(bad + notes) or "Grey points were removed as ground; light grey were cropped."
+        if snap.params.prepare.mixed_pixels:
+            text += (" Near-black: mixed pixels, returns strung out behind a stem's or branch's edge (the beam "
+                     "straddled it), removed before anything else; the free-space test is blind where they were.")
         chosen = getattr(prepared.items[0], "target", "") if prepared.items else ""
         if chosen and getattr(prepared.items[0], "stem_xy", None) is not None:
             text += (f"\n\n**Target tree:** {chosen}. The tall line marks it in every scan, grey lines the other stems; "

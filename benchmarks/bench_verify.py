@@ -173,7 +173,8 @@ def sweep_table(rows: list[Outcome], params: Params) -> str:
     out = []
     for label, change in SWEEP:
         vp = replace(params.verify, **change)
-        judged = [replace(r, verdict=judge(r.evidence, verify=vp, coarse=params.coarse)[0]) for r in pairs]
+        judged = [replace(r, verdict=judge(r.evidence, verify=vp, coarse=params.coarse, acceptance=params.acceptance)[0])
+                  for r in pairs]
         out.append([label, *confusion(judged)])
     return md_table(("thresholds (pairs)", "count", "verified and right", "verified but wrong", "refused but right",
                      "refused and wrong", "right ones verified"), out)

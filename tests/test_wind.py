@@ -155,7 +155,7 @@ def test_the_paper_preset_models_no_wind_and_filters_no_mixed_pixels():
 
 
 def test_the_crown_motion_reaches_transforms_json_and_the_command_line(tmp_path, capsys):
-    from treereg_cli import main
+    from treereg_cli.main import main
     from treereg_core.simulate.cases import write_case
 
     case = _case(wind_m=0.15)

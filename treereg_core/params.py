@@ -242,6 +242,8 @@ class AcceptanceParams:
     gate_m: float = _f(0.02, "m", "measure: a target point pairs with a reference point within this distance", lo=0.001, hi=1.0)
     tolerance_m: float = _f(0.005, "m", "measure: a paired point lies on the surface when its point-to-plane distance is below this", lo=0.0001, hi=1.0)
     margin: float = _f(0.01, "", "reject fine when the surface agreement falls by more than this (fraction of points)", lo=0.0, hi=1.0)
+    stem_tilt_deg: float = _f(0.15, "deg", "the stems line up: by the stem profile, the target's stem leans at most this much against the reference's (or 3 times the profile's noise); a candidate pose whose stems do not is not chosen, a final pose whose stems do not is not verified", lo=0.0, hi=90.0)
+    stem_shift_m: float = _f(0.005, "m", "...and the two stems stand at most this far apart (or 3 times the noise)", lo=0.0, hi=10.0)
 
 
 @dataclass(frozen=True)
@@ -256,8 +258,6 @@ class VerifyParams:
     max_tilt_deg: float = _f(5.0, "deg", "plausibility: the transform tilts the target's scanner at most this much (scanners stand nearly level)", lo=0.0, hi=180.0)
     max_height_difference_m: float = _f(1.0, "m", "plausibility: both scanners' heights above the ground differ at most this much (when both see ground)", lo=0.0, hi=100.0)
     max_loop_m: float = _f(0.02, "m", "with 3 or more scans: loops of pairwise transforms close within this (mean displacement of the tree)", lo=0.0, hi=10.0)
-    max_stem_tilt_deg: float = _f(0.15, "deg", "the stem profile at the final pose: the target's stem may lean at most this much against the reference's (or 3 times the profile's noise)", lo=0.0, hi=90.0)
-    max_stem_shift_m: float = _f(0.005, "m", "...and the two stems may stand at most this far apart (or 3 times the noise)", lo=0.0, hi=10.0)
     max_heading_deg: float = _f(0.5, "deg", "wind, when the sections leave the turn about the stem open: the free-space evidence must pin the heading within this", lo=0.0, hi=180.0)
     max_motion_m: float = _f(0.1, "m", "wind: with the stem's bend taken out, the branches may still have moved this much on their own between the stations (beyond it the motion cannot be told from a wrong pose)", lo=0.0, hi=1.0)
 

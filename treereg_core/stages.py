@@ -215,7 +215,8 @@ def _run_verify(ctx: StageContext) -> list[Any]:
                             stable_tolerance_m=ctx.params.wind.stable_tolerance_m,
                             min_consistency=ctx.params.verify.min_consistency, turn_held=f.turn_held,
                             axis_xy=_ref_stem_xy(ctx, p.ref), max_heading_deg=ctx.params.verify.max_heading_deg)
-        return verification(f.T_ref_target, e, *judge(e, verify=ctx.params.verify, coarse=ctx.params.coarse))
+        return verification(f.T_ref_target, e, *judge(e, verify=ctx.params.verify, coarse=ctx.params.coarse,
+                                                      acceptance=ctx.params.acceptance))
     return ctx.each(one, lambda k: _label(ctx, k))
 
 

@@ -46,7 +46,7 @@ the coarse pose; it cannot rank millimetres but drops clearly when a pose is off
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -412,7 +412,8 @@ def _polish(ref_surf: Surface, tgt_surf: Surface, T: np.ndarray, sp: SurfacePara
 
 
 def _select(ref_surf: Surface, tgt_surf: Surface, T0: np.ndarray, T: np.ndarray, label: str, sp: SurfaceParams,
-            ap: AcceptanceParams, loss_scale_m: float) -> tuple[np.ndarray, str, np.ndarray]:
+            ap: AcceptanceParams, loss_scale_m: float,
+            stems: Callable[[np.ndarray], bool | None] | None = None) -> tuple[np.ndarray, str, np.ndarray]:
     """The final pose: of the coarse one, `T` and (for a sections' result) `T` polished by the
     surfaces in all six directions, the one with the lowest trimmed point-to-plane residual.
 
@@ -420,8 +421,10 @@ def _select(ref_surf: Surface, tgt_surf: Surface, T0: np.ndarray, T: np.ndarray,
     hundredths of a degree, while the surfaces carry no model. Either can be the better one; the
     residual (`trimmed_residuals`) tells them apart, and refuses an update that does not lower it.
     When too few surface pairs exist to measure, `T` stands; a candidate with far fewer surface
-    pairs than the others (far off) is never chosen. Returns (pose, its label, the residuals of
-    coarse, `T`, `T` polished and coarse polished: NaN where not computed, inf where far off).
+    pairs than the others (far off) is never chosen, nor one whose stems do not line up (`stems`:
+    the stem profile's verdict at a pose) while another's do: the residual of surfaces that only
+    partly overlap can rank a pose centimetres off the stem first. Returns (pose, its label, the
+    residuals of coarse, `T`, `T` polished and coarse polished: NaN where not computed, inf where far off).
     """
     poses, labels = [T0, T], ["coarse", label]
     if label == "sections":
@@ -437,12 +440,17 @@ def _select(ref_surf: Surface, tgt_surf: Surface, T0: np.ndarray, T: np.ndarray,
     if not np.isfinite(r).any():
         return T, label, r4
     k = int(np.argmin(r))
+    if stems is not None and stems(poses[k]) is False:
+        lined = [i for i in np.argsort(r) if np.isfinite(r[i]) and stems(poses[i])]
+        k = int(lined[0]) if lined else k
     return poses[k], labels[k], r4
 
 
 def _verdict(n_updates: int, chosen: str, fallback: bool, note: str, residuals: np.ndarray, m0: float, m1: float,
-             ap: AcceptanceParams) -> tuple[bool, str]:
-    """Whether the fine pose is kept, and the sentence that says why not (or what happened)."""
+             ap: AcceptanceParams, stems_vouch: bool = False) -> tuple[bool, str]:
+    """Whether the fine pose is kept, and the sentence that says why not (or what happened).
+    `stems_vouch`: the stems line up at the fine pose and not at the coarse one, which the surface
+    agreement (of two views that may barely overlap) does not overrule."""
     if not n_updates:
         return False, f"fine registration found nothing to improve ({note}); kept the coarse transform"
     if chosen == "coarse":
@@ -454,7 +462,7 @@ def _verdict(n_updates: int, chosen: str, fallback: bool, note: str, residuals: 
         return False, (f"fine registration found nothing to improve ({note}; aligning the surfaces did not raise "
                        f"their agreement, {m0:.1%} -> {m1:.1%}); kept the coarse transform")
     message = f"{note}; aligned by the surfaces instead of sections" if fallback else ""
-    if ap.test and m1 < m0 - ap.margin:
+    if ap.test and m1 < m0 - ap.margin and not stems_vouch:
         return False, (f"{message + '; ' if message else ''}the fine update made the alignment worse (surface "
                        f"agreement {m0:.1%} of the target's points at coarse, {m1:.1%} after fine); kept the coarse transform")
     return True, message
@@ -517,12 +525,23 @@ def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, *, fine: FineParam
         updates.append(mean_move(T @ invert(T0), apply_transform(T0, sample)))
         from_surface = 6
     chosen, residuals = ("surfaces" if fallback else "sections"), np.full(4, np.nan)
+    lined: dict[int, bool | None] = {}
+
+    def stems(T_: np.ndarray) -> bool | None:
+        """The stem profile's verdict at a pose: do the two stems line up there (None: no profile)?"""
+        key = id(T_)
+        if key not in lined:
+            lined[key] = profile_at(ref, tgt, T_, start.slices.z_extent_m, joint.loss_scale_m).lined_up(
+                acceptance.stem_tilt_deg, acceptance.stem_shift_m) if start.slices.ok else None
+        return lined[key]
     if updates and fine.method == "joint" and acceptance.select and bend is None:
-        T, chosen, residuals = _select(ref_surf, tgt_surf, T0, T, chosen, surface, acceptance, joint.loss_scale_m)
+        T, chosen, residuals = _select(ref_surf, tgt_surf, T0, T, chosen, surface, acceptance, joint.loss_scale_m,
+                                       stems)
         from_surface = 6 if chosen.endswith("by the surfaces") else from_surface
     m0 = surface_fitness(ref_surf, tgt_surf, T0, acceptance.gate_m, acceptance.tolerance_m)
     m1 = surface_fitness(ref_surf, tgt_surf, T, acceptance.gate_m, acceptance.tolerance_m) if updates else m0
-    accepted, message = _verdict(len(updates), chosen, fallback, its.note, residuals, m0, m1, acceptance)
+    vouch = bool(updates) and m1 < m0 - acceptance.margin and stems(T) is True and stems(T0) is False
+    accepted, message = _verdict(len(updates), chosen, fallback, its.note, residuals, m0, m1, acceptance, vouch)
     if not accepted:
         T = T0.copy()
     if accepted and bend is not None:

@@ -181,6 +181,17 @@ class StemProfile:
         over = off > tolerance_m
         return float((z[np.argmax(over)] if over.any() else z[-1]) - self.base_z_m)
 
+    def lined_up(self, max_tilt_deg: float, max_shift_m: float) -> bool | None:
+        """Whether the two stems line up: the target's leans at most `max_tilt_deg` against the
+        reference's and stands at most `max_shift_m` from it (or 3 times the profile's noise, when
+        larger); None without a model."""
+        m = self.model
+        if m is None:
+            return None
+        tilt, tilt_std = np.degrees(np.hypot(*m.tilt)), np.degrees(np.hypot(*m.std[2:4]))
+        shift, shift_std = np.hypot(*m.shift_m), np.hypot(*m.std[0:2])
+        return bool(tilt <= max(max_tilt_deg, 3.0 * tilt_std) and shift <= max(max_shift_m, 3.0 * shift_std))
+
     @property
     def sway_m(self) -> float:
         """How far the target's stem top had moved from the reference's (the bend at the top)."""

@@ -241,9 +241,11 @@ def _rival_under_wind(hyp: HypothesesResult, T: np.ndarray, pts: np.ndarray, jud
     return label, float(base - cons)
 
 
-def judge(e: Evidence, *, verify: VerifyParams, coarse: CoarseParams) -> tuple[str, tuple[str, ...], str]:
+def judge(e: Evidence, *, verify: VerifyParams, coarse: CoarseParams,
+          acceptance: AcceptanceParams | None = None) -> tuple[str, tuple[str, ...], str]:
     """The verdict from the evidence: (verdict, reasons it is not verified, what to try)."""
     p = verify
+    ap = acceptance or AcceptanceParams()
     reasons: list[str] = []
     hints: list[str] = []
     if e.chance_inliers >= 0 and e.inliers < max(coarse.min_ties, p.chance_factor * e.chance_inliers):
@@ -279,13 +281,13 @@ def judge(e: Evidence, *, verify: VerifyParams, coarse: CoarseParams) -> tuple[s
         what = "do not pair up" if not np.isfinite(e.residual_m) else f"lie {e.residual_m * 1000:.1f} mm apart"
         reasons.append(f"the two surfaces {what}, more than {p.max_residual_factor:g} times the scans' own noise "
                        f"({e.noise_m * 1000:.1f} mm)")
-    if np.isfinite(e.stem_tilt_deg) and e.stem_tilt_deg > max(p.max_stem_tilt_deg, 3.0 * e.stem_tilt_std_deg):
-        reasons.append(f"the target's stem leans {e.stem_tilt_deg:.2f}° against the reference's (verify.max_stem_tilt_deg "
-                       f"= {p.max_stem_tilt_deg:g}; noise {e.stem_tilt_std_deg:.2f}°): the pose tilts the scan against the "
+    if np.isfinite(e.stem_tilt_deg) and e.stem_tilt_deg > max(ap.stem_tilt_deg, 3.0 * e.stem_tilt_std_deg):
+        reasons.append(f"the target's stem leans {e.stem_tilt_deg:.2f}° against the reference's (acceptance.stem_tilt_deg "
+                       f"= {ap.stem_tilt_deg:g}; noise {e.stem_tilt_std_deg:.2f}°): the pose tilts the scan against the "
                        "tree both stations saw")
-    if np.isfinite(e.stem_shift_m) and e.stem_shift_m > max(p.max_stem_shift_m, 3.0 * e.stem_shift_std_m):
-        reasons.append(f"the two stems stand {e.stem_shift_m * 1000:.1f} mm apart (verify.max_stem_shift_m = "
-                       f"{p.max_stem_shift_m * 1000:g} mm; noise {e.stem_shift_std_m * 1000:.1f} mm)")
+    if np.isfinite(e.stem_shift_m) and e.stem_shift_m > max(ap.stem_shift_m, 3.0 * e.stem_shift_std_m):
+        reasons.append(f"the two stems stand {e.stem_shift_m * 1000:.1f} mm apart (acceptance.stem_shift_m = "
+                       f"{ap.stem_shift_m * 1000:g} mm; noise {e.stem_shift_std_m * 1000:.1f} mm)")
     if np.isfinite(e.heading_spread_deg) and e.heading_spread_deg > p.max_heading_deg:
         reasons.append(f"the crown moved (the stem top by {e.sway_m:.2f} m) and the sections leave the turn about the "
                        f"stem open: the evidence fixes the heading only within ±{e.heading_spread_deg:.1f}° "

@@ -43,14 +43,12 @@ DISP_TOL_M = 0.03
 SHOT_DIR = Path(os.environ.get("TREEREG_SHOTS", "/tmp/treereg-browser-shots"))
 
 
-@pytest.fixture(scope="module")
-def served(tmp_path_factory):
-    """`treereg view --port 0 --out DIR` on the demo, as a user starts it; yields (url, out dir, seconds to URL)."""
-    out = tmp_path_factory.mktemp("exports")
+def _view(args: list[str]):
+    """`treereg view --port 0 ARGS` started as a user starts it; yields (url, seconds to the URL, start time)."""
     env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""), PYTHONUNBUFFERED="1")
     t0 = time.perf_counter()
     proc = subprocess.Popen(
-        [sys.executable, "-m", "treereg_cli", "view", "--port", "0", "--out", str(out)],
+        [sys.executable, "-m", "treereg_cli", "view", "--port", "0", *args],
         cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
     )
     url, lines = None, []
@@ -65,12 +63,20 @@ def served(tmp_path_factory):
     if url is None:
         proc.kill()
         pytest.fail("treereg view did not start:\n" + "".join(lines))
-    yield url, out, time.perf_counter() - t0, t0
+    yield url, time.perf_counter() - t0, t0
     proc.terminate()
     try:
         proc.wait(timeout=10)
     except subprocess.TimeoutExpired:
         proc.kill()
+
+
+@pytest.fixture(scope="module")
+def served(tmp_path_factory):
+    """`treereg view --port 0 --out DIR` on the demo, as a user starts it; yields (url, out dir, seconds to URL)."""
+    out = tmp_path_factory.mktemp("exports")
+    for url, seconds, t0 in _view(["--out", str(out)]):
+        yield url, out, seconds, t0
 
 
 def _open(browser, url, scene=True):
@@ -477,4 +483,44 @@ def test_the_tour_walks_the_stages(served, browser):
     expect(page.get_by_role("heading", name=re.compile("Tour · step 4 of"))).to_be_visible(timeout=60_000)
     page.get_by_role("button", name="End tour", exact=True).click()
     expect(page.get_by_role("heading", name=re.compile("Tour · step"))).to_have_count(0)
+    context.close()
+
+
+@pytest.fixture(scope="module")
+def windy(tmp_path_factory):
+    """`treereg view` on two stations of a tree scanned in wind (the crown swayed 15 cm between them)."""
+    from treereg_core.simulate.cases import CaseSpec, write_case
+
+    case_dir = tmp_path_factory.mktemp("windy")
+    write_case(CaseSpec(seed=101, height_m=8.5, angular_step_deg=(0.05, 0.05), n_stations=2, wind_m=0.15).build(),
+               case_dir, dtype="float32")
+    for url, _, _ in _view([str(case_dir / "scan1.ply"), str(case_dir / "scan2.ply")]):
+        yield url
+
+
+def test_wind_shows_the_stem_profile_and_the_crown_motion(windy, browser):
+    """A pair scanned in wind: the Fine stage says how far the crown moved and plots the target's stem
+    offset against height; Result colours what moved with the wind apart from what does not fit."""
+    expect = playwright_api.expect
+    context, page, blocked = _open(browser, windy, scene=False)
+    _close_toast(page)
+    page.wait_for_function(
+        "() => [...document.querySelectorAll('p, div')].some(e => /✓ 13 Result/.test(e.textContent) && "
+        "!/[○…✗]/.test(e.textContent))", timeout=240_000)
+    expect(page.get_by_text(re.compile(r"✓ 2 scan2\.ply"))).to_be_visible()
+    _go(page, "9 Fine")
+    expect(page.get_by_text(re.compile(r"The crown moved 0\.\d\d m"))).to_be_visible()
+    # The plot: its title and axis titles are SVG text in the panel.
+    expect(page.get_by_text("scan2.ply's stem against scan1.ply's, by height")).to_be_visible()
+    expect(page.get_by_text("height above the stem's base (m)")).to_be_visible()
+    expect(page.get_by_text(re.compile(r"the stems agree up to \d+\.\d m"))).to_be_visible()
+    _screenshot(page, "wind_fine_profile")
+    _go(page, "13 Result")
+    page.get_by_label("Colour by", exact=True).click()
+    page.get_by_role("option", name=re.compile("distance", re.I)).first.click()
+    expect(page.get_by_text(re.compile(r"Pink: moved with the wind"))).to_be_visible()
+    shot = _screenshot(page, "wind_result_moved")
+    from treereg_viewer.palette import MOVED
+    assert _colour_pixels(shot, MOVED, tol=40) > 50  # the crown's moved points are drawn pink
+    assert not blocked
     context.close()

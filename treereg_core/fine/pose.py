@@ -80,8 +80,17 @@ _TRIM_FACTOR = 2.5
 _REDRAW_M = 0.005
 #: Joint adjustment: rounds of dropping bad pairs and adjusting again.
 _TRIM_ROUNDS = 6
+#: Wind: iterations the sections get beyond fine.max_iterations when the stem's bend is fitted too.
+BEND_EXTRA_ITERATIONS = 3
+#: Wind: an update that undoes the last one to within this share of its own size is an oscillation.
+OSCILLATION = 0.25
 #: A held direction is a turn about the vertical when that makes up this share of it (metres at the lever).
 HELD_TURN_SHARE = 0.7
+#: Wind: the bend is kept when the target unbent has more of its points on the reference's surface
+#: (voxels, pairing gate and point-to-plane tolerance of that measure) than it has rigidly.
+DECIDE_VOXEL_M = 0.01
+DECIDE_GATE_M = 0.02
+DECIDE_TOLERANCE_M = 0.005
 #: Wind: stems tilted against each other by more than this at the rigid result are a sign of a moved crown.
 TILT_SIGN_DEG = 0.05
 #: Wind: rounds of weighing each section by its own offset (see `_estimate_joint`).
@@ -318,6 +327,7 @@ def _iterate(ref: Scan, tgt: Scan, T0: np.ndarray, start: FineStart, sample: np.
     note = ""
     seen = tgt if bend is None or bend.sway_m == 0 else bend.warp(tgt, T0)
     T_prior = T0 if T_prior is None else T_prior
+    prev: tuple[np.ndarray, np.ndarray] | None = None  # the last update and bend step (oscillation test)
     n_max = fp.max_iterations if max_iterations is None else max_iterations
     for it in range(1, n_max + 1):
         progress((it - 1) / (fp.max_iterations + 1), f"iteration {it}: slicing and fitting")
@@ -344,10 +354,26 @@ def _iterate(ref: Scan, tgt: Scan, T0: np.ndarray, start: FineStart, sample: np.
         if U is None:
             break
         move = mean_move(U, apply_transform(T, sample))
+        step_bend = None
         if bend is not None and fit is not None and fit.bend_m is not None:
             # The top's extra shift counts as a move of the crown (half the stem, on average).
             move = max(move, 0.5 * float(np.hypot(*fit.bend_m)))
-            bend = bend.plus(fit.bend_m, fit.bend_std_m)
+            step_bend = np.asarray(fit.bend_m)
+            undo = prev is not None and mean_move(U @ prev[0], apply_transform(T, sample)) < OSCILLATION * move \
+                and float(np.hypot(*(step_bend + prev[1]))) < OSCILLATION * 2.0 * move
+            if undo:
+                # Re-slicing flips between two sets of sections, each update undoing the last: settle
+                # halfway between the two states and stop.
+                U = _half(U, fit.centre_m)
+                step_bend = 0.5 * step_bend
+                move *= 0.5
+            bend = bend.plus(step_bend, fit.bend_std_m)
+            if undo:
+                updates.append(move)
+                T = U @ T
+                note = note or "the sections alternated between two sets; settled halfway"
+                break
+            prev = (U, step_bend)
         updates.append(move)
         T = U @ T
         if move < fp.tolerance_m:
@@ -360,6 +386,12 @@ def _iterate(ref: Scan, tgt: Scan, T0: np.ndarray, start: FineStart, sample: np.
     return _Iterations(T, tuple(updates), fit, note, last, bend)
 
 
+def _half(U: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """Half of the rigid update `U` (half its rotation about `centre`, half its shift)."""
+    x = np.r_[rotation_vector(U[:3, :3]), U[:3, :3] @ centre + U[:3, 3] - centre]
+    return pose_update(0.5 * x, centre)
+
+
 def _turn_held(fit: JointFit) -> bool:
     """Whether a direction the adjustment held is mostly a turn about the vertical."""
     D = np.r_[[fit.lever_m] * 3, [1.0] * 3]
@@ -367,6 +399,12 @@ def _turn_held(fit: JointFit) -> bool:
         if abs(v[2]) >= HELD_TURN_SHARE * float(np.linalg.norm(v)):
             return True
     return False
+
+
+def iteration_limit(fine: FineParams, bend: Bend | None) -> int:
+    """Iterations the sections get: `fine.max_iterations`, a few more when the stem's bend is fitted
+    too (the bend grows from iteration to iteration as more of the crown's sections pair up)."""
+    return fine.max_iterations + (BEND_EXTRA_ITERATIONS if bend is not None else 0)
 
 
 def _held_to_prior(T: np.ndarray, T_prior: np.ndarray, fit: JointFit) -> np.ndarray:
@@ -525,11 +563,11 @@ def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, *, fine: FineParam
         updates.append(mean_move(T @ invert(T0), apply_transform(T0, sample)))
         from_surface = 6
     chosen, residuals = ("surfaces" if fallback else "sections"), np.full(4, np.nan)
-    lined: dict[int, bool | None] = {}
+    lined: dict[bytes, bool | None] = {}
 
     def stems(T_: np.ndarray) -> bool | None:
         """The stem profile's verdict at a pose: do the two stems line up there (None: no profile)?"""
-        key = id(T_)
+        key = np.asarray(T_, dtype=float).tobytes()
         if key not in lined:
             lined[key] = profile_at(ref, tgt, T_, start.slices.z_extent_m, joint.loss_scale_m).lined_up(
                 acceptance.stem_tilt_deg, acceptance.stem_shift_m) if start.slices.ok else None
@@ -640,7 +678,18 @@ def _with_bend(ref: Scan, tgt: Scan, T0: np.ndarray, rigid: _Iterations, start: 
         T1, bend1 = probe
     else:
         T1, bend1 = correction(after.model, prof_axis(after, ref)) @ rigid.T, _profile_bend(after)
-    return _bent(ref, tgt, T1, T0, bend1, start, sample, fine, joint, slicing, arcs, fitting, wind)
+    bent = _bent(ref, tgt, T1, T0, bend1, start, sample, fine, joint, slicing, arcs, fitting, wind)
+    if bent is None:
+        return None
+    # The bend must explain the reference's surface better than the rigid pose does (more of the
+    # target's points on it, the target unbent): a bend fitted to a stem traced onto the wrong
+    # twigs, or to a crown that did not move, explains less.
+    ref_surf = surface_of(ref.points, DECIDE_VOXEL_M)
+    rigid_fit = surface_fitness(ref_surf, surface_of(tgt.points, DECIDE_VOXEL_M, _SAMPLE), rigid.T,
+                                DECIDE_GATE_M, DECIDE_TOLERANCE_M)
+    bent_fit = surface_fitness(ref_surf, surface_of(bent.bend.warp(tgt, bent.T).points, DECIDE_VOXEL_M, _SAMPLE),
+                               bent.T, DECIDE_GATE_M, DECIDE_TOLERANCE_M)
+    return bent if bent_fit > rigid_fit else None
 
 
 def _tilted(model: Any, wind: WindParams) -> bool:
@@ -660,7 +709,7 @@ def _bent(ref: Scan, tgt: Scan, T1: np.ndarray, T0: np.ndarray, bend1: Bend, sta
     first = _refit(ref, tgt, T1, _Fitted(start.slices, start.arcs, start.sections), slicing, arcs, fitting,
                    bend1.warp(tgt, T1))
     bent = _iterate(ref, tgt, T1, FineStart(first.slices, first.arcs, first.sections), sample, fine, joint,
-                    slicing, arcs, fitting, no_progress, bend=bend1, max_iterations=fine.max_iterations + 3,
+                    slicing, arcs, fitting, no_progress, bend=bend1, max_iterations=iteration_limit(fine, bend1),
                     T_prior=T1)
     if bent.updates_m and bent.bend is not None and _significant(bent.bend, wind):
         return bent

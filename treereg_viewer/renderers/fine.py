@@ -16,6 +16,7 @@ import trimesh
 import viser
 
 from treereg_core.fine.arcs import SliceArcs
+from treereg_core.fine.pose import iteration_limit
 from treereg_core.fine.sections import SectionsResult
 from treereg_core.fine.slicing import SliceResult
 from treereg_core.geometry.rigid import apply_transform
@@ -305,10 +306,12 @@ def fine_status(snap: Snapshot, t: int, f: Any) -> str:
         text += f" {f.message[0].upper()}{f.message[1:]}."
     fp = snap.params.fine
     last = next((m.value for m in f.metrics if m.description == "fine update (last iteration)"), None)
-    if n >= fp.max_iterations and isinstance(last, (int, float)) and last > fp.tolerance_m:
+    limit = iteration_limit(fp, getattr(f, "bend", None))
+    if n >= limit and isinstance(last, (int, float)) and last > fp.tolerance_m:
         # Not converged: said, so that a capped run is not read as a settled one.
-        text += (f" It stopped at the iteration limit (fine.max_iterations = {fp.max_iterations}) with the last update "
-                 f"still {last * 1000:.1f} mm (fine.tolerance_m = {fp.tolerance_m * 1000:g} mm).")
+        more = f" + {limit - fp.max_iterations} with the stem's bend" if limit > fp.max_iterations else ""
+        text += (f" It stopped at the iteration limit (fine.max_iterations = {fp.max_iterations}{more}) with the last "
+                 f"update still {last * 1000:.1f} mm (fine.tolerance_m = {fp.tolerance_m * 1000:g} mm).")
     return text
 
 

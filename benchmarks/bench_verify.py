@@ -26,6 +26,7 @@ six stations around one tree. `--families` runs some of them.
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -397,6 +398,63 @@ def _register_seconds(python_path: Path, files: list[Path], out: Path) -> float:
     return time.perf_counter() - t0
 
 
+def _checkout(rev: str, where: Path) -> Path:
+    """The tree of revision `rev` extracted into `where` (a folder of its own)."""
+    where.mkdir(parents=True, exist_ok=True)
+    archive = subprocess.run(["git", "-C", str(REPO), "archive", rev], capture_output=True, check=True).stdout
+    subprocess.run(["tar", "-x", "-C", str(where)], input=archive, check=True)
+    return where
+
+
+def _scan_outcomes(doc: dict, case: SimulatedCase) -> list[tuple[str, bool]]:
+    """(verdict, right) of every non-reference scan of a transform file written by `treereg register`."""
+    out = []
+    quality = doc.get("quality", {}).get("scans", {})
+    for k, s in enumerate(case.scans[1:], start=1):
+        T = doc["transforms"].get(s.name)  # with --keep-unverified, best guesses too
+        verdict = quality.get(s.name, {}).get("verdict", "verified" if T is not None else "unverified")
+        if T is None and s.name in doc.get("unverified", {}):
+            T = doc["unverified"][s.name]["matrix"]
+        if T is None:
+            out.append(("failed", False))
+            continue
+        T = np.asarray(T, dtype=float)
+        right = rotation_error_deg(T, case.T_ref_scan[k]) < MAX_ROT_DEG and \
+            mean_displacement(T, case.T_ref_scan[k], s.points) < MAX_DISP_M
+        out.append((verdict, bool(right)))
+    return out
+
+
+def before_after(baseline_rev: str, cases: list[tuple[str, SimulatedCase]]) -> str:
+    """`treereg register` of `baseline_rev` and of this checkout on the same case files, per condition:
+    the scans verified and right, verified but wrong, refused but right (each command's own verdicts)."""
+    rows: dict[str, dict[str, list[tuple[str, bool]]]] = {}
+    with tempfile.TemporaryDirectory(prefix="treereg-bench-before-") as tmp:
+        base = _checkout(baseline_rev, Path(tmp) / "baseline")
+        for n, (cond, case) in enumerate(cases):
+            d = Path(tmp) / f"case{n}"
+            files = [write_scan(d / s.name, s.points, dtype="float32") for s in case.scans]
+            for label, tree in (("before", base), ("after", REPO)):
+                out = d / f"{label}.json"
+                env = dict(os.environ, PYTHONPATH=str(tree))
+                subprocess.run([sys.executable, "-m", "treereg_cli", "register", *map(str, files), "--out", str(out),
+                                "--keep-unverified"], cwd=tree, env=env, capture_output=True, check=False)
+                got = _scan_outcomes(json.loads(out.read_text()), case) if out.exists() else \
+                    [("failed", False)] * (len(case.scans) - 1)
+                rows.setdefault(cond, {}).setdefault(label, []).extend(got)
+            print(f"  before/after {cond} case {n + 1}/{len(cases)} done", file=sys.stderr, flush=True)
+
+    def counts(v: list[tuple[str, bool]]) -> str:
+        vr = sum(x == "verified" and r for x, r in v)
+        vw = sum(x == "verified" and not r for x, r in v)
+        rr = sum(x != "verified" and r for x, r in v)
+        return f"{vr} / {f'**{vw}**' if vw else 0} / {rr}"
+
+    table = [[cond, len(v["after"]), counts(v["before"]), counts(v["after"])] for cond, v in rows.items()]
+    return md_table(("condition", "scans", f"before ({baseline_rev}): verified right / verified wrong / refused right",
+                     "now: verified right / verified wrong / refused right"), table)
+
+
 def timing(baseline_rev: str, seed: int, target_points: int = 300_000, repeats: int = 2) -> str:
     """`treereg register` on 3 and 6 scans of ~`target_points` points: this checkout against `baseline_rev`."""
     with tempfile.TemporaryDirectory(prefix="treereg-bench-verify-") as tmp:
@@ -428,6 +486,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--symmetric", type=int, default=2, help="cases per symmetry (2-, 3-, 4-fold crowns) and controls")
     ap.add_argument("--families", nargs="*", default=list(FAMILIES), choices=list(FAMILIES), help="which families to run")
     ap.add_argument("--windy", type=int, default=8, help="trees per top sway and per mixed-pixel rate")
+    ap.add_argument("--before", metavar="REV", help="also run `treereg register` of REV and of this checkout on the "
+                    "first --before-n trees of each wind and mixed-pixel condition (scans, each its own verdicts)")
+    ap.add_argument("--before-n", type=int, default=4)
     a = ap.parse_args(argv)
     report = Report()
     say = report.say
@@ -515,6 +576,13 @@ def main(argv: list[str] | None = None) -> int:
         say("### Right pairs refused, and why")
         say()
         say(refusal_table(wind_rows + mixed_rows + both_rows))
+    if a.before:
+        say()
+        say(f"## Wind and mixed pixels: `treereg register` before ({a.before}) and now, same files")
+        say()
+        picked = [(f"top sway {w:.2f} m", c) for w, lab, c in windy(a.before_n, a.seed)]
+        picked += [(f"mixed pixels {r:.0%}", c) for r, lab, c in mixed(a.before_n, a.seed)]
+        say(before_after(a.before, picked))
     if not a.no_timing:
         say()
         say("## Time of `treereg register` (wall, fresh process, reading the files included)")

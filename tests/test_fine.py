@@ -187,3 +187,20 @@ def test_slices_are_taken_at_reference_heights_with_the_target_mapped(cases):
     lifted = slice_scans(scans[0], scans[1], make_transform(np.eye(3), [0, 0, 0.2]) @ T_true[1], slicing=p)
     assert not np.array_equal(lifted.tgt_indices[1], sl.tgt_indices[1])
     assert all(np.array_equal(a, b) for a, b in zip(lifted.ref_indices, sl.ref_indices))
+
+
+def test_stems_that_line_up_outrank_a_surface_residual_of_barely_overlapping_views():
+    """A pair whose two views barely overlap: the surfaces' residual and agreement both prefer the
+    coarse pose, 14 mm off the stem; the fine pose lines the stems up (1 mm) and is kept."""
+    from treereg_core.pipeline import Pipeline
+
+    case = benchmark_cases(3, seed=2, small=True)[2].build()
+    pipe = Pipeline(list(case.scans), Params(), case.truth())
+    pipe.run("fine")
+    k = next(n for n, p in enumerate(pipe.pairs) if (p.ref, p.tgt) == (0, 2))
+    f = pipe.output("fine").items[k]
+    T_true = case.T_ref_scan[2]
+    coarse = pipe.output("hypotheses").items[k].T_ref_target
+    assert mean_displacement(coarse, T_true, case.scans[2].points) > 0.01
+    assert f.accepted and mean_displacement(f.T_ref_target, T_true, case.scans[2].points) < 0.003
+    assert f.profile is not None and f.profile.lined_up(0.15, 0.005)

@@ -758,7 +758,7 @@ def profile_bend(ref: Scan, tgt: Scan, T: np.ndarray, wind: WindParams, loss_sca
     if not wind.enabled:
         return None
     prof = profile_at(ref, tgt, T, tree_extent(ref.points[:, 2]), loss_scale_m)
-    if prof.model is None:
+    if prof.model is None or not prof.spans_bend:
         return None
     bend = _profile_bend(prof)
     return bend if _significant(bend, wind) else None

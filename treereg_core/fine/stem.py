@@ -32,6 +32,9 @@ _MIN_POINTS = 12
 _MAX_GAP = 2
 #: Thinnest stem traced (m): above it the stem is a twig among twigs.
 _MIN_RADIUS_M = 0.012
+#: A profile tells a bend from a tilt with this many slabs up to this share of the tree's height.
+MIN_SLABS = 8
+MIN_SPAN = 0.4
 #: A slab's offset counts only when its noise std is below this (m).
 _MAX_OFFSET_STD_M = 0.005
 
@@ -167,6 +170,12 @@ class StemProfile:
     @property
     def n(self) -> int:
         return int(len(self.heights_m))
+
+    @property
+    def spans_bend(self) -> bool:
+        """Traced high enough to tell a bend from a tilt (at least `MIN_SLABS` slabs, up to
+        `MIN_SPAN` of the tree's height): lower, a tilt and a bend explain the offsets alike."""
+        return self.n >= MIN_SLABS and (self.heights_m[-1] - self.base_z_m) >= MIN_SPAN * self.height_m
 
     def stable_height_m(self, tolerance_m: float) -> float:
         """Height above the base up to which the target's stem stands where the reference's did

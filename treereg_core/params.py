@@ -258,7 +258,7 @@ class VerifyParams:
     max_tilt_deg: float = _f(5.0, "deg", "plausibility: the transform tilts the target's scanner at most this much (scanners stand nearly level)", lo=0.0, hi=180.0)
     max_height_difference_m: float = _f(1.0, "m", "plausibility: both scanners' heights above the ground differ at most this much (when both see ground)", lo=0.0, hi=100.0)
     max_loop_m: float = _f(0.02, "m", "with 3 or more scans: loops of pairwise transforms close within this (mean displacement of the tree)", lo=0.0, hi=10.0)
-    max_heading_deg: float = _f(0.5, "deg", "wind, when the sections leave the turn about the stem open: the free-space evidence must pin the heading within this", lo=0.0, hi=180.0)
+    max_heading_deg: float = _f(0.5, "deg", "wind, when the sections leave the turn about the stem open: the heading the free-space evidence prefers must lie within this of the pose's", lo=0.0, hi=180.0)
     max_motion_m: float = _f(0.1, "m", "wind: with the stem's bend taken out, the branches may still have moved this much on their own between the stations (beyond it the motion cannot be told from a wrong pose)", lo=0.0, hi=1.0)
 
 

@@ -81,9 +81,10 @@ class Evidence:
     stem_tilt_std_deg: float = float("nan")
     stem_shift_m: float = float("nan")
     stem_shift_std_m: float = float("nan")
-    #: Wind, the sections leaving the turn about the stem open: how far the heading can turn with the
-    #: free-space evidence as good within its noise (deg; NaN when not measured).
-    heading_spread_deg: float = float("nan")
+    #: Wind, the sections leaving the turn about the stem open: how far from the pose the free-space
+    #: evidence puts the heading (deg, a turn about the stem; its reach when the evidence is flat;
+    #: NaN when not measured).
+    heading_offset_deg: float = float("nan")
 
     def as_dict(self) -> dict[str, float | int | str | None]:
         return dict(self.__dict__)
@@ -128,8 +129,8 @@ def gather_evidence(ref_image: RangeImage, ref_surf: Surface, tgt_surf: Surface,
     points both see to agree (allowed up to `max_motion_m`); its support also counts the ties that
     agree with `T` (within `support_inlier_m`), and its rivals are judged alike. `profile`: the stem
     profile at `T` (the height the stems agree up to, and whether they lean or stand apart). With
-    `turn_held` (the fine stage could not fix the turn about the stem, at `axis_xy`), the heading's
-    spread is measured: how far `T` turns about the stem before the evidence worsens.
+    `turn_held` (the fine stage could not fix the turn about the stem, at `axis_xy`), the heading
+    the free-space evidence prefers is measured against the pose's.
     """
     rng = np.random.default_rng(0)
     pts = tgt_points if len(tgt_points) <= SCORE_POINTS else tgt_points[rng.choice(len(tgt_points), SCORE_POINTS, replace=False)]
@@ -171,9 +172,9 @@ def gather_evidence(ref_image: RangeImage, ref_surf: Surface, tgt_surf: Surface,
     model = profile.model if profile is not None else None
     stem = dict(stem_tilt_deg=float(np.degrees(np.hypot(*model.tilt))), stem_tilt_std_deg=float(np.degrees(np.hypot(*model.std[2:4]))),
                 stem_shift_m=float(np.hypot(*model.shift_m)), stem_shift_std_m=float(np.hypot(*model.std[0:2]))) if model else {}
-    spread = float("nan")
+    heading = float("nan")
     if bend is not None and turn_held and axis_xy is not None:
-        spread = _heading_spread(ref_image, pts, T, axis_xy, unbend, hypotheses.tolerance_m, 4.0 * max_heading_deg)
+        heading = _heading_offset(ref_image, pts, T, axis_xy, unbend, hypotheses.tolerance_m, 4.0 * max_heading_deg)
     return Evidence(
         inliers=inliers, ties=int(getattr(coarse, "n_ties", 0)),
         chance_inliers=int(getattr(coarse, "chance_inliers", -1)), consistency=float(vis.consistency),
@@ -185,33 +186,38 @@ def gather_evidence(ref_image: RangeImage, ref_surf: Surface, tgt_surf: Surface,
         sway_direction_deg=bend.sway_direction_deg if bend is not None else float("nan"),
         sway_std_m=bend.sway_std_m if bend is not None else float("nan"),
         stable_height_m=profile.stable_height_m(stable_tolerance_m) if profile is not None else float("nan"),
-        motion_needed_m=needed, motion_m=motion, moved=vis.moved, heading_spread_deg=spread, **stem,
+        motion_needed_m=needed, motion_m=motion, moved=vis.moved, heading_offset_deg=heading, **stem,
     )
 
 
-#: Steps of the heading scan (deg), as fractions of its reach.
+#: Steps of the heading scan each side of the pose.
 _HEADING_STEPS = 8
+#: The heading scan's consistency must fall by at least this from its best to either end, else the
+#: evidence is flat: it cannot fix the heading.
+_HEADING_DROP = 0.005
 
 
-def _heading_spread(ref_image: RangeImage, pts: np.ndarray, T: np.ndarray, axis_xy: np.ndarray, unbend,
+def _heading_offset(ref_image: RangeImage, pts: np.ndarray, T: np.ndarray, axis_xy: np.ndarray, unbend,
                     tolerance_m: float, reach_deg: float) -> float:
-    """How far the pose can turn about the stem (at `axis_xy`, reference frame) with the free-space
-    consistency of the unbent target within two of its noise std of the best: the heading's spread
-    (deg, `reach_deg` when it is flat all the way, or when a turn agrees better than `T`)."""
+    """The heading the free-space evidence prefers, relative to the pose: the pose turned about the
+    stem (at `axis_xy`, reference frame) in steps up to `reach_deg` each way, the consistency of the
+    unbent target at each turn, and the vertex of a parabola through the best turn and its
+    neighbours (deg). `reach_deg` when the best lies at either end or the evidence is flat."""
     offsets = np.linspace(-reach_deg, reach_deg, 2 * _HEADING_STEPS + 1)
     c = np.array([axis_xy[0], axis_xy[1], 0.0])
-    cons, seen = [], []
+    cons = []
     for d in offsets:
         R = rotation_z(float(d))
         v = visibility(ref_image, pts, make_transform(R, c - R @ c) @ T, tolerance_m, unbend=unbend)
         cons.append(v.consistency if np.isfinite(v.consistency) else 0.0)
-        seen.append(v.seen_by_both)
     cons = np.array(cons)
     best = int(np.argmax(cons))
-    noise = 2.0 * np.sqrt(max(cons[best] * (1.0 - cons[best]), 1e-6) / max(seen[best], 1))
-    if cons[_HEADING_STEPS] < cons[best] - noise:  # a turn agrees better than the pose itself
+    if best in (0, len(offsets) - 1) or min(cons[best] - cons[0], cons[best] - cons[-1]) < _HEADING_DROP:
         return float(reach_deg)
-    return float(np.abs(offsets[cons >= cons[best] - noise]).max())
+    near = slice(max(best - 2, 0), best + 3)
+    a, b, _ = np.polyfit(offsets[near], cons[near], 2)
+    vertex = -b / (2.0 * a) if a < 0 else offsets[best]
+    return float(np.clip(vertex, -reach_deg, reach_deg))
 
 
 def _motion_needed(distances_m: np.ndarray, seen: int, min_consistency: float) -> float:
@@ -288,10 +294,10 @@ def judge(e: Evidence, *, verify: VerifyParams, coarse: CoarseParams,
     if np.isfinite(e.stem_shift_m) and e.stem_shift_m > max(ap.stem_shift_m, 3.0 * e.stem_shift_std_m):
         reasons.append(f"the two stems stand {e.stem_shift_m * 1000:.1f} mm apart (acceptance.stem_shift_m = "
                        f"{ap.stem_shift_m * 1000:g} mm; noise {e.stem_shift_std_m * 1000:.1f} mm)")
-    if np.isfinite(e.heading_spread_deg) and e.heading_spread_deg > p.max_heading_deg:
+    if np.isfinite(e.heading_offset_deg) and abs(e.heading_offset_deg) > p.max_heading_deg:
         reasons.append(f"the crown moved (the stem top by {e.sway_m:.2f} m) and the sections leave the turn about the "
-                       f"stem open: the evidence fixes the heading only within ±{e.heading_spread_deg:.1f}° "
-                       f"(verify.max_heading_deg = {p.max_heading_deg:g})")
+                       f"stem open: the free-space evidence puts the heading {abs(e.heading_offset_deg):.1f}° or more from "
+                       f"the pose, or cannot fix it (verify.max_heading_deg = {p.max_heading_deg:g})")
         hints.append("rescan these stations in calmer air, or add a station scanned soon after the reference")
     if e.tilt_deg > p.max_tilt_deg:
         reasons.append(f"the transform tilts the scanner by {e.tilt_deg:.1f}° (verify.max_tilt_deg = {p.max_tilt_deg:g}); "
@@ -318,8 +324,12 @@ def verification(T: np.ndarray, e: Evidence, verdict: str, reasons: tuple[str, .
         Metric("best rival hypothesis", "", e.rival or "none"),
         Metric("scanner tilt", "deg", e.tilt_deg),
         Metric("scanner height difference", "m", e.height_difference_m if e.height_difference_m is not None else float("nan")),
+        Metric("stems lean against each other", "deg", e.stem_tilt_deg),
+        Metric("stems stand apart", "m", e.stem_shift_m),
         Metric("crown moved between the stations (stem top)", "m", e.sway_m),
         Metric("stems agree up to (above the base)", "m", e.stable_height_m),
     ) + ((Metric("branches moved on their own by (allowed)", "m", e.motion_m),
-          Metric("points counted as moved", "", e.moved)) if e.sway_m > 0 else ())
+          Metric("points counted as moved", "", e.moved)) if e.sway_m > 0 else ()) + (
+        (Metric("heading the evidence prefers (turn about the stem, from the pose)", "deg", e.heading_offset_deg),)
+        if np.isfinite(e.heading_offset_deg) else ())
     return PairVerification(True, "; ".join(reasons), metrics, np.asarray(T, dtype=float), verdict, reasons, hint, e)

@@ -243,7 +243,7 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
             f"{i + 1}{' (reference)' if i == 0 else ''}", scan.name, f"{scan.n_points:,}",
             f"{phi:.3g} / {vphi:.3g}{how}", mixed, kept, ground, target,
         ))
-    table = md_table(("#", "scan", "points", "φ / ϕ (deg)", "mixed pixels removed", "kept", "ground",
+    table = md_table(("#", "scan", "points", "φ / ϕ (deg)", "mixed pixels", "kept", "ground",
                       "target stem x, y (m)"), rows)
     text = not_ready_text(snap, "prepare")
     if prepared is not None:

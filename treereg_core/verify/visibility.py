@@ -48,8 +48,10 @@ class RangeImage:
     n_cols: int
     keys: np.ndarray
     ranges_m: np.ndarray
-    #: Sorted flat cells (with their neighbourhood) where the prepare stage removed mixed pixels:
-    #: the station did return something there, so a point there is no proof of free space.
+    #: Sorted flat cells where the prepare stage removed mixed pixels and no other return is left:
+    #: the station did return something there, so a point there is no proof of free space. (Only
+    #: the cells themselves: with their neighbourhood, every silhouette of a thin crown would go
+    #: blind and a wrong heading would look as good as the right one.)
     blind_keys: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
 
     def cells(self, alpha_deg: np.ndarray, beta_deg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -75,7 +77,7 @@ class RangeImage:
         return key[first], r[first]
 
     def blind(self, col: np.ndarray, row: np.ndarray) -> np.ndarray:
-        """True where a removed mixed pixel lies within `_REACH` cells."""
+        """True in the cells where only removed mixed pixels were."""
         if not len(self.blind_keys):
             return np.zeros(len(col), dtype=bool)
         key = row * self.n_cols + col

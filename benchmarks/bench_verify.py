@@ -456,25 +456,24 @@ def before_after(baseline_rev: str, cases: list[tuple[str, SimulatedCase]]) -> s
 
 
 def timing(baseline_rev: str, seed: int, target_points: int = 300_000, repeats: int = 2) -> str:
-    """`treereg register` on 3 and 6 scans of ~`target_points` points: this checkout against `baseline_rev`."""
+    """`treereg register` on 3 and 6 scans of ~`target_points` points, and 3 scans in wind (a 20 cm top
+    sway): this checkout against `baseline_rev`."""
     with tempfile.TemporaryDirectory(prefix="treereg-bench-verify-") as tmp:
-        base = Path(tmp) / "baseline"
-        base.mkdir()
-        archive = subprocess.run(["git", "-C", str(REPO), "archive", baseline_rev], capture_output=True, check=True).stdout
-        subprocess.run(["tar", "-x", "-C", str(base)], input=archive, check=True)
+        base = _checkout(baseline_rev, Path(tmp) / "baseline")
         rows = []
-        for n in (3, 6):
-            spec = CaseSpec(seed=seed, n_stations=n, height_m=13.0, angular_step_deg=(0.03, 0.03))
+        for n, wind in ((3, 0.0), (6, 0.0), (3, 0.2)):
+            spec = CaseSpec(seed=seed, n_stations=n, height_m=13.0, angular_step_deg=(0.03, 0.03), wind_m=wind)
             n0 = np.mean([s.n_points for s in spec.build(None).scans])
             step = round(0.03 * float(np.sqrt(n0 / target_points)), 4)
             case = replace(spec, angular_step_deg=(step, step)).build(None)
             files = []
             for s in case.scans:
-                files.append(write_scan(Path(tmp) / f"{n}_{s.name}", s.points, dtype="float32"))
+                files.append(write_scan(Path(tmp) / f"{n}_{wind}_{s.name}", s.points, dtype="float32"))
             t_base = min(_register_seconds(base, files, Path(tmp) / "b.json") for _ in range(repeats))
             t_now = min(_register_seconds(REPO, files, Path(tmp) / "n.json") for _ in range(repeats))
             pts = ", ".join(f"{s.n_points // 1000}k" for s in case.scans)
-            rows.append([f"{n} scans ({pts})", f"{t_base:.1f}", f"{t_now:.1f}", f"{t_now / t_base:.2f}"])
+            what = f"{n} scans ({pts})" + (f", wind {wind * 100:.0f} cm" if wind else "")
+            rows.append([what, f"{t_base:.1f}", f"{t_now:.1f}", f"{t_now / t_base:.2f}"])
         return md_table(("case", f"baseline {baseline_rev} (s)", "now (s)", "ratio"), rows)
 
 

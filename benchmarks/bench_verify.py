@@ -283,7 +283,7 @@ FAMILIES = ("benchmark", "different", "intruder", "symmetric", "leaf-on", "six",
             "wind negatives")
 #: Top sways (m) of the wind family, and the mixed-pixel rates (share of the edge returns).
 SWAYS_M = (0.0, 0.05, 0.10, 0.20, 0.35)
-MIXED_RATES = (0.1, 0.25, 0.5)
+MIXED_RATES = (0.1, 0.25, 0.4, 0.5)
 #: Stations per tree of the wind family, in turn: mostly three, and two to six.
 WIND_STATIONS = (3, 3, 3, 2, 3, 3, 4, 6)
 

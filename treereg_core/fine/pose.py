@@ -45,6 +45,9 @@ the coarse pose; it cannot rank millimetres but drops clearly when a pose is off
 
 from __future__ import annotations
 
+import threading
+import weakref
+from collections import OrderedDict
 from dataclasses import dataclass, replace
 from typing import Any, Callable
 
@@ -62,7 +65,7 @@ from .correspondence import Correspondences
 from .joint import JointFit, adjust_joint, section_offsets
 from .sections import ScanSections, SectionsResult, fit_sections, match_scan_sections, sections_at, tie_points
 from .bend import Bend
-from .stem import StemProfile, correction, stem_profile
+from .stem import StemProfile, StemTrace, correction, stem_profile, trace_stem
 from ..prepare.ground import stem_position
 from .slicing import SliceResult, slice_scans, tree_extent
 from .surface import (
@@ -80,6 +83,8 @@ _TRIM_FACTOR = 2.5
 _REDRAW_M = 0.005
 #: Joint adjustment: rounds of dropping bad pairs and adjusting again.
 _TRIM_ROUNDS = 6
+#: Wind: solver steps of the probe for a bend at the rigid result.
+PROBE_ITERATIONS = 8
 #: Wind: iterations the sections get beyond fine.max_iterations when the stem's bend is fitted too.
 BEND_EXTRA_ITERATIONS = 3
 #: Wind: an update that undoes the last one to within this share of its own size is an oscillation.
@@ -236,8 +241,8 @@ def _subsample(idx: np.ndarray, n: int) -> np.ndarray:
 
 def _estimate_joint(ref_scan: Scan, tgt_scan: Scan, T: np.ndarray, ref: ScanSections, tgt: ScanSections,
                     corr: Correspondences, jp: JointParams, min_pairs: int, loss: str,
-                    T_prior: np.ndarray, bend: Bend | None = None,
-                    flutter_m: float = 0.005) -> tuple[JointFit | None, str]:
+                    T_prior: np.ndarray, bend: Bend | None = None, flutter_m: float = 0.005,
+                    flutter_rounds: int = _FLUTTER_ROUNDS) -> tuple[JointFit | None, str]:
     """Rigid update from one cylinder per section pair fitted to both scans' points at once (with a
     `bend`, the target's further bend too: `JointFit.bend_m`; `tgt_scan` is then already unbent).
 
@@ -263,7 +268,7 @@ def _estimate_joint(ref_scan: Scan, tgt_scan: Scan, T: np.ndarray, ref: ScanSect
     shape = None if bend is None else bend.shape(P[:, 2])
     keep = np.ones(K, dtype=bool)
     weight = np.ones(K)
-    rounds = _TRIM_ROUNDS + (_FLUTTER_ROUNDS if bend is not None else 0)
+    rounds = _TRIM_ROUNDS + (flutter_rounds if bend is not None else 0)
     for rnd in range(rounds):
         idx = np.flatnonzero(keep[S])
         remap = np.cumsum(keep) - 1
@@ -282,7 +287,7 @@ def _estimate_joint(ref_scan: Scan, tgt_scan: Scan, T: np.ndarray, ref: ScanSect
         if bad.any() and keep.sum() - bad.sum() >= min_pairs:
             keep[np.flatnonzero(keep)[bad]] = False
             continue
-        if bend is None or rnd >= rounds - 1:
+        if bend is None or not flutter_rounds or rnd >= rounds - 1:
             break
         # Wind: a twig that fluttered on its own fits the shared cylinder well (the radius takes up
         # its offset) yet pulls the pose. Each section's own offset, measured with the radius
@@ -642,8 +647,11 @@ def _bend_probe(ref: Scan, tgt: Scan, T0: np.ndarray, its: _Iterations, fine: Fi
         return None
     lo, hi = cur.slices.z_extent_m
     stem = Bend(lo, max(hi - lo, 1e-3))
-    fit, _ = _estimate_joint(ref, tgt, its.T, cur.sections.ref, cur.sections.tgt, corr, joint, fine.min_pairs,
-                             joint.refine_loss, T0, stem)
+    # A sign, not the estimate: few solver steps and no rounds of weighing fluttering twigs (the
+    # iterations do that).
+    quick = replace(joint, max_solver_iterations=min(joint.max_solver_iterations, PROBE_ITERATIONS))
+    fit, _ = _estimate_joint(ref, tgt, its.T, cur.sections.ref, cur.sections.tgt, corr, quick, fine.min_pairs,
+                             joint.refine_loss, T0, stem, flutter_rounds=0)
     if fit is None or fit.bend_m is None:
         return None
     return fit.U @ its.T, stem.plus(fit.bend_m, fit.bend_std_m)
@@ -716,14 +724,49 @@ def _bent(ref: Scan, tgt: Scan, T1: np.ndarray, T0: np.ndarray, bend1: Bend, sta
     return None
 
 
+_profiles: "weakref.WeakKeyDictionary[Scan, weakref.WeakKeyDictionary]" = weakref.WeakKeyDictionary()
+_profiles_lock = threading.Lock()
+#: Profiles kept per target scan (the fine stage asks for the same pose several times).
+_PROFILES_KEPT = 16
+
+
 def profile_at(ref: Scan, tgt: Scan, T: np.ndarray, z_extent: tuple[float, float], loss_scale_m: float) -> StemProfile:
     """The target's stem profile against the reference's with the target at the pose `T` (each stem
-    traced up from its base: the densest cell of its own lowest points)."""
-    lo = z_extent[0]
-    ref_xy = stem_position(ref.points, ref.points[:, 2] - lo)
+    traced up from its base: the densest cell of its own lowest points). The reference's trace is
+    made once per reference, and a profile once per pose."""
+    key = (np.asarray(T, dtype=float).tobytes(), tuple(float(v) for v in z_extent), float(loss_scale_m))
+    with _profiles_lock:
+        per_ref = _profiles.get(tgt)
+        found = per_ref.get(ref, {}).get(key) if per_ref is not None else None
+    if found is not None:
+        return found
+    lo, hi = z_extent
+    ref_xy, ref_trace = _ref_trace(ref, (float(lo), float(hi)))
     tz = tgt.points[:, 2]
     tgt_xy = apply_transform(T, np.r_[stem_position(tgt.points, tz - tz.min()), 0.0][None])[0, :2]
-    return stem_profile(ref.points, apply_transform(T, tgt.points), ref_xy, tgt_xy, z_extent, loss_scale_m)
+    prof = stem_profile(ref.points, apply_transform(T, tgt.points), ref_xy, tgt_xy, z_extent, loss_scale_m,
+                        ref_trace=ref_trace)
+    with _profiles_lock:
+        kept = _profiles.setdefault(tgt, weakref.WeakKeyDictionary()).setdefault(ref, OrderedDict())
+        kept[key] = prof
+        while len(kept) > _PROFILES_KEPT:
+            kept.popitem(last=False)
+    return prof
+
+
+_ref_traces: "weakref.WeakKeyDictionary[Scan, dict]" = weakref.WeakKeyDictionary()
+
+
+def _ref_trace(ref: Scan, z_extent: tuple[float, float]) -> tuple[np.ndarray, StemTrace]:
+    """The reference's stem base and trace for a tree extent, made once per reference scan."""
+    with _profiles_lock:
+        found = _ref_traces.get(ref, {}).get(z_extent)
+    if found is None:
+        xy = stem_position(ref.points, ref.points[:, 2] - z_extent[0])
+        found = (xy, trace_stem(ref.points, xy, z_extent[0], z_extent[1]))
+        with _profiles_lock:
+            _ref_traces.setdefault(ref, {})[z_extent] = found
+    return found
 
 
 def prof_axis(prof: StemProfile, ref: Scan) -> np.ndarray:

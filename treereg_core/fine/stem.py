@@ -256,13 +256,15 @@ def correction(model: StemModel, axis_xy: np.ndarray) -> np.ndarray:
 
 
 def stem_profile(ref_points: np.ndarray, tgt_points: np.ndarray, ref_xy: np.ndarray, tgt_xy: np.ndarray,
-                 z_extent: tuple[float, float], loss_scale_m: float = 0.005, step_m: float = 0.25) -> StemProfile:
+                 z_extent: tuple[float, float], loss_scale_m: float = 0.005, step_m: float = 0.25,
+                 ref_trace: StemTrace | None = None) -> StemProfile:
     """The profile of the target's stem (`tgt_points`, already in the reference frame) against the
     reference's, traced from `ref_xy` and `tgt_xy` at the tree's base (`z_extent`: its lowest and
-    highest z in the reference frame)."""
+    highest z in the reference frame). `ref_trace`: the reference's trace, when made already (it
+    depends on the reference alone)."""
     lo, hi = z_extent
     H = max(hi - lo, 1e-3)
-    a = trace_stem(ref_points, ref_xy, lo, hi, step_m)
+    a = ref_trace if ref_trace is not None else trace_stem(ref_points, ref_xy, lo, hi, step_m)
     b = trace_stem(tgt_points, tgt_xy, lo, hi, step_m)
     common, ia, ib = np.intersect1d(np.round(a.heights_m, 6), np.round(b.heights_m, 6), return_indices=True)
     if not len(common):

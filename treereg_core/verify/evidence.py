@@ -255,8 +255,11 @@ def judge(e: Evidence, *, verify: VerifyParams, coarse: CoarseParams,
     reasons: list[str] = []
     hints: list[str] = []
     if e.chance_inliers >= 0 and e.inliers < max(coarse.min_ties, p.chance_factor * e.chance_inliers):
+        moving = (f"; the crown moved {e.sway_m:.2f} m between the stations, and ties on a moving crown agree less"
+                  if e.sway_m > 0 else "")
         reasons.append(f"only {e.inliers} of {e.ties} tie points agree with the coarse transform or the final pose, against "
-                       f"{e.chance_inliers} when the ties are re-paired at random (verify.chance_factor = {p.chance_factor:g})")
+                       f"{e.chance_inliers} when the ties are re-paired at random (verify.chance_factor = {p.chance_factor:g})"
+                       + moving)
         hints.append("check that both scans show the same tree")
     if not e.seen_by_both >= p.min_seen:
         reasons.append(f"only {e.seen_by_both} of the target's points lie where both stations could see them "

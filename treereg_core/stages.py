@@ -20,7 +20,7 @@ from .evaluate.branches import find_branches
 from .evaluate.icp import IcpResult, align_icp, icp_off
 from .evaluate.report import PairReport, evaluate_registration
 from .fine.arcs import SliceArcs, separate_scan_slices, separate_slices
-from .fine.pose import FINE_SECTIONS, FineResult, FineStart, profile_bend, register_fine, straightened
+from .fine.pose import FINE_SECTIONS, FineResult, FineStart, StemSeeds, profile_bend, register_fine, straightened
 from .fine.sections import SectionsResult, fit_scan_sections, fit_sections
 from .fine.slicing import SliceResult, slice_scans
 from .fine.surface import scan_surface, surface_of
@@ -114,7 +114,8 @@ def _run_hypotheses(ctx: StageContext) -> list[Any]:
             return pass_through(c.T_ref_target)
         tgt, ref = _scan(ctx, p.tgt), _scan(ctx, p.ref)
         image, ref_surf = _range_image(ctx, p.ref), _surface(ctx, p.ref)
-        bend = profile_bend(ref, tgt, c.T_ref_target, ctx.params.wind, ctx.params.joint.loss_scale_m)
+        seeds = _seeds(ctx, p)
+        bend = profile_bend(ref, tgt, c.T_ref_target, ctx.params.wind, ctx.params.joint.loss_scale_m, seeds)
         adjust = None
         if bend is not None:
             # The crown moved between the stations: every candidate is judged against the reference
@@ -125,7 +126,7 @@ def _run_hypotheses(ctx: StageContext) -> list[Any]:
             ref_surf = surface_of(bend.bend(ref.points), ctx.params.surface.voxel_m)
 
             def adjust(T: np.ndarray) -> np.ndarray:
-                return straightened(ref, tgt, T, ctx.params.joint.loss_scale_m)
+                return straightened(ref, tgt, T, ctx.params.joint.loss_scale_m, seeds)
         return score_hypotheses(image, ref_surf, _surface(ctx, p.tgt, hp.polish_points), tgt.points, c.T_ref_target,
                                 list(c.modes), hypotheses=hp, choose=ctx.choices.get(_label(ctx, k)),
                                 axis_xy=_stem_xy(ctx, p.tgt), adjust=adjust)
@@ -143,8 +144,18 @@ def _stem_xy(ctx: StageContext, i: int) -> np.ndarray | None:
     return stems[int(d.argmin()), :2] if d.min() <= 2.0 else None
 
 
+def _seeds(ctx: StageContext, pair: Any) -> StemSeeds:
+    """Where the prepare stage put each scan's stem (the target's, in a plot): the stem profile
+    traces from there, not from a neighbour's."""
+    return StemSeeds(ctx.item("prepare", pair.ref).stem_xy, ctx.item("prepare", pair.tgt).stem_xy)
+
+
 def _ref_stem_xy(ctx: StageContext, i: int) -> np.ndarray:
-    """Scan i's stem at its base (its own frame): what a turn about the stem turns about."""
+    """Scan i's stem at its base (its own frame): what a turn about the stem turns about (the
+    target's, where the prepare stage chose one)."""
+    chosen = ctx.item("prepare", i).stem_xy
+    if chosen is not None:
+        return np.asarray(chosen, dtype=float)
     pts = _scan(ctx, i).points
     return stem_position(pts, pts[:, 2] - float(np.quantile(pts[:, 2], 0.001)))
 
@@ -193,7 +204,7 @@ def _run_fine(ctx: StageContext) -> list[Any]:
         sl = ctx.outputs["slices"].items[k]
         start = FineStart(sl, ctx.ok_item("arcs", k), ctx.ok_item("sections", k)) if isinstance(sl, SliceResult) else None
         return register_fine(_scan(ctx, p.ref), _scan(ctx, p.tgt), _start(ctx, k), start=start,
-                             **ctx.params.pick(*FINE_SECTIONS))
+                             seeds=_seeds(ctx, p), **ctx.params.pick(*FINE_SECTIONS))
     return ctx.each(one, lambda k: _label(ctx, k))
 
 

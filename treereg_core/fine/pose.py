@@ -103,6 +103,19 @@ _FLUTTER_ROUNDS = 4
 
 
 @dataclass(frozen=True)
+class StemSeeds:
+    """Where each scan's own stem stands (x, y in its own frame) when the prepare stage chose it (the
+    target's, in a plot): the stem profile traces from there. None: the densest cell of the scan's
+    lowest points (one tree in the scan; in a plot on a slope that cell can be a neighbour's)."""
+
+    ref_xy: tuple[float, float] | None = None
+    tgt_xy: tuple[float, float] | None = None
+
+
+NO_SEEDS = StemSeeds()
+
+
+@dataclass(frozen=True)
 class FineStart:
     """The first iteration, as the slices, arcs and sections stages made it at the coarse pose.
 
@@ -514,7 +527,7 @@ def _verdict(n_updates: int, chosen: str, fallback: bool, note: str, residuals: 
 def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, *, fine: FineParams, joint: JointParams,
                   surface: SurfaceParams, acceptance: AcceptanceParams, slicing: SlicingParams, arcs: ArcParams,
                   fitting: FitParams, wind: WindParams | None = None, start: FineStart | None = None,
-                  progress: Progress | None = None) -> FineResult:
+                  seeds: StemSeeds = NO_SEEDS, progress: Progress | None = None) -> FineResult:
     """Refine the coarse transform of `tgt` onto `ref` from stem and branch sections.
 
     Parameters
@@ -529,6 +542,8 @@ def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, *, fine: FineParam
         How later iterations slice, separate and fit at the new pose.
     start
         The first iteration as the slices, arcs and sections stages made it; computed when None.
+    seeds
+        Where each scan's stem stands, when the prepare stage chose it: the stem profile traces there.
     progress
         Optional progress callback.
 
@@ -547,7 +562,7 @@ def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, *, fine: FineParam
     sample = tgt.points if tgt.n_points <= _SAMPLE else tgt.points[rng.choice(tgt.n_points, _SAMPLE, replace=False)]
     its = _iterate(ref, tgt, T0, start, sample, fine, joint, slicing, arcs, fitting, progress)
     if wind.enabled and fine.method == "joint":
-        bent = _with_bend(ref, tgt, T0, its, start, sample, fine, joint, slicing, arcs, fitting, wind, progress)
+        bent = _with_bend(ref, tgt, T0, its, start, sample, fine, joint, slicing, arcs, fitting, wind, progress, seeds)
         if bent is not None:
             its = bent
     bend = its.bend
@@ -574,7 +589,7 @@ def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, *, fine: FineParam
         """The stem profile's verdict at a pose: do the two stems line up there (None: no profile)?"""
         key = np.asarray(T_, dtype=float).tobytes()
         if key not in lined:
-            lined[key] = profile_at(ref, tgt, T_, start.slices.z_extent_m, joint.loss_scale_m).lined_up(
+            lined[key] = profile_at(ref, tgt, T_, start.slices.z_extent_m, joint.loss_scale_m, seeds).lined_up(
                 acceptance.stem_tilt_deg, acceptance.stem_shift_m) if start.slices.ok else None
         return lined[key]
     if updates and fine.method == "joint" and acceptance.select and bend is None:
@@ -591,7 +606,7 @@ def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, *, fine: FineParam
         chosen = "sections, with the stem's bend"
     drawn = _drawn_at(ref, tgt, T, start, its.last, sample, fine, slicing, arcs, fitting, bend)
     n_iter = len(its.updates_m)
-    profile = profile_at(ref, tgt, T, start.slices.z_extent_m, joint.loss_scale_m) if start.slices.ok else None
+    profile = profile_at(ref, tgt, T, start.slices.z_extent_m, joint.loss_scale_m, seeds) if start.slices.ok else None
     bend = bend if accepted else None
     metrics = (
         Metric("fine accepted", "", "yes" if accepted else "no"),
@@ -659,7 +674,7 @@ def _bend_probe(ref: Scan, tgt: Scan, T0: np.ndarray, its: _Iterations, fine: Fi
 
 def _with_bend(ref: Scan, tgt: Scan, T0: np.ndarray, rigid: _Iterations, start: FineStart, sample: np.ndarray,
                fine: FineParams, joint: JointParams, slicing: SlicingParams, arcs: ArcParams, fitting: FitParams,
-               wind: WindParams, progress: Progress) -> _Iterations | None:
+               wind: WindParams, progress: Progress, seeds: StemSeeds = NO_SEEDS) -> _Iterations | None:
     """The sections iterated with the stem's bend, when there is a sign the crown moved (None when
     there is none, or when the bend fitted turns out not to be worth modelling: the rigid result
     then stands, unchanged).
@@ -671,9 +686,9 @@ def _with_bend(ref: Scan, tgt: Scan, T0: np.ndarray, rigid: _Iterations, start: 
     pose and bend when the profile saw a bend, else from the adjustment's.
     """
     loose = replace(wind, significance=wind.significance / 1.5)
-    prof = profile_at(ref, tgt, T0, start.slices.z_extent_m, joint.loss_scale_m)
+    prof = profile_at(ref, tgt, T0, start.slices.z_extent_m, joint.loss_scale_m, seeds)
     seen_start = prof.model is not None and _significant(_profile_bend(prof), loose)
-    after = profile_at(ref, tgt, rigid.T, start.slices.z_extent_m, joint.loss_scale_m) if rigid.updates_m else None
+    after = profile_at(ref, tgt, rigid.T, start.slices.z_extent_m, joint.loss_scale_m, seeds) if rigid.updates_m else None
     tilted = after is not None and after.model is not None and _tilted(after.model, wind)
     probe = _bend_probe(ref, tgt, T0, rigid, fine, joint, wind)
     probed = probe is not None and probe[1].significant(wind.min_sway_m / 2.0, wind.significance)
@@ -730,22 +745,23 @@ _profiles_lock = threading.Lock()
 _PROFILES_KEPT = 16
 
 
-def profile_at(ref: Scan, tgt: Scan, T: np.ndarray, z_extent: tuple[float, float], loss_scale_m: float) -> StemProfile:
+def profile_at(ref: Scan, tgt: Scan, T: np.ndarray, z_extent: tuple[float, float], loss_scale_m: float,
+               seeds: StemSeeds = NO_SEEDS) -> StemProfile:
     """The target's stem profile against the reference's with the target at the pose `T` (each stem
-    traced up from its base: the densest cell of its own lowest points). The reference's trace is
-    made once per reference, and a profile once per pose."""
-    key = (np.asarray(T, dtype=float).tobytes(), tuple(float(v) for v in z_extent), float(loss_scale_m))
+    traced up from its base: its seed, else the densest cell of its own lowest points). The
+    reference's trace is made once per reference, and a profile once per pose."""
+    key = (np.asarray(T, dtype=float).tobytes(), tuple(float(v) for v in z_extent), float(loss_scale_m), seeds)
     with _profiles_lock:
         per_ref = _profiles.get(tgt)
         found = per_ref.get(ref, {}).get(key) if per_ref is not None else None
     if found is not None:
         return found
     lo, hi = z_extent
-    ref_xy, ref_trace = _ref_trace(ref, (float(lo), float(hi)))
-    tz = tgt.points[:, 2]
-    tgt_xy = apply_transform(T, np.r_[stem_position(tgt.points, tz - tz.min()), 0.0][None])[0, :2]
-    prof = stem_profile(ref.points, apply_transform(T, tgt.points), ref_xy, tgt_xy, z_extent, loss_scale_m,
-                        ref_trace=ref_trace)
+    ref_xy, ref_trace = _ref_trace(ref, (float(lo), float(hi)), seeds.ref_xy)
+    own = _base_xy(tgt, seeds.tgt_xy)
+    tgt_xy = apply_transform(T, np.r_[own, 0.0][None])[0, :2]
+    prof = replace(stem_profile(ref.points, apply_transform(T, tgt.points), ref_xy, tgt_xy, z_extent, loss_scale_m,
+                                ref_trace=ref_trace), base_xy_m=np.asarray(ref_xy, dtype=float))
     with _profiles_lock:
         kept = _profiles.setdefault(tgt, weakref.WeakKeyDictionary()).setdefault(ref, OrderedDict())
         kept[key] = prof
@@ -757,22 +773,32 @@ def profile_at(ref: Scan, tgt: Scan, T: np.ndarray, z_extent: tuple[float, float
 _ref_traces: "weakref.WeakKeyDictionary[Scan, dict]" = weakref.WeakKeyDictionary()
 
 
-def _ref_trace(ref: Scan, z_extent: tuple[float, float]) -> tuple[np.ndarray, StemTrace]:
-    """The reference's stem base and trace for a tree extent, made once per reference scan."""
+def _base_xy(scan: Scan, seed: tuple[float, float] | None) -> np.ndarray:
+    """Where the scan's stem stands (its frame): the seed, else the densest cell of its lowest points."""
+    if seed is not None:
+        return np.asarray(seed, dtype=float)
+    z = scan.points[:, 2]
+    return stem_position(scan.points, z - z.min())
+
+
+def _ref_trace(ref: Scan, z_extent: tuple[float, float], seed: tuple[float, float] | None = None) -> tuple[np.ndarray, StemTrace]:
+    """The reference's stem base and trace for a tree extent, made once per reference scan and seed."""
+    key = (z_extent, seed)
     with _profiles_lock:
-        found = _ref_traces.get(ref, {}).get(z_extent)
+        found = _ref_traces.get(ref, {}).get(key)
     if found is None:
-        xy = stem_position(ref.points, ref.points[:, 2] - z_extent[0])
+        xy = np.asarray(seed, dtype=float) if seed is not None else stem_position(ref.points, ref.points[:, 2] - z_extent[0])
         found = (xy, trace_stem(ref.points, xy, z_extent[0], z_extent[1]))
         with _profiles_lock:
-            _ref_traces.setdefault(ref, {})[z_extent] = found
+            _ref_traces.setdefault(ref, {})[key] = found
     return found
 
 
 def prof_axis(prof: StemProfile, ref: Scan) -> np.ndarray:
-    """The reference's stem position near the profile model's mid height (where its tilt turns)."""
-    lo = prof.base_z_m
-    return stem_position(ref.points, ref.points[:, 2] - lo)
+    """The reference's stem at its base, where the profile traced it from (what its tilt turns about)."""
+    if prof.base_xy_m is not None:
+        return prof.base_xy_m
+    return stem_position(ref.points, ref.points[:, 2] - prof.base_z_m)
 
 
 def _profile_bend(prof: StemProfile) -> Bend:
@@ -788,19 +814,20 @@ def _significant(bend: Bend, wind: WindParams) -> bool:
     return bend.significant(wind.min_sway_m, wind.significance)
 
 
-def straightened(ref: Scan, tgt: Scan, T: np.ndarray, loss_scale_m: float) -> np.ndarray:
+def straightened(ref: Scan, tgt: Scan, T: np.ndarray, loss_scale_m: float, seeds: StemSeeds = NO_SEEDS) -> np.ndarray:
     """`T` with the stem profile's shift and tilt taken out (the stems lined up at the base and
     upright against each other, the bend left to the crown); `T` itself without a profile."""
-    prof = profile_at(ref, tgt, T, tree_extent(ref.points[:, 2]), loss_scale_m)
+    prof = profile_at(ref, tgt, T, tree_extent(ref.points[:, 2]), loss_scale_m, seeds)
     return T if prof.model is None else correction(prof.model, prof_axis(prof, ref)) @ T
 
 
-def profile_bend(ref: Scan, tgt: Scan, T: np.ndarray, wind: WindParams, loss_scale_m: float) -> Bend | None:
+def profile_bend(ref: Scan, tgt: Scan, T: np.ndarray, wind: WindParams, loss_scale_m: float,
+                 seeds: StemSeeds = NO_SEEDS) -> Bend | None:
     """The bend of the target's stem against the reference's that the stem profile at `T` shows,
     when it is significant (None in still air, or when wind is not modelled)."""
     if not wind.enabled:
         return None
-    prof = profile_at(ref, tgt, T, tree_extent(ref.points[:, 2]), loss_scale_m)
+    prof = profile_at(ref, tgt, T, tree_extent(ref.points[:, 2]), loss_scale_m, seeds)
     if prof.model is None or not prof.spans_bend:
         return None
     bend = _profile_bend(prof)

@@ -156,7 +156,8 @@ class StemProfile:
 
     heights_m : slab heights both stems reach; offsets_m : K x 2, target minus reference;
     std_m : each offset's noise std; radii_m : the shared radius; base_z_m, height_m : the tree's
-    base and height (the bend's 0 and 1); model : the offsets explained (None with too few slabs).
+    base and height (the bend's 0 and 1); model : the offsets explained (None with too few slabs);
+    base_xy_m : where the reference's stem was traced from (x, y), when known.
     """
 
     heights_m: np.ndarray
@@ -166,6 +167,7 @@ class StemProfile:
     base_z_m: float
     height_m: float
     model: StemModel | None
+    base_xy_m: np.ndarray | None = None
 
     @property
     def n(self) -> int:

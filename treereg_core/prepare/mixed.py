@@ -6,11 +6,12 @@ no surface. They smear the projection images and sit in space the other station 
 instrument's software filters them first; so does the prepare stage, before anything else.
 
 On the scan's own angular grid (a cell per angular step), a return is a mixed pixel when it is
-*isolated along its ray* (no neighbouring return at a range within reach of its own: a real
-surface, however oblique, continues in some direction at about the same range) and *just behind a
-range jump* (some neighbouring return is nearer by more than that). A twig or leaf standing alone in
-front of everything is kept (nothing is nearer); a surface seen at a grazing angle is kept (it
-continues along its own range).
+*just behind a range jump* (some neighbouring return is nearer by more than the reach below) and
+*isolated along its ray*: no surface continues it (a real surface, however oblique, continues in
+some direction at about the same range through a return that is not itself behind the jump, or
+through two neighbours; tails strung out side by side behind one edge continue only each other). A
+twig or leaf standing alone in front of everything is kept (nothing is nearer); a surface seen at a
+grazing angle is kept (it continues along its own range).
 """
 
 from __future__ import annotations
@@ -43,11 +44,13 @@ class MixedPixels:
 
 
 def find_mixed(points: np.ndarray, azimuth_deg: np.ndarray, elevation_deg: np.ndarray,
-               step_deg: tuple[float, float], tolerance_m: float, slope: float) -> np.ndarray:
+               step_deg: tuple[float, float], tolerance_m: float, slope: float, min_continuing: int = 2) -> np.ndarray:
     """Mask of the mixed pixels among `points` (scanner frame) on the grid of `step_deg` cells.
 
     A neighbour one cell away continues the return's surface when their ranges differ by at most
-    `tolerance_m + slope * range * step` (`slope` = tan of the steepest incidence kept).
+    `tolerance_m + slope * range * step` (`slope` = tan of the steepest incidence kept). A return
+    behind a jump is kept when a neighbour not behind one continues it, or `min_continuing`
+    neighbours do.
     """
     n = len(points)
     if n == 0:
@@ -64,28 +67,40 @@ def find_mixed(points: np.ndarray, azimuth_deg: np.ndarray, elevation_deg: np.nd
     order = np.argsort(comp, kind="stable")
     comp_s, key_s, r_s = comp[order], key[order], r[order]
     tol = tolerance_m + slope * r * np.radians(max(step_deg))
-    continuous = np.zeros(n, dtype=bool)
     nearer = np.zeros(n, dtype=bool)
-    for dc, dr in _OFFSETS:
-        nk = key + dc * n_rows + dr
+    for nk in (key + dc * n_rows + dr for dc, dr in _OFFSETS):
+        first = np.clip(np.searchsorted(key_s, nk, side="left"), 0, n - 1)
+        nearer |= (key_s[first] == nk) & (r_s[first] < r - tol)
+    # A surface continues through a neighbour not itself behind a jump, or through two neighbours:
+    # tails strung out side by side behind one edge continue only each other.
+    continuing = np.zeros(n, dtype=np.int8)
+    solid = np.zeros(n, dtype=bool)
+    for nk in (key + dc * n_rows + dr for dc, dr in _OFFSETS):
         q = nk.astype(np.float64) * _RANGE_SPAN_M + np.minimum(r, _RANGE_SPAN_M - 1.0)
         i = np.searchsorted(comp_s, q)
         # The returns of that cell on either side of this range: the closer one decides continuity.
-        best = np.full(n, np.inf)
+        best, at = np.full(n, np.inf), np.zeros(n, dtype=np.int64)
         for j in (i - 1, i):
             jj = np.clip(j, 0, n - 1)
             same = (key_s[jj] == nk) & (j >= 0) & (j < n)
-            best = np.minimum(best, np.where(same, np.abs(r_s[jj] - r), np.inf))
-        continuous |= best <= tol
-        first = np.clip(np.searchsorted(key_s, nk, side="left"), 0, n - 1)
-        nearer |= (key_s[first] == nk) & (r_s[first] < r - tol)
-    return nearer & ~continuous
+            d = np.where(same, np.abs(r_s[jj] - r), np.inf)
+            take = d < best
+            best, at = np.where(take, d, best), np.where(take, order[jj], at)
+        hit = best <= tol
+        continuing += hit
+        solid |= hit & ~nearer[at]
+    return nearer & ~solid & (continuing < min_continuing)
 
 
 def remove_mixed(scan: Scan, *, enabled: bool, tolerance_m: float, slope: float) -> MixedPixels:
     """`scan` without its mixed pixels (on its own angular grid), with what was removed counted."""
     if not enabled:
         return MixedPixels(scan, np.zeros(scan.n_points, dtype=bool), (Metric("mixed pixels removed", "", "off"),))
+    if scan.step is not None and scan.step.low:
+        # Without the instrument's grid (a merged cloud, a scan not in its scanner frame) a
+        # neighbour on the estimated grid is no neighbour on the beam's: the filter would guess.
+        return MixedPixels(scan, np.zeros(scan.n_points, dtype=bool),
+                           (Metric("mixed pixels removed", "", f"off: no regular angular grid ({scan.step.describe()})"),))
     mixed = find_mixed(scan.points, scan.azimuth_deg, scan.elevation_deg, scan.angular_step_deg, tolerance_m, slope)
     n = int(mixed.sum())
     metrics = (Metric("mixed pixels removed", "", n),

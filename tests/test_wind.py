@@ -91,6 +91,20 @@ def test_the_mixed_pixel_filter_stays_off_without_a_regular_grid():
     assert out.n_removed == 0 and "no regular angular grid" in str(out.metrics[0].value)
 
 
+def test_the_mixed_pixel_filter_does_not_take_a_surface_rougher_than_the_grid():
+    # Stations simulated from a real leafy crown sparser than their angular grid: most returns lie
+    # behind a range jump and nothing continues them; they are the tree, not tails.
+    from pathlib import Path
+    from treereg_core.simulate.cases import simulate_case
+    cloud = Path(__file__).resolve().parents[2] / "shared" / "data" / "real_trees" / "rtls_pc_tree.xyz"
+    if not cloud.exists():
+        pytest.skip("../shared/data/real_trees/rtls_pc_tree.xyz is not beside the project")
+    s = simulate_case(seed=0, from_points=str(cloud), angular_step_deg=(0.05, 0.05)).scans[0]
+    assert find_mixed(s.points, s.azimuth_deg, s.elevation_deg, s.angular_step_deg, 0.02, 4.0).mean() > 0.4
+    out = remove_mixed(s, enabled=True, tolerance_m=0.02, slope=4.0)
+    assert out.n_removed == 0 and "too many to be tails" in str(out.metrics[0].value)
+
+
 def test_bend_unbend_is_its_own_inverse():
     b = Bend(-1.5, 8.0, (0.1, -0.2))
     p = np.array([[0.0, 0.0, -1.5], [1.0, 2.0, 6.5], [0.5, 0.0, 2.0]])

@@ -30,6 +30,8 @@ _OFFSETS = ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)
 #: Tails are "many" when the returns behind a jump that nothing continues are this share of a scan
 #: (clean simulated and real stations: 0.1-0.8%; a tenth of the edge returns mixed: 2.5-5%).
 DENSE_TAILS_SHARE = 0.02
+#: The filter stands down when it would take more than this share of a scan (see `remove_mixed`).
+MAX_TAIL_SHARE = 0.4
 #: A dense grid of the cells' nearest returns is used while it has at most this many cells per return.
 _DENSE_CELLS_PER_POINT = 16
 #: Composite sort key: cell index times this plus the range (m); ranges beyond it are not expected.
@@ -130,6 +132,13 @@ def remove_mixed(scan: Scan, *, enabled: bool, tolerance_m: float, slope: float)
                            (Metric("mixed pixels removed", "", f"off: no regular angular grid ({scan.step.describe()})"),))
     mixed = find_mixed(scan.points, scan.azimuth_deg, scan.elevation_deg, scan.angular_step_deg, tolerance_m, slope)
     n = int(mixed.sum())
+    if n > MAX_TAIL_SHARE * scan.n_points:
+        # Half the edge returns mixed leaves a quarter of a scan in tails; more is a surface rougher
+        # than the grid (foliage sampled coarser than its leaves, a thinned cloud): removing it
+        # would take the tree itself.
+        return MixedPixels(scan, np.zeros(scan.n_points, dtype=bool), (Metric(
+            "mixed pixels removed", "", f"none: {n / scan.n_points:.0%} of the returns lie behind a range jump, too many "
+            "to be tails (the surface is rougher than the angular grid)"),))
     metrics = (Metric("mixed pixels removed", "", n),
                Metric("mixed pixels removed, share of the points", "", n / max(scan.n_points, 1)))
     return MixedPixels(scan.with_points(scan.points[~mixed]) if n else scan, mixed, metrics)

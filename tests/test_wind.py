@@ -197,3 +197,24 @@ def test_the_crown_motion_reaches_transforms_json_and_the_command_line(tmp_path,
     assert m["relative_to"] == "scan1.ply" and abs(m["top_sway_m"] - true) <= max(0.3 * true, 0.02)
     assert m["stems_agree_up_to_m"] is not None and m["stems_agree_up_to_m"] >= 0
     assert q["edges"][0]["sway_m"] == pytest.approx(m["top_sway_m"])
+
+
+def test_the_scans_table_says_why_a_scan_was_not_filtered():
+    import viser
+
+    from treereg_viewer.controller import Snapshot
+    from treereg_viewer.renderers.scans import render
+    from treereg_viewer.view_state import ViewState
+
+    s = _case(mixed_pixels=0.4).scans[0]
+    resampled = Scan.from_points(s.points + np.random.default_rng(0).normal(0.0, 0.02, s.points.shape), name="merged.ply")
+    pipe = Pipeline([s, resampled], Params())
+    pipe.run(until="prepare")
+    snap = Snapshot(version=1, scans=(s, resampled), truth=None, params=Params(),
+                    outputs={"prepare": pipe.output("prepare")}, transforms={}, pair_metrics={})
+    server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    try:
+        _, panel = render(server.scene, "/t", snap, ViewState())
+    finally:
+        server.stop()
+    assert "not filtered" in panel.table and "merged.ply: mixed pixels off: no regular angular grid" in panel.text

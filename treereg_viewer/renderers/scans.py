@@ -222,6 +222,7 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
     """The Scans stage's panel: a table of the scans, what preparation kept and which tree it took."""
     prepared = snap.output("prepare")
     rows = []
+    stood_down: list[str] = []
     for i, scan in enumerate(snap.scans):
         prep = prepared.items[i] if prepared is not None and i < len(prepared.items) else None
         # The instrument's steps in force: the parameter's when one is set (it replaces the
@@ -232,6 +233,12 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
         if prep is not None:
             removed = getattr(prep, "mixed_points", None)
             mixed = f"{len(removed):,}" if removed is not None and snap.params.prepare.mixed_pixels else "off"
+            # The filter stood down on this scan (no regular grid, a surface rougher than it): say why.
+            why = next((m.value for m in getattr(prep, "metrics", ()) if m.description == "mixed pixels removed"
+                        and isinstance(m.value, str) and m.value != "off"), None)
+            if why is not None:
+                mixed = "not filtered"
+                stood_down.append(f"{scan.name}: mixed pixels {why}.")
             kept = f"{prep.scan.n_points:,}" if getattr(prep, "scan", None) is not None else ""
             if getattr(prep, "ground_mask", None) is not None:
                 ground = f"{int(np.count_nonzero(prep.ground_mask)):,}"
@@ -249,6 +256,7 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
     if prepared is not None:
         bad = [f"**{snap.scans[i].name}:** {it.message}" for i, it in enumerate(prepared.items) if not it.ok]
         notes = [f"{snap.scans[i].name}: {it.message}" for i, it in enumerate(prepared.items) if it.ok and it.message]
+        notes += stood_down
         text = "\n\n".join(bad + notes) or "Grey points were removed as ground; light grey were cropped."
         if snap.params.prepare.mixed_pixels:
             text += (" Near-black: mixed pixels, returns strung out behind a stem's or branch's edge (the beam "

@@ -696,11 +696,11 @@ def _with_bend(ref: Scan, tgt: Scan, T0: np.ndarray, rigid: _Iterations, start: 
         return None
     progress(0.5, "the crown may have moved between the stations: fitting the stem's bend with the pose")
     if prof.model is not None and _profile_bend(prof).sway_m >= wind.min_sway_m:
-        T1, bend1 = correction(prof.model, prof_axis(prof, ref)) @ T0, _profile_bend(prof)
+        T1, bend1 = correction(prof.model, prof.base_xy_m) @ T0, _profile_bend(prof)
     elif probe is not None:
         T1, bend1 = probe
     else:
-        T1, bend1 = correction(after.model, prof_axis(after, ref)) @ rigid.T, _profile_bend(after)
+        T1, bend1 = correction(after.model, after.base_xy_m) @ rigid.T, _profile_bend(after)
     bent = _bent(ref, tgt, T1, T0, bend1, start, sample, fine, joint, slicing, arcs, fitting, wind)
     if bent is None:
         return None
@@ -758,10 +758,10 @@ def profile_at(ref: Scan, tgt: Scan, T: np.ndarray, z_extent: tuple[float, float
         return found
     lo, hi = z_extent
     ref_xy, ref_trace = _ref_trace(ref, (float(lo), float(hi)), seeds.ref_xy)
-    own = _base_xy(tgt, seeds.tgt_xy)
+    own = _base_xy(tgt, seeds.tgt_xy, float(tgt.points[:, 2].min()))
     tgt_xy = apply_transform(T, np.r_[own, 0.0][None])[0, :2]
-    prof = replace(stem_profile(ref.points, apply_transform(T, tgt.points), ref_xy, tgt_xy, z_extent, loss_scale_m,
-                                ref_trace=ref_trace), base_xy_m=np.asarray(ref_xy, dtype=float))
+    prof = stem_profile(ref.points, apply_transform(T, tgt.points), ref_xy, tgt_xy, z_extent, loss_scale_m,
+                        ref_trace=ref_trace)
     with _profiles_lock:
         kept = _profiles.setdefault(tgt, weakref.WeakKeyDictionary()).setdefault(ref, OrderedDict())
         kept[key] = prof
@@ -773,12 +773,12 @@ def profile_at(ref: Scan, tgt: Scan, T: np.ndarray, z_extent: tuple[float, float
 _ref_traces: "weakref.WeakKeyDictionary[Scan, dict]" = weakref.WeakKeyDictionary()
 
 
-def _base_xy(scan: Scan, seed: tuple[float, float] | None) -> np.ndarray:
-    """Where the scan's stem stands (its frame): the seed, else the densest cell of its lowest points."""
+def _base_xy(scan: Scan, seed: tuple[float, float] | None, base_z: float) -> np.ndarray:
+    """Where the scan's stem stands (its frame): the seed, else the densest cell of its points
+    lowest above `base_z`."""
     if seed is not None:
         return np.asarray(seed, dtype=float)
-    z = scan.points[:, 2]
-    return stem_position(scan.points, z - z.min())
+    return stem_position(scan.points, scan.points[:, 2] - base_z)
 
 
 def _ref_trace(ref: Scan, z_extent: tuple[float, float], seed: tuple[float, float] | None = None) -> tuple[np.ndarray, StemTrace]:
@@ -787,18 +787,11 @@ def _ref_trace(ref: Scan, z_extent: tuple[float, float], seed: tuple[float, floa
     with _profiles_lock:
         found = _ref_traces.get(ref, {}).get(key)
     if found is None:
-        xy = np.asarray(seed, dtype=float) if seed is not None else stem_position(ref.points, ref.points[:, 2] - z_extent[0])
+        xy = _base_xy(ref, seed, z_extent[0])
         found = (xy, trace_stem(ref.points, xy, z_extent[0], z_extent[1]))
         with _profiles_lock:
             _ref_traces.setdefault(ref, {})[key] = found
     return found
-
-
-def prof_axis(prof: StemProfile, ref: Scan) -> np.ndarray:
-    """The reference's stem at its base, where the profile traced it from (what its tilt turns about)."""
-    if prof.base_xy_m is not None:
-        return prof.base_xy_m
-    return stem_position(ref.points, ref.points[:, 2] - prof.base_z_m)
 
 
 def _profile_bend(prof: StemProfile) -> Bend:
@@ -818,7 +811,7 @@ def straightened(ref: Scan, tgt: Scan, T: np.ndarray, loss_scale_m: float, seeds
     """`T` with the stem profile's shift and tilt taken out (the stems lined up at the base and
     upright against each other, the bend left to the crown); `T` itself without a profile."""
     prof = profile_at(ref, tgt, T, tree_extent(ref.points[:, 2]), loss_scale_m, seeds)
-    return T if prof.model is None else correction(prof.model, prof_axis(prof, ref)) @ T
+    return T if prof.model is None else correction(prof.model, prof.base_xy_m) @ T
 
 
 def profile_bend(ref: Scan, tgt: Scan, T: np.ndarray, wind: WindParams, loss_scale_m: float,

@@ -157,7 +157,7 @@ class StemProfile:
     heights_m : slab heights both stems reach; offsets_m : K x 2, target minus reference;
     std_m : each offset's noise std; radii_m : the shared radius; base_z_m, height_m : the tree's
     base and height (the bend's 0 and 1); model : the offsets explained (None with too few slabs);
-    base_xy_m : where the reference's stem was traced from (x, y), when known.
+    base_xy_m : where the reference's stem was traced from (x, y): what a tilt turns about.
     """
 
     heights_m: np.ndarray
@@ -167,7 +167,7 @@ class StemProfile:
     base_z_m: float
     height_m: float
     model: StemModel | None
-    base_xy_m: np.ndarray | None = None
+    base_xy_m: np.ndarray
 
     @property
     def n(self) -> int:
@@ -266,11 +266,12 @@ def stem_profile(ref_points: np.ndarray, tgt_points: np.ndarray, ref_xy: np.ndar
     depends on the reference alone)."""
     lo, hi = z_extent
     H = max(hi - lo, 1e-3)
+    base = np.asarray(ref_xy, dtype=float)[:2].copy()
     a = ref_trace if ref_trace is not None else trace_stem(ref_points, ref_xy, lo, hi, step_m)
     b = trace_stem(tgt_points, tgt_xy, lo, hi, step_m)
     common, ia, ib = np.intersect1d(np.round(a.heights_m, 6), np.round(b.heights_m, 6), return_indices=True)
     if not len(common):
-        return StemProfile(np.zeros(0), np.zeros((0, 2)), np.zeros(0), np.zeros(0), lo, H, None)
+        return StemProfile(np.zeros(0), np.zeros((0, 2)), np.zeros(0), np.zeros(0), lo, H, None, base)
     pts, sec, mov = [], [], []
     for k, (i, j) in enumerate(zip(ia, ib)):
         p = ref_points[_even(a.members[i], _MAX_SLAB_POINTS)]
@@ -291,4 +292,4 @@ def stem_profile(ref_points: np.ndarray, tgt_points: np.ndarray, ref_xy: np.ndar
     # A slab whose circles the points hardly fix (a trace that strayed onto a branch) says nothing.
     ok = np.isfinite(std) & np.isfinite(off).all(axis=1) & (std <= _MAX_OFFSET_STD_M)
     h, off, std, radii = common[ok], off[ok], std[ok], radii[ok]
-    return StemProfile(h, off, std, radii, lo, H, fit_profile(h, off, std, lo, H))
+    return StemProfile(h, off, std, radii, lo, H, fit_profile(h, off, std, lo, H), base)

@@ -27,6 +27,7 @@ import pytest
 import viser
 
 from conftest import rss_mb
+from hostile import REPO, _env, changed, cli, fingerprint, one_line, sandbox  # noqa: F401  (sandbox: a fixture)
 from treereg_cli.main import main
 from treereg_core import params as P
 from treereg_core.demo import DEMO_DIR
@@ -36,82 +37,7 @@ from treereg_core.stages import STAGE_NAMES
 from treereg_viewer.app import TreeregApp, exposure_warning
 from treereg_viewer.controller import Controller
 
-REPO = Path(__file__).resolve().parent.parent
 ROOT_USER = os.geteuid() == 0
-
-
-# ---- the sandbox and its fingerprint ----------------------------------------------------------------
-def fingerprint(root: Path) -> dict[str, tuple]:
-    """Every entry under `root` (links and FIFOs as themselves, never opened), with what identifies its content."""
-    out: dict[str, tuple] = {}
-    for dirpath, dirnames, filenames in os.walk(root):
-        for name in dirnames + filenames:
-            p = Path(dirpath) / name
-            st = os.lstat(p)
-            if stat.S_ISLNK(st.st_mode):
-                out[str(p.relative_to(root))] = ("link", os.readlink(p))
-            elif stat.S_ISREG(st.st_mode):
-                out[str(p.relative_to(root))] = ("file", stat.S_IMODE(st.st_mode), hashlib.sha1(p.read_bytes()).hexdigest())
-            else:
-                out[str(p.relative_to(root))] = ("dir" if stat.S_ISDIR(st.st_mode) else "special", stat.S_IFMT(st.st_mode))
-    return out
-
-
-def changed(before: dict, after: dict, allowed: tuple[str, ...] = ()) -> list[str]:
-    """Entries added, removed or modified, outside the `allowed` prefixes (the output folder)."""
-    keys = set(before) | set(after)
-    return sorted(k for k in keys if before.get(k) != after.get(k) and not k.startswith(allowed))
-
-
-@pytest.fixture()
-def sandbox(tmp_path):
-    """The demo scans, a few configs, and the awkward destinations a user might give."""
-    box = tmp_path / "box"
-    (box / "scans").mkdir(parents=True)
-    for name in ("scan1.ply", "scan2.ply", "scan3.ply", "truth.json"):
-        shutil.copy(DEMO_DIR / name, box / "scans" / name)
-    pts = read_points(DEMO_DIR / "scan2.ply")
-    write_scan(box / "scans" / "cm.ply", pts * 100.0)
-    write_scan(box / "scans" / "mm.ply", pts * 1000.0)
-    write_scan(box / "scans" / "utm.ply", pts + [512_345.0, 5_123_456.0, 250.0])
-    holes = pts.copy()
-    holes[::40] = np.nan
-    np.savetxt(box / "scans" / "holes.xyz", holes, fmt="%.5f")
-    (box / "target.json").write_text("the link's target\n")
-    (box / "link.json").symlink_to(box / "target.json")
-    os.mkfifo(box / "fifo.json")
-    (box / "afile").write_text("a file, not a folder\n")
-    (box / "folder").mkdir()
-    (box / "readonly.json").write_text("keep me\n")
-    os.chmod(box / "readonly.json", 0o444)
-    (box / "loop1").symlink_to(box / "loop2")
-    (box / "loop2").symlink_to(box / "loop1")
-    (box / "deep.json").write_text("[" * 100_000 + "]" * 100_000)
-    (box / "deep_obj.json").write_text('{"a":' * 100_000 + "1" + "}" * 100_000)
-    (box / "tiny_step.json").write_text(json.dumps({"prepare": {"angular_step_deg": [1e-9, 1e-9]}}))
-    (box / "huge_images.json").write_text(json.dumps({"prepare": {"angular_step_deg": [0.001, 0.001]},
-                                                     "resolution": {"spacing_m": None},  # every point kept
-                                                     "projection": {"max_image_px": None, "pixel_factor": 1}}))
-    (box / "prev").mkdir()
-    (box / "prev" / "transforms.json").write_text("a previous result\n")
-    (box / "out").mkdir()
-    return box
-
-
-def cli(capsys, *args: str) -> tuple[int, str]:
-    """`treereg ARGS` in this process: exit code and stderr (an exception escaping main fails the test)."""
-    capsys.readouterr()
-    rc = main([str(a) for a in args])
-    return rc, capsys.readouterr().err
-
-
-def one_line(err: str, pattern: str) -> None:
-    """stderr's last line is treereg's message matching `pattern`; no traceback, no module path."""
-    lines = [ln for ln in err.replace("\r", "\n").splitlines() if ln.strip() and not re.match(r"^\w+ \[[#-]+\]", ln)]
-    assert lines, "nothing printed"
-    assert "Traceback" not in err and not re.search(r"\.py:\d+", err), err
-    assert re.search(pattern, lines[-1]), lines[-1]
-    assert len(lines) == 1, lines
 
 
 # ---- destinations -------------------------------------------------------------------------------------
@@ -284,10 +210,6 @@ def test_files_that_were_already_refused_still_are(sandbox, capsys, content, pat
 
 
 # ---- real processes: Ctrl-C, the port, the host ------------------------------------------------------------
-def _env() -> dict[str, str]:
-    return dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""), PYTHONUNBUFFERED="1")
-
-
 def test_ctrl_c_is_one_line_exit_130_and_leaves_previous_outputs(sandbox):
     s = sandbox / "scans"
     before = fingerprint(sandbox)

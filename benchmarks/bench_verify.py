@@ -17,11 +17,12 @@ Prints markdown tables:
 Families: the seeded benchmark set (`simulate.benchmark_cases`, a third awkward); two different
 trees of look-alike height (within 15%); three stations where the third sees another tree; crowns
 alike after a half, third or quarter turn and the same with their symmetry broken
-(`simulate.symmetric`); leaf-on crowns (the simulator's leaves, and stations from rtls_pc_tree.xyz);
+(`simulate.symmetric`); a station's scan mirrored (x -> -x); leaf-on crowns (the simulator's leaves, and stations from rtls_pc_tree.xyz);
 six stations around one tree. `--families` runs some of them.
 
     python benchmarks/bench_verify.py                 # full run
     python benchmarks/bench_verify.py --n 3 --small --real-seeds 1 --no-timing   # quick look
+    python benchmarks/bench_verify.py --loosest --no-timing   # the wrong scans, every threshold at its loosest
 """
 
 from __future__ import annotations
@@ -41,7 +42,7 @@ from common import REAL_TREES, Report, error_of, md_table, parser  # noqa: E402
 
 from treereg_core.geometry.rigid import invert, mean_displacement, rotation_error_deg  # noqa: E402
 from treereg_core.io.scans import write_scan  # noqa: E402
-from treereg_core.params import PRESETS, Params  # noqa: E402
+from treereg_core.params import PRESETS, Params, loosest, thresholds  # noqa: E402
 from treereg_core.pipeline import Pipeline  # noqa: E402
 from treereg_core.scan import Scan  # noqa: E402
 from treereg_core.simulate.cases import CaseSpec, SimulatedCase, benchmark_cases, simulate_case  # noqa: E402
@@ -225,6 +226,22 @@ def intruders(n: int, seed: int, wind_m: float = 0.0) -> list[tuple[str, list[Sc
     return out
 
 
+def mirrored(n: int, seed: int) -> list[tuple[str, list[Scan], dict]]:
+    """A station's scan mirrored (x -> -x in its scanner frame): the reference and a mirrored
+    target, and (every other case) a third, right station beside them. A mirror image has no right
+    rigid transform."""
+    out = []
+    for k in range(n):
+        a = CaseSpec(seed=seed * 1000 + 1100 + k, height_m=10.0 + k % 3, angular_step_deg=(0.04, 0.04)).build()
+        pts = np.array(a.scans[1].points)
+        pts[:, 0] *= -1.0
+        mirror = Scan.from_points(pts, "mirrored.ply", angular_step_deg=a.scans[1].angular_step_deg)
+        scans = [a.scans[0], mirror] if k % 2 == 0 else [a.scans[0], a.scans[2], mirror]
+        truth = {a.scans[0].name: a.T_ref_scan[0]} | ({} if k % 2 == 0 else {a.scans[2].name: a.T_ref_scan[2]})
+        out.append((f"r{k:02d}", scans, truth))
+    return out
+
+
 def leaf_on(n: int, seed: int, real_step: float) -> list[tuple[str, list[Scan], dict]]:
     out = []
     for k in range(n):
@@ -280,7 +297,9 @@ def multi_table(cases: list[tuple[str, SimulatedCase]], params: Params) -> tuple
 
 #: The families of cases (`--families`).
 FAMILIES = ("benchmark", "different", "intruder", "symmetric", "leaf-on", "six", "wind", "mixed", "wind+mixed",
-            "wind negatives")
+            "wind negatives", "mirrored")
+#: The families of wrong scans: what `--loosest` runs (the symmetric family without its controls).
+NEGATIVE_FAMILIES = ("different", "intruder", "symmetric", "mirrored", "wind negatives")
 #: Top sways (m) of the wind family, and the mixed-pixel rates (share of the edge returns).
 SWAYS_M = (0.0, 0.05, 0.10, 0.20, 0.35)
 MIXED_RATES = (0.1, 0.25, 0.4, 0.5)
@@ -477,6 +496,82 @@ def timing(baseline_rev: str, seed: int, target_points: int = 300_000, repeats: 
         return md_table(("case", f"baseline {baseline_rev} (s)", "now (s)", "ratio"), rows)
 
 
+def negatives(a, fam: set[str]):
+    """(family, label, scans, truth, condition) of the negative families in `fam`: every case holds a
+    scan with no right transform (the symmetric family without its symmetry-broken controls)."""
+    for label, scans, truth in different_trees(a.different, a.seed) if "different" in fam else ():
+        yield "different trees", label, scans, truth, ""
+    for label, scans, truth in intruders(max(1, a.different // 2), a.seed) if "intruder" in fam else ():
+        yield "third station sees another tree", label, scans, truth, ""
+    for family, label, scans, truth in symmetric_crowns(a.symmetric, a.seed) if "symmetric" in fam else ():
+        if family == "symmetric crowns":
+            yield family, label, scans, truth, ""
+    for label, scans, truth in mirrored(a.mirrored, a.seed) if "mirrored" in fam else ():
+        yield "mirrored scan", label, scans, truth, ""
+    for w, family, label, scans, truth in wind_negatives(a.windy, a.seed) if "wind negatives" in fam else ():
+        yield family, label, scans, truth, f"{w:.2f}"
+
+
+#: Verdict thresholds past their allowed range (the issue's loosened config among them), judged on the
+#: evidence recorded at the loosest allowed values: what the ranges keep out.
+BEYOND: tuple[tuple[str, dict], ...] = (
+    ("min_consistency 0.85, min_margin 0.01, chance_factor 1.5 (issue 17)",
+     {"min_consistency": 0.85, "min_margin": 0.01, "chance_factor": 1.5}),
+    ("min_consistency 0.90", {"min_consistency": 0.90}),
+    ("min_margin 0.01", {"min_margin": 0.01}),
+    ("min_margin 0.0", {"min_margin": 0.0}),
+    ("chance_factor 1.0", {"chance_factor": 1.0}),
+    ("max_residual_factor 10", {"max_residual_factor": 10.0}),
+    ("min_margin 0.0, chance_factor 1.0", {"min_margin": 0.0, "chance_factor": 1.0}),
+)
+
+
+def beyond_table(rows: list[Outcome], params: Params) -> str:
+    """The wrong pairs (no right transform, or not right) verified when one threshold is set past its range."""
+    pairs = [r for r in rows if r.what.startswith("pair") and r.evidence is not None and r.right is not True]
+    out = [["at the loosest allowed", str(sum(r.verified for r in pairs))]]
+    for label, change in BEYOND:
+        vp = replace(params.verify, **change)
+        n = sum(judge(r.evidence, verify=vp, coarse=params.coarse, acceptance=params.acceptance)[0] == VERIFIED
+                for r in pairs)
+        out.append([label, f"**{n}**" if n else "0"])
+    return md_table((f"thresholds (the other ones at their loosest; {len(pairs)} wrong pairs)", "verified but wrong"), out)
+
+
+def loosest_run(a) -> int:
+    """The negative families with every verification threshold at its loosest allowed value: the
+    confusion table (0 verified but wrong is the point) and the evidence of any verified wrong one."""
+    report = Report()
+    params = loosest(PRESETS["robust"])
+    fam = set(a.families) & set(NEGATIVE_FAMILIES)
+    rows: list[Outcome] = []
+    for family, label, scans, truth, cond in negatives(a, fam):
+        rows += run(family, label, scans, truth, params, condition=cond)[0]
+        print(f"  {family} {cond} {label} done", file=sys.stderr, flush=True)
+    say = report.say
+    say("### Thresholds at their loosest")
+    say()
+    say(md_table(("threshold", "default", "loosest allowed"), [
+        [key, f"{f.default:g}", f"{f.metadata['min' if f.metadata['looser'] == 'lower' else 'max']:g}"]
+        for key, f in thresholds()]))
+    say()
+    say("### The negative families under the loosest thresholds")
+    say()
+    say(confusion_table(rows))
+    say()
+    say("### One step beyond the ranges: the wrong pairs' recorded evidence judged again")
+    say()
+    say(beyond_table(rows, params))
+    wrong = [r for r in rows if r.verified and r.right is not True]
+    say()
+    say("Verified but wrong, their evidence:" if wrong else "None verified.")
+    if wrong:
+        say()
+        say(evidence_table([r for r in wrong if r.what.startswith("pair")] or wrong))
+    report.save(a.out)
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = parser(__doc__, real_seeds=4)
     ap.add_argument("--baseline", default="HEAD~1", help="revision whose `treereg register` times are the baseline")
@@ -488,7 +583,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--before", metavar="REV", help="also run `treereg register` of REV and of this checkout on the "
                     "first --before-n trees of each wind and mixed-pixel condition (scans, each its own verdicts)")
     ap.add_argument("--before-n", type=int, default=4)
+    ap.add_argument("--mirrored", type=int, default=8, help="cases with a mirrored scan")
+    ap.add_argument("--loosest", action="store_true", help="only the negative families (" + ", ".join(NEGATIVE_FAMILIES)
+                    + "), with every verification threshold at its loosest allowed value: none may be verified")
     a = ap.parse_args(argv)
+    if a.loosest:
+        return loosest_run(a)
     report = Report()
     say = report.say
     params = PRESETS["robust"]
@@ -504,6 +604,8 @@ def main(argv: list[str] | None = None) -> int:
         rows += run("third station sees another tree", label, scans, truth, params)[0]
     for family, label, scans, truth in symmetric_crowns(a.symmetric, a.seed) if "symmetric" in fam else ():
         rows += run(family, label, scans, truth, params)[0]
+    for label, scans, truth in mirrored(a.mirrored, a.seed) if "mirrored" in fam else ():
+        rows += run("mirrored scan", label, scans, truth, params)[0]
     leaf_rows: list[Outcome] = []
     for label, scans, truth in leaf_on(a.real_seeds, a.seed, a.real_step) if "leaf-on" in fam else ():
         leaf_rows += run("leaf-on crowns", label, scans, truth, params)[0]

@@ -9,6 +9,9 @@ import json
 import os
 import re
 import shutil
+import signal
+import subprocess
+import sys
 import stat
 from pathlib import Path
 
@@ -99,3 +102,21 @@ def one_line(err: str, pattern: str) -> None:
 
 def _env() -> dict[str, str]:
     return dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""), PYTHONUNBUFFERED="1")
+
+
+def stop_register_midway(sandbox: Path, sig: int) -> tuple[int, str]:
+    """`treereg register` of the demo scans over `prev/transforms.json` in a real process, sent `sig`
+    once the registration has started: its exit code and stderr."""
+    s = sandbox / "scans"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "treereg_cli", "register", s / "scan1.ply", s / "scan2.ply", s / "scan3.ply",
+         "--exports", "--out", sandbox / "prev" / "transforms.json"],
+        cwd=REPO, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    seen = b""
+    while b"register [" not in seen:  # the registration has started: stop it mid-way
+        chunk = proc.stderr.read1(256)
+        assert chunk, f"ended before registering: {seen!r}"
+        seen += chunk
+    proc.send_signal(sig)
+    _, rest = proc.communicate(timeout=60)
+    return proc.returncode, (seen + rest).decode()

@@ -118,8 +118,11 @@ def test_real_gzipped_riegl_scan():
 def test_npy_and_npz(tmp_path, pts):
     np.save(tmp_path / "a.npy", pts.astype(np.float32))
     np.testing.assert_allclose(read_points(tmp_path / "a.npy"), pts, atol=1e-5)
-    np.savez(tmp_path / "first.npz", pts, np.zeros(3))
-    np.testing.assert_array_equal(read_points(tmp_path / "first.npz"), pts)
+    np.savez(tmp_path / "only.npz", pts)
+    np.testing.assert_array_equal(read_points(tmp_path / "only.npz"), pts)
+    np.savez(tmp_path / "first.npz", pts, np.zeros(3))  # which array is the scan is not guessed
+    with pytest.raises(ScanError, match=r"holds 2 arrays \(arr_0, arr_1\) and none is named 'points'"):
+        read_points(tmp_path / "first.npz")
     np.savez(tmp_path / "keyed.npz", colours=np.zeros((4, 3)), points=pts)
     np.testing.assert_array_equal(read_points(tmp_path / "keyed.npz"), pts)
 

@@ -8,11 +8,14 @@ import sys
 import time
 from pathlib import Path
 
-from treereg_core.batch.jobs import find_jobs
+from treereg_core.batch.jobs import SUMMARY_NAMES, TreeJob, find_jobs
 from treereg_core.batch.report import write_summary
-from treereg_core.batch.runner import picture_of, run_batch
-from treereg_core.errors import ConfigError
+from treereg_core.batch.runner import PICTURE_NAME, RESULT_NAME, picture_of, run_batch
+from treereg_core.errors import ConfigError, OutputError
+from treereg_core.io.atomic import check_distinct
+from treereg_core.io.transforms import export_paths
 
+from . import progress
 from .common import add_param_args, load_params
 from .progress import ProgressBar
 
@@ -41,13 +44,48 @@ def add(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
+def _default_out(src: Path) -> Path:
+    return src.parent / f"{src.stem if src.is_file() else src.name}_results"
+
+
+def check_out(src: Path, out: Path) -> None:
+    """The results folder is not the input folder nor inside it: the next run would take the
+    results (matrix text files, CSVs) for scans."""
+    if not src.is_dir():
+        return
+    s, o = src.resolve(), out.resolve()
+    if o == s or s in o.parents:
+        where = "the input folder" if o == s else f"inside the input folder {src}"
+        raise OutputError(str(out), f"is {where}; the results would be read as scans by the next run: "
+                          f"choose a folder outside it (e.g. {_default_out(src)})")
+
+
+def check_outputs(src: Path, out: Path, jobs: list[TreeJob]) -> None:
+    """No file batch writes is one of its inputs (a scan, the manifest, a truth.json)."""
+    outputs = [(f"the campaign's {name}", out / name) for name in SUMMARY_NAMES]
+    inputs: list[Path] = [src] if src.is_file() else []
+    for job in jobs:
+        d = out / job.name
+        files = [d / RESULT_NAME, d / PICTURE_NAME, *export_paths(d, [f.name for f in job.scans])]
+        outputs += [(f"the result {f.name} of tree {job.name}", f) for f in files]
+        inputs += [*job.scans, *([job.truth] if job.truth else [])]
+    check_distinct(outputs, inputs, advice="choose another --out folder")
+
+
+def _notice(text: str) -> None:
+    progress.end_line()
+    print(f"  {text}", file=sys.stderr, flush=True)
+
+
 def run(args: argparse.Namespace) -> int:
     src = Path(args.input)
-    out = Path(args.out) if args.out else src.parent / f"{src.stem if src.is_file() else src.name}_results"
+    out = Path(args.out) if args.out else _default_out(src)
     if args.workers is not None and args.workers < 1:
         raise ConfigError(f"--workers must be at least 1, got {args.workers}")
     params = load_params(args)
-    jobs = find_jobs(src, exclude=out)
+    check_out(src, out)
+    jobs = find_jobs(src)
+    check_outputs(src, out, jobs)
     try:
         out.mkdir(parents=True, exist_ok=True)
         probe = out / ".treereg-write-test"
@@ -59,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
     where = f"Dask cluster {args.dask}" if args.dask else f"{args.workers or os.cpu_count()} worker(s)"
     print(f"{len(jobs)} trees from {src}, {where}, results in {out}", file=sys.stderr)
     outcomes, ran = run_batch(jobs, params, out, until=args.until, workers=args.workers, dask_address=args.dask,
-                              redo=args.redo, progress=ProgressBar("batch"))
+                              redo=args.redo, progress=ProgressBar("batch"), notice=_notice)
     seconds = time.perf_counter() - t0
     paths = write_summary(outcomes, out, {o.tree: picture_of(o.tree, out) for o in outcomes},
                           title=f"treereg batch: {src.name}")

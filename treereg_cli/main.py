@@ -1,16 +1,23 @@
 """The `treereg` command line: one module per subcommand, each with `add(subparsers)` and `run(args)`.
 
 Errors a user can fix (bad scan files, bad parameters, an output that cannot be written) print one
-line and exit with status 2; Ctrl-C prints one line and exits with status 130, leaving every file
-as it was (all writes are atomic). Warnings about input (rows dropped) are printed as sentences.
+line and exit with status 2; Ctrl-C prints one line and exits with status 130, SIGTERM likewise with
+status 143 (128 + 15, what a shell reports for a command ended by SIGTERM), leaving every file as it
+was (all writes are atomic). Warnings about input (rows dropped) are printed as sentences; any other
+warning that still reaches here is one "treereg: warning:" line without a source path, or dropped
+when it only concerns a library's developers.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
+import signal
 import sys
+import threading
 import warnings
+from typing import Any, Callable, Iterator
 
 from treereg_core._version import __version__
 from treereg_core.errors import ConfigError, OutputError, ScanError
@@ -40,26 +47,86 @@ def say(text: str) -> None:
     print(f"treereg: {text}", file=sys.stderr, flush=True)
 
 
-def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
-    """What treereg says about its input is a sentence; anything else keeps Python's format."""
-    if issubclass(category, ScanWarning):
-        say(f"warning: {message}")
-    else:
-        progress.end_line()
-        sys.stderr.write(warnings.formatwarning(message, category, filename, lineno, line))
+#: Warnings for a library's developers (an API to change), not about the user's input: not shown.
+DEVELOPER_WARNINGS = (DeprecationWarning, PendingDeprecationWarning, FutureWarning, ImportWarning, ResourceWarning)
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised in the main thread as Ctrl-C is: every clean-up that Ctrl-C runs (temporary
+    files, batch workers, the app's upload folder) runs for it too. `str()` is the signal's name."""
+
+    def __str__(self) -> str:
+        return "SIGTERM"
+
+
+def _raise_terminated(signum: int, frame: object) -> None:
+    raise Terminated()
+
+
+@contextlib.contextmanager
+def sigterm_as_interrupt() -> Iterator[None]:
+    """While inside, SIGTERM raises `Terminated` in the main thread (elsewhere no signal arrives:
+    nothing is installed); the previous handler is put back on the way out."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, _raise_terminated)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def warning_line(message: Warning | str, category: type[Warning]) -> str | None:
+    """The one line a warning becomes (None: not shown): its message only, never the file and line of
+    code it came from, which a user cannot act on."""
+    if issubclass(category, DEVELOPER_WARNINGS) and not issubclass(category, ScanWarning):
+        return None
+    text = " ".join(str(message).split())  # one line, whatever the library put in it
+    return f"warning: {text}" if text else None
+
+
+def _warning_printer() -> Callable[..., None]:
+    """`warnings.showwarning` for one command: each distinct message once (a numpy warning inside a
+    loop would otherwise repeat per call site)."""
+    shown: set[str] = set()
+    lock = threading.Lock()  # the app's threads warn too
+
+    def show(message: Any, category: type[Warning], filename: str, lineno: int, file: Any = None,
+             line: str | None = None) -> None:
+        text = warning_line(message, category)
+        with lock:
+            if text is None or text in shown:
+                return
+            shown.add(text)
+        say(text)
+
+    return show
+
+
+def _names_printable() -> None:
+    """A file name that is not UTF-8 (its bytes kept as lone surrogates) prints escaped, not as a
+    UnicodeEncodeError after the whole run (stdout is strict outside the C locale)."""
+    for stream in (sys.stdout, sys.stderr):
+        if getattr(stream, "errors", None) == "strict" and hasattr(stream, "reconfigure"):
+            stream.reconfigure(errors="backslashreplace")
 
 
 def main(argv: list[str] | None = None) -> int:
+    _names_printable()
     parser = build_parser()
     args = parser.parse_args(argv)
-    with warnings.catch_warnings():
+    with warnings.catch_warnings(), sigterm_as_interrupt():
         warnings.simplefilter("always", ScanWarning)  # one per file, not one per line of code
-        warnings.showwarning = _show_warning
+        warnings.showwarning = _warning_printer()
         try:
             return int(args.func(args) or 0)
         except (ScanError, ConfigError, OutputError) as e:
             say(f"error: {e}")
             return 2
+        except Terminated:
+            say("terminated (SIGTERM); no file was left half-written or replaced by a partial result")
+            return 143
         except KeyboardInterrupt:
             say("interrupted (Ctrl-C); no file was left half-written or replaced by a partial result")
             return 130

@@ -13,14 +13,15 @@ from pathlib import Path
 
 from treereg_core.errors import ConfigError, ScanError
 from treereg_core.io import atomic
-from treereg_core.io.atomic import check_output_file
+from treereg_core.io.atomic import check_distinct, check_output_file
 from treereg_core.io.e57 import write_registered_e57
 from treereg_core.io.merged import write_merged
 from treereg_core.io.scans import WRITE_EXTENSIONS, extension
-from treereg_core.io.transforms import export_paths, registration_file, write_exports, write_transforms
+from treereg_core.io.transforms import (export_paths, registered_e57_name, registration_file, write_exports,
+                                        write_transforms)
 from treereg_core.pipeline import register
 from treereg_core.stages import UNTIL
-from treereg_core.verify.report import motion_lines, quality_report, verdict_lines
+from treereg_core.verify.report import motion_lines, quality_report, verdict_lines, verdict_text
 
 from .common import add_param_args, load_params, read_scans
 from .progress import ProgressBar
@@ -47,7 +48,7 @@ def add(sub: argparse._SubParsersAction) -> None:
     add_param_args(p)
     p.add_argument("--exports", action="store_true",
                    help="also write CloudCompare and PDAL matrix files beside --out, named after it "
-                   "(<out>.<scan>.cloudcompare.txt, <out>.<scan>.pdal.txt), and registered.e57")
+                   "(<out>.<scan>.cloudcompare.txt, <out>.<scan>.pdal.txt), and <out>.registered.e57")
     p.add_argument("--e57", metavar="FILE", help="also write the registered scans as one multi-scan E57 (each scan "
                    "with its estimated pose: CloudCompare and other E57 readers open it registered)")
     p.add_argument("--merged", metavar="FILE",
@@ -61,9 +62,17 @@ def run(args: argparse.Namespace) -> int:
         # Said before minutes of registration, not after.
         raise ConfigError(f"{args.merged}: the merged cloud is written as {', '.join(WRITE_EXTENSIONS)}; "
                           f"not {extension(args.merged) or '(no extension)'!r}")
+    if args.e57 and extension(args.e57) != ".e57":  # an E57 under another format's name misleads every reader
+        raise ConfigError(f"{args.e57}: --e57 writes an E57 file; give it the extension .e57, "
+                          f"not {extension(args.e57) or '(no extension)'!r}")
     out = Path(args.out)
-    e57 = Path(args.e57) if args.e57 else (out.parent / "registered.e57" if args.exports else None)
-    # Where the results go is checked before anything is read or computed.
+    e57 = Path(args.e57) if args.e57 else (out.parent / registered_e57_name(out.name) if args.exports else None)
+    # Where the results go is checked before anything is read or computed: never onto an input, nor
+    # two results onto one file.
+    outputs = [("--out", out)] + [(what, Path(p)) for what, p in (
+        ("--e57" if args.e57 else "the --exports E57 (named after --out)", e57), ("--merged", args.merged)) if p]
+    inputs = [*args.scans, *([args.config] if args.config else [])]
+    check_distinct(outputs, inputs)
     check_output_file(out, example="transforms.json")
     for extra in (e57, args.merged):
         if extra is not None:
@@ -74,7 +83,9 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("register needs at least two scans (the first is the reference); "
                           f"{', '.join(args.scans)} hold(s) {len(scans)}")
     if args.exports:  # the matrix files are named after the scans (an E57 names its own)
-        for path in export_paths(out.parent, [s.name for s in scans], out.name)[1:]:
+        matrices = export_paths(out.parent, [s.name for s in scans], out.name)[1:]
+        check_distinct(outputs + [("an --exports matrix file (named after --out)", p) for p in matrices], inputs)
+        for path in matrices:
             check_output_file(path)
     t0 = time.perf_counter()
     reg = register(scans, params, until=UNTIL[args.until], progress=ProgressBar("register"))
@@ -108,7 +119,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"  {r['stage']:<10} {r['metric']:<40} {text} {r['unit']}")
     print()
     for name, (verdict, _, _) in verdicts.items():
-        print(f"  {name:<30} {verdict}")
+        print(f"  {name:<30} {verdict_text(verdict, params, name == scans[0].name)}")
     for line in motion_lines(scans, pipe.pairs, pipe.outputs):
         print(f"  wind: {line}")
     print(f"\nwrote {', '.join(str(w) for w in written)} in {seconds:.1f} s")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from treereg_core.io.atomic import check_output_dir, check_output_file
+from treereg_core.io.atomic import check_distinct, check_output_dir, check_output_file
 from treereg_core.simulate.cases import CaseSpec, case_paths, write_case
 
 from .common import angular_steps
@@ -71,7 +71,10 @@ def run(args: argparse.Namespace) -> int:
         from_points=args.from_points, splat_radius_m=args.splat, wind_m=args.wind, flutter=args.flutter,
         mixed_pixels=args.mixed_pixels,
     )
-    for path in case_paths(args.out, spec.n_stations):  # before the (long) simulation
+    paths = case_paths(args.out, spec.n_stations)  # checked before the (long) simulation
+    check_distinct([(f"the case's {p.name}", p) for p in paths], [args.from_points] if args.from_points else [],
+                   advice="choose another --out")
+    for path in paths:
         check_output_file(path)
     case = spec.build(progress=ProgressBar("simulate"))
     truth = write_case(case, args.out, dtype="float32" if args.float32 else "float64")

@@ -80,6 +80,11 @@ def run(args: argparse.Namespace) -> int:
     # The app (viser, its web client) is imported only here: every other command stays light.
     from treereg_viewer.app import serve
     from treereg_viewer.controller import Controller
+    from treereg_viewer.export import check_not_inputs, file_names
+
+    if out_dir is not None:  # no export may replace a file the app reads (a scan named merged.ply there)
+        check_not_inputs(out_dir, file_names(s.name for s in scans),
+                         [*args.scans, *(f for f in (args.config, args.truth) if f)])
 
     serve(Controller(scans, params, truth), host=args.host, port=args.port, out_dir=out_dir,
           max_upload_bytes=int(args.max_upload_mb * 1e6))

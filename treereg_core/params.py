@@ -26,10 +26,21 @@ from .errors import ConfigError
 ANGULAR_STEP_RANGE_DEG: tuple[float, float] = (0.001, 1.0)
 
 
+#: Whole numbers a random seed may be (numpy's legacy generators take 32 bits).
+SEED_RANGE: tuple[int, int] = (0, 2**32 - 1)
+
+
 def _f(default: Any, unit: str, doc: str, choices: tuple[Any, ...] | None = None,
-       lo: float | None = None, hi: float | None = None) -> Any:
-    """A parameter field: default plus metadata the CLI and the app render."""
-    meta = {"unit": unit, "doc": doc, "choices": choices, "min": lo, "max": hi}
+       lo: float | None = None, hi: float | None = None, looser: str | None = None) -> Any:
+    """A parameter field: default plus metadata the CLI and the app render.
+
+    `looser` marks a threshold of the verdict "verified": "lower" or "higher" values verify more.
+    Its range stops where, measured on the benchmark's wrong scans, a looser value would verify one
+    (`benchmarks/bench_verify.py --loosest`); `loosened` names the fields set looser than the default.
+    """
+    if looser not in (None, "lower", "higher"):
+        raise ValueError(f"looser must be 'lower' or 'higher', not {looser!r}")
+    meta = {"unit": unit, "doc": doc, "choices": choices, "min": lo, "max": hi, "looser": looser}
     if isinstance(default, (list, dict)):
         raise TypeError("use tuples for sequence defaults (sections are frozen)")
     return field(default=default, metadata=meta)
@@ -80,7 +91,7 @@ class ProjectionParams:
 
     pixel_factor: int = _f(2, "steps", "a pixel covers k*phi x k*varphi (paper: k = 2)", lo=1, hi=10)
     square_pixels: bool = _f(True, "", "steps differing by more than 1.5x (e.g. 0.622 x 0.048 deg) get square pixels of k times the finer step, the gaps between scan lines closed (paper: k*phi x k*varphi)")
-    border_px: tuple[int, int] = _f((10, 10), "px", "image borders r1, r2 (paper eq. 2)")
+    border_px: tuple[int, int] = _f((10, 10), "px", "image borders r1, r2 (paper eq. 2)", lo=0, hi=1000)
     relative_azimuth: bool = _f(True, "", "measure azimuth from the scan centroid's azimuth, so a tree never straddles +-180 deg")
     theta_deg: float = _f(10.0, "deg", "rotation step of the image sequence (paper: 10)", lo=0.5, hi=90.0)
     span_deg: float | None = _f(None, "deg", "sequence covers [-span, +span]; None = 360/n, n = number of scans (paper)", lo=0.0, hi=180.0)
@@ -117,8 +128,8 @@ class CoarseParams:
     inlier_m: float = _f(0.4, "m", "RANSAC inlier distance", lo=0.01, hi=5.0)
     final_inlier_m: float | None = _f(0.05, "m", "after RANSAC, narrow the inlier distance step by step to this and refit (None = keep inlier_m)", lo=0.005, hi=5.0)
     iterations: int = _f(2000, "", "RANSAC iterations", lo=10, hi=100000)
-    min_ties: int = _f(4, "pairs", "fewest tie pairs (or inliers) accepted for a transform (paper: > 4)", lo=3, hi=1000)
-    seed: int = _f(0, "", "random seed of RANSAC")
+    min_ties: int = _f(4, "pairs", "fewest tie pairs (or inliers) accepted for a transform (paper: > 4)", lo=3, hi=1000, looser="lower")
+    seed: int = _f(0, "", "random seed of RANSAC", lo=SEED_RANGE[0], hi=SEED_RANGE[1])
     modes: int = _f(4, "", "RANSAC keeps this many distinct solutions (other headings, other trunk positions) for the hypotheses stage", lo=1, hi=20)
     chance_shuffles: int = _f(3, "", "RANSAC is also run on this many random re-pairings of the ties: what chance reaches (0 = not measured)", lo=0, hi=50)
     max_tilt_deg: float | None = _f(30.0, "deg", "reject a transform that tilts the scan more than this (scanners stand nearly level); None = no check", lo=0.0, hi=180.0)
@@ -134,7 +145,7 @@ class HypothesesParams:
     polish_gate_m: float = _f(0.02, "m", "each candidate is aligned by the surfaces down to this pairing distance", lo=0.001, hi=1.0)
     polish_iterations: int = _f(5, "", "iterations of that alignment at each pairing distance (10 cm, 5 cm, final)", lo=1, hi=200)
     polish_points: int = _f(4000, "points", "points of the target's surface used by that alignment", lo=100, hi=1_000_000)
-    tolerance_m: float = _f(0.02, "m", "free-space test: a target point agrees with the reference's view within this range difference (plus the cell's depth)", lo=0.001, hi=1.0)
+    tolerance_m: float = _f(0.02, "m", "free-space test: a target point agrees with the reference's view within this range difference (plus the cell's depth)", lo=0.001, hi=0.04, looser="higher")
     cell_steps: float = _f(2.0, "steps", "free-space test: the reference's range image has cells of this many angular steps", lo=1.0, hi=20.0)
     loss_scale_m: float = _f(0.005, "m", "residual scale of the robust loss of the alignment", lo=0.0001, hi=0.5)
     violation_weight: float = _f(4.0, "", "a hypothesis keeps its polished pose when that scores better: points seen alike minus this many times the points in the reference's free space", lo=0.0, hi=1000.0)
@@ -242,24 +253,24 @@ class AcceptanceParams:
     gate_m: float = _f(0.02, "m", "measure: a target point pairs with a reference point within this distance", lo=0.001, hi=1.0)
     tolerance_m: float = _f(0.005, "m", "measure: a paired point lies on the surface when its point-to-plane distance is below this", lo=0.0001, hi=1.0)
     margin: float = _f(0.01, "", "reject fine when the surface agreement falls by more than this (fraction of points)", lo=0.0, hi=1.0)
-    stem_tilt_deg: float = _f(0.15, "deg", "the stems line up: by the stem profile, the target's stem leans at most this much against the reference's (or 3 times the profile's noise); a candidate pose whose stems do not is not chosen, a final pose whose stems do not is not verified", lo=0.0, hi=90.0)
-    stem_shift_m: float = _f(0.005, "m", "...and the two stems stand at most this far apart (or 3 times the noise)", lo=0.0, hi=10.0)
+    stem_tilt_deg: float = _f(0.15, "deg", "the stems line up: by the stem profile, the target's stem leans at most this much against the reference's (or 3 times the profile's noise); a candidate pose whose stems do not is not chosen, a final pose whose stems do not is not verified", lo=0.0, hi=0.5, looser="higher")
+    stem_shift_m: float = _f(0.005, "m", "...and the two stems stand at most this far apart (or 3 times the noise)", lo=0.0, hi=0.02, looser="higher")
 
 
 @dataclass(frozen=True)
 class VerifyParams:
     """The evidence a registration must show to be called verified (thresholds chosen by measurement, see RESULTS.md)."""
 
-    min_consistency: float = _f(0.95, "", "free-space test at the final pose: fraction of the points both stations see that agree", lo=0.0, hi=1.0)
-    min_seen: int = _f(200, "points", "at least this many target points must be seen by both stations to judge", lo=1, hi=10_000_000)
-    min_margin: float = _f(0.03, "", "the best distinct competing hypothesis must be at least this much less consistent", lo=0.0, hi=1.0)
-    chance_factor: float = _f(2.0, "", "coarse support: inliers at least this many times what RANSAC reaches on randomly re-paired ties", lo=1.0, hi=100.0)
-    max_residual_factor: float = _f(3.0, "", "the trimmed surface residual at most this many times the scans' noise floor", lo=1.0, hi=100.0)
-    max_tilt_deg: float = _f(5.0, "deg", "plausibility: the transform tilts the target's scanner at most this much (scanners stand nearly level)", lo=0.0, hi=180.0)
-    max_height_difference_m: float = _f(1.0, "m", "plausibility: both scanners' heights above the ground differ at most this much (when both see ground)", lo=0.0, hi=100.0)
-    max_loop_m: float = _f(0.02, "m", "with 3 or more scans: loops of pairwise transforms close within this (mean displacement of the tree)", lo=0.0, hi=10.0)
-    max_heading_deg: float = _f(0.5, "deg", "wind, when the sections leave the turn about the stem open: the heading the free-space evidence prefers must lie within this of the pose's", lo=0.0, hi=180.0)
-    max_motion_m: float = _f(0.1, "m", "wind: with the stem's bend taken out, the branches may still have moved this much on their own between the stations (beyond it the motion cannot be told from a wrong pose)", lo=0.0, hi=1.0)
+    min_consistency: float = _f(0.95, "", "free-space test at the final pose: fraction of the points both stations see that agree", lo=0.93, hi=1.0, looser="lower")
+    min_seen: int = _f(200, "points", "at least this many target points must be seen by both stations to judge", lo=100, hi=10_000_000, looser="lower")
+    min_margin: float = _f(0.03, "", "the best distinct competing hypothesis must be at least this much less consistent", lo=0.02, hi=1.0, looser="lower")
+    chance_factor: float = _f(2.0, "", "coarse support: inliers at least this many times what RANSAC reaches on randomly re-paired ties", lo=1.5, hi=100.0, looser="lower")
+    max_residual_factor: float = _f(3.0, "", "the trimmed surface residual at most this many times the scans' noise floor", lo=1.0, hi=5.0, looser="higher")
+    max_tilt_deg: float = _f(5.0, "deg", "plausibility: the transform tilts the target's scanner at most this much (scanners stand nearly level)", lo=0.0, hi=10.0, looser="higher")
+    max_height_difference_m: float = _f(1.0, "m", "plausibility: both scanners' heights above the ground differ at most this much (when both see ground)", lo=0.0, hi=2.0, looser="higher")
+    max_loop_m: float = _f(0.02, "m", "with 3 or more scans: loops of pairwise transforms close within this (mean displacement of the tree)", lo=0.0, hi=0.05, looser="higher")
+    max_heading_deg: float = _f(0.5, "deg", "wind, when the sections leave the turn about the stem open: the heading the free-space evidence prefers must lie within this of the pose's", lo=0.0, hi=2.0, looser="higher")
+    max_motion_m: float = _f(0.1, "m", "wind: with the stem's bend taken out, the branches may still have moved this much on their own between the stations (beyond it the motion cannot be told from a wrong pose)", lo=0.0, hi=0.15, looser="higher")
 
 
 @dataclass(frozen=True)
@@ -381,8 +392,52 @@ PRESETS: dict[str, Params] = {"robust": Params(), "paper": _paper()}
 
 
 def field_info(section: str) -> list[dataclasses.Field]:
-    """The fields of one section, in order, with their metadata (unit, doc, choices, min, max)."""
+    """The fields of one section, in order, with their metadata (unit, doc, choices, min, max, looser)."""
     return list(fields(getattr(Params(), section)))
+
+
+def thresholds() -> list[tuple[str, dataclasses.Field]]:
+    """("section.name", field) of every threshold of the verdict "verified" (`looser` in its metadata)."""
+    return [(f"{s}.{f.name}", f) for s in SECTIONS for f in field_info(s) if f.metadata.get("looser")]
+
+
+def _is_looser(fld: dataclasses.Field, value: Any, default: Any) -> bool:
+    return value < default if fld.metadata["looser"] == "lower" else value > default
+
+
+def loosened(params: Params) -> dict[str, tuple[Any, Any]]:
+    """{"section.name": (value, default)} of the verification thresholds set looser than the default
+    (tightened ones are not listed: they cannot verify more)."""
+    out = {}
+    for key, fld in thresholds():
+        s, n = key.split(".")
+        value, default = getattr(getattr(params, s), n), fld.default
+        if _is_looser(fld, value, default):
+            out[key] = (value, default)
+    return out
+
+
+def loosened_text(changes: dict[str, tuple[Any, Any]]) -> str:
+    """"verified under loosened thresholds (verify.min_margin 0.01 < default 0.03)" ("" when none)."""
+    if not changes:
+        return ""
+    parts = [f"{k} {v:g} {'<' if v < d else '>'} default {d:g}" for k, (v, d) in changes.items()]
+    return f"verified under loosened thresholds ({', '.join(parts)})"
+
+
+def loosest(params: Params | None = None) -> Params:
+    """`params` (default: robust) with every verification threshold at its loosest allowed value."""
+    p = params or Params()
+    for key, fld in thresholds():
+        s, n = key.split(".")
+        p = p.with_value(s, n, fld.metadata["min"] if fld.metadata["looser"] == "lower" else fld.metadata["max"])
+    return p
+
+
+def changed_from_defaults(params: Params) -> dict[str, list[Any]]:
+    """{"section.name": [value, default]} of every parameter that differs from the robust default."""
+    now, default = to_dict(params), to_dict(Params())
+    return {f"{s}.{k}": [v, default[s][k]] for s in SECTIONS for k, v in now[s].items() if v != default[s][k]}
 
 
 def to_dict(params: Params) -> dict[str, dict[str, Any]]:
@@ -510,9 +565,14 @@ def _check_range(key: str, values: tuple[Any, ...], meta: Any) -> None:
     unit = f" {meta['unit']}" if meta.get("unit") and meta["unit"] not in ("steps",) else ""
     for v in values:
         if (lo is not None and v < lo) or (hi is not None and v > hi):
-            allowed = f"{lo:g} to {hi:g}{unit}" if lo is not None and hi is not None else \
-                f"at least {lo:g}{unit}" if lo is not None else f"at most {hi:g}{unit}"
-            raise ConfigError(f"{key}: {v:g}{unit} is outside the allowed range ({allowed})")
+            allowed = f"{_g(lo)} to {_g(hi)}{unit}" if lo is not None and hi is not None else \
+                f"at least {_g(lo)}{unit}" if lo is not None else f"at most {_g(hi)}{unit}"
+            raise ConfigError(f"{key}: {_g(v)}{unit} is outside the allowed range ({allowed})")
+
+
+def _g(v: float) -> str:
+    """A number as a message shows it: whole numbers in full (a seed's 4294967295), others short."""
+    return str(v) if isinstance(v, int) else f"{v:g}"
 
 
 def _element(typ: type, v: Any) -> Any:

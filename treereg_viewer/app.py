@@ -173,10 +173,12 @@ class TreeregApp:
         target.send_file_download(filename, data, save_immediately=True)
 
     def close(self) -> None:
+        # The upload folder first: the worker may take a while to finish its stage, and a second
+        # signal meanwhile must not leave the folder behind.
+        self.uploads.close()
         self.controller.close()
         for v in self.viewers:
             v.close()
-        self.uploads.close()
 
     def _on_snapshot(self, snap: Snapshot) -> None:
         for v in self.viewers:
@@ -279,7 +281,9 @@ def exposure_warning(host: str, port: int, out_dir: Path | None, max_upload_byte
 
 def serve(controller: Controller, host: str = "127.0.0.1", port: int = 8080, out_dir: Path | None = None,
           max_upload_bytes: int = MAX_UPLOAD_BYTES) -> None:
-    """Start the server and the app, print the URL (tests read it), block until Ctrl-C.
+    """Start the server and the app, print the URL (tests read it), block until Ctrl-C (or SIGTERM,
+    which `treereg` raises as a KeyboardInterrupt named "SIGTERM"); then close the app (its upload
+    folder removed).
 
     A port in use is an error (`ConfigError`): viser would silently take the next one. `port=0`
     asks for any free port.
@@ -296,12 +300,12 @@ def serve(controller: Controller, host: str = "127.0.0.1", port: int = 8080, out
     if warning:
         print(warning, file=sys.stderr, flush=True)
     url = f"http://{host}:{server.get_port()}/"
-    print(f"treereg view: {url}  (app ready in {time.perf_counter() - t0:.1f} s; Ctrl-C to stop)", flush=True)
-    try:
+    try:  # from the line a user (or a test) waits for on, a signal finds the app's clean-up in place
+        print(f"treereg view: {url}  (app ready in {time.perf_counter() - t0:.1f} s; Ctrl-C to stop)", flush=True)
         while True:
             time.sleep(1.0)
-    except KeyboardInterrupt:
-        print("treereg view: stopped (Ctrl-C)", flush=True)
+    except KeyboardInterrupt as e:
+        print(f"treereg view: stopped ({e or 'Ctrl-C'})", flush=True)
     finally:
         app.close()
         server.stop()

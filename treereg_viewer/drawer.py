@@ -7,6 +7,10 @@ Each layer remembers the key (result identity + the view choices it depends on) 
 and is redrawn only when that key changes. All updates of one redraw go in one `atomic()` block of
 the viewer's connection. Every browser tab has its own Drawer on its own scene; the shared
 `Derived` cache keeps tabs from computing the same cross-section twice.
+
+The drawing thread is also where the pipeline's news reaches the tab's GUI (`post`): the worker
+thread never calls viser itself (viser's message buffers are not made for a thread that outruns
+the app's own; a call from the worker once ended a run with "deque mutated during iteration").
 """
 
 from __future__ import annotations
@@ -77,6 +81,7 @@ class Drawer:
         self._on_error = on_error or (lambda msg: None)
         self._cond = threading.Condition()
         self._dirty = False
+        self._jobs: dict[str, Callable[[], None]] = {}  # GUI updates to run on this thread, by kind
         self._busy = False
         self._stopped = False
         self._keys: dict[str, Any] = {}
@@ -96,11 +101,20 @@ class Drawer:
             self._dirty = True
             self._cond.notify_all()
 
+    def post(self, kind: str, job: Callable[[], None]) -> None:
+        """Run `job` (a GUI update) on this thread, before the next redraw. A newer job of the same
+        `kind` replaces one not yet run (only the latest snapshot or progress matters); jobs run in the
+        order they were last posted."""
+        with self._cond:
+            self._jobs.pop(kind, None)
+            self._jobs[kind] = job
+            self._cond.notify_all()
+
     def wait_idle(self, timeout: float = 30.0) -> bool:
-        """Block until every requested redraw is done (tests)."""
+        """Block until every requested redraw and posted job is done (tests)."""
         deadline = time.monotonic() + timeout
         with self._cond:
-            while self._dirty or self._busy:
+            while self._dirty or self._jobs or self._busy:
                 left = deadline - time.monotonic()
                 if left <= 0:
                     return False
@@ -117,24 +131,36 @@ class Drawer:
     def _loop(self) -> None:
         while True:
             with self._cond:
-                while not self._dirty and not self._stopped:
+                while not self._dirty and not self._jobs and not self._stopped:
                     self._cond.wait()
                 if self._stopped:
                     return
-                self._dirty = False
+                jobs, self._jobs = list(self._jobs.values()), {}
                 self._busy = True
+            self._run_jobs(jobs)
+            with self._cond:  # the jobs may have asked for a redraw
+                dirty, self._dirty = self._dirty, False
             try:
-                t0 = time.perf_counter()
-                self.draw(self._get_snapshot(), self._get_view())
-                self.last_seconds = time.perf_counter() - t0
+                if dirty:
+                    t0 = time.perf_counter()
+                    self.draw(self._get_snapshot(), self._get_view())
+                    self.last_seconds = time.perf_counter() - t0
             except Exception as e:  # a drawing bug must not kill the thread; the user sees one line
                 log.exception("drawing failed")
                 self._on_error(f"Drawing failed: {type(e).__name__}: {e}")
             finally:
                 with self._cond:
                     self._busy = False
-                    self.draws += 1
+                    self.draws += dirty
                     self._cond.notify_all()
+
+    @staticmethod
+    def _run_jobs(jobs: list[Callable[[], None]]) -> None:
+        for job in jobs:
+            try:
+                job()
+            except Exception:  # one tab's GUI failing must not stop its drawing
+                log.exception("GUI update failed")
 
     def draw(self, snap: Snapshot, view: ViewState) -> None:
         """Bring the scene and the panel up to date with `snap` and `view`."""

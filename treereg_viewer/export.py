@@ -1,7 +1,8 @@
 """Exports of the latest result: the same files `treereg register` writes, plus the merged cloud.
 
 `export_bundle(snapshot)` makes every file in memory (for browser downloads); `write_bundle` puts
-them in a folder (`treereg view --out DIR`). The file contents come from treereg_core.io (the
+them in a folder (`treereg view --out DIR`), never over one of the files the app reads (a scan
+named merged.ply in that folder): `check_not_inputs` refuses, at start and at each export. The file contents come from treereg_core.io (the
 same builder of transforms.json as `treereg register`), so the app and the command line export identical files.
 """
 
@@ -13,17 +14,26 @@ import tempfile
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Iterable
 
 import numpy as np
 
 from treereg_core import params as P
+from treereg_core.errors import OutputError
 from treereg_core.io import atomic
-from treereg_core.io.atomic import write_bytes_atomic
+from treereg_core.io.atomic import check_distinct, write_bytes_atomic
 from treereg_core.io.merged import write_merged
-from treereg_core.io.transforms import TransformFile, registration_file, write_exports
+from treereg_core.io.transforms import TransformFile, export_paths, registration_file, write_exports
 from treereg_core.verify.report import quality_report
 
 from .controller import Snapshot
+
+
+#: The merged cloud's formats and the parameter file's name, as the exports name them.
+CLOUD_FORMATS = ("ply", "las", "laz")
+PARAMS_NAME = "params.json"
+#: What to do when an export would replace an input (said at start and in the app).
+CLASH_ADVICE = "start treereg view with another --out folder"
 
 
 class ExportError(ValueError):
@@ -62,7 +72,7 @@ def export_bundle(snap: Snapshot, cloud_format: str = "ply", keep_unverified: bo
     matrices per scan (`transforms.<scan>.cloudcompare.txt`, ...), params.json, and the merged
     registered cloud (`merged.<ply|las>`, every scan's points as loaded, ground included, each
     tagged with its scan's number: PLY `scan_id`, LAS `point_source_id`)."""
-    if cloud_format not in ("ply", "las", "laz"):
+    if cloud_format not in CLOUD_FORMATS:
         raise ExportError(f"merged cloud format must be ply, las or laz, not {cloud_format!r}")
     tf, stage = transform_file(snap, keep_unverified)
     files: dict[str, bytes] = {}
@@ -71,13 +81,34 @@ def export_bundle(snap: Snapshot, cloud_format: str = "ply", keep_unverified: bo
             files[path.name] = path.read_bytes()
         cloud = write_merged(Path(tmp) / f"merged.{cloud_format}", snap.scans, tf.transforms)
         files[cloud.name] = cloud.read_bytes()
-    files["params.json"] = (json.dumps(P.to_dict(snap.params), indent=2) + "\n").encode()
+    files[PARAMS_NAME] = (json.dumps(P.to_dict(snap.params), indent=2) + "\n").encode()
     return ExportBundle(stage, dict(tf.transforms), files)
 
 
-def write_bundle(bundle: ExportBundle, out_dir: Path) -> list[Path]:
+def file_names(scan_names: Iterable[str]) -> list[str]:
+    """Every file an export of these scans may write (any cloud format)."""
+    return ([p.name for p in export_paths(".", list(scan_names))] + [f"merged.{f}" for f in CLOUD_FORMATS]
+            + [PARAMS_NAME])
+
+
+def check_not_inputs(out_dir: Path, names: Iterable[str], inputs: Iterable[str | Path]) -> None:
+    """`OutputError` when an export `names` in `out_dir` would be one of the `inputs` (also through a link)."""
+    check_distinct([(f"the export {n}", Path(out_dir) / n) for n in names], inputs, advice=CLASH_ADVICE)
+
+
+def input_clash(bundle: ExportBundle, out_dir: Path, inputs: Iterable[str | Path]) -> str | None:
+    """Why `bundle` may not be written into `out_dir` (a file of it would replace an input), or None."""
+    try:
+        check_not_inputs(out_dir, bundle.files, inputs)
+    except OutputError as e:
+        return str(e)
+    return None
+
+
+def write_bundle(bundle: ExportBundle, out_dir: Path, inputs: Iterable[str | Path] = ()) -> list[Path]:
     """Write every file of `bundle` into `out_dir`, as one batch: all of them, or (on an error) none
-    replace what was there."""
+    replace what was there; none when one of them would replace one of the `inputs` (`OutputError`)."""
+    check_not_inputs(out_dir, bundle.files, inputs)
     with atomic.batch():
         return [write_bytes_atomic(Path(out_dir) / name, data) for name, data in bundle.files.items()]
 

@@ -73,9 +73,13 @@ class ExportPanel:
         try:
             bundle = export.export_bundle(snap, cloud_format=self.cloud_format.value,
                                           keep_unverified=bool(self.keep_unverified.value))
-            written = ""
-            if self.app.out_dir is not None:
-                paths = export.write_bundle(bundle, self.app.out_dir)
+            written, loaded = "", [s.source for s in snap.scans if s.source is not None]
+            # An export never replaces a loaded scan (merged.ply in the --out folder): not written, still downloaded.
+            clash = export.input_clash(bundle, self.app.out_dir, loaded) if self.app.out_dir is not None else None
+            if clash:
+                written = f" **⚠ Not written to `{self.app.out_dir}`:** {clash}; the download has every file."
+            elif self.app.out_dir is not None:
+                paths = export.write_bundle(bundle, self.app.out_dir, loaded)
                 written = f" Written to `{self.app.out_dir}` ({len(paths)} files)."
         except (export.ExportError, ConfigError, ScanError, OutputError, OSError) as e:
             self._failed(str(e))
@@ -101,7 +105,7 @@ class ExportPanel:
                      "\"Include unverified best guesses\" to export them anyway.")
         self.export_md.content = f"{what}{written}{caution}"
         # The message at the top says so too: it replaces an "Export failed" from before.
-        self.app.controller.note(f"{what}{written}", error=False)
+        self.app.controller.note(f"{what}{written}", error=bool(clash))
 
     def _failed(self, why: str) -> None:
         self.export_md.content = f"**⚠ Export failed:** {why}"

@@ -21,6 +21,7 @@ import typing
 from typing import Any, Callable
 
 import viser
+from viser import _messages
 
 from treereg_core import params as P
 
@@ -176,6 +177,28 @@ class SectionWidgets:
                     h.value = shown
         finally:
             self._syncing.on = False
+
+    def show_in_force(self, name: str, params: P.Params) -> None:
+        """After a value was applied: the input shows the value in force, sent to the tab even when the
+        server's copy of the input already holds it. With two tabs, a keystroke in one can cross the
+        other tab's change on its way in: the browser then shows the other tab's value while the
+        server's copy (and, once applied, the parameters) hold the keystroke's."""
+        with self._timers_lock:
+            if name in self._timers:  # typed on since: that value is applied next
+                return
+        h = self.handles[name]
+        v = getattr(getattr(params, self.section), name)
+        kind = self._kinds[name]
+        shown = str(v) if kind == "choice" else format_text(v) if kind == "text" else v
+        if h.value != shown:  # e.g. "1e1" typed, 10 in force
+            self._syncing.on = True
+            try:
+                h.value = shown
+            finally:
+                self._syncing.on = False
+            return
+        impl = h._impl  # viser sends only changes: re-send the value as it is
+        impl.gui_api._websock_interface.queue_message(_messages.GuiUpdateMessage(impl.uuid, {"value": shown}))
 
     def set_disabled(self, disabled: bool) -> None:
         for h in self.handles.values():

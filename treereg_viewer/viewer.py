@@ -224,6 +224,7 @@ class Viewer:
             self.controller.note(str(e), error=True)
             self.stages.sections[section].sync(self.controller.params)  # show what is in force
             return str(e)
+        self.stages.sections[section].show_in_force(name, self.controller.params)
         return None
 
     def load_params(self, params: Params, source: str, note: str = "") -> None:
@@ -414,8 +415,12 @@ class Viewer:
                     "/tour/label", "◀ the trunk slice of the cross-section",
                     position=tuple(float(v) for v in anchor + np.array([0.0, 0.0, 0.35]))))
 
-    # ---- from the worker ----------------------------------------------------------------------------
+    # ---- from the worker (which never calls viser: the drawing thread shows its news) ---------------
     def on_snapshot(self, snap: Snapshot) -> None:
+        if not self._closed:
+            self.drawer.post("snapshot", lambda: self._show_snapshot(snap))
+
+    def _show_snapshot(self, snap: Snapshot) -> None:
         if self._closed:
             return
         self.stages.show_snapshot(snap, self.view)
@@ -432,7 +437,7 @@ class Viewer:
         if fraction < 1.0 and now - self._last_progress < 0.1:  # ~10 updates a second are plenty
             return
         self._last_progress = now
-        self.stages.show_progress(fraction, text)
+        self.drawer.post("progress", lambda: self.stages.show_progress(fraction, text))
 
     def close(self) -> None:
         self._closed = True

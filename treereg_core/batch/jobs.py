@@ -42,8 +42,14 @@ class TreeJob:
     truth: Path | None = None
 
 
-def find_jobs(source: str | Path, exclude: Path | None = None) -> list[TreeJob]:
-    """The trees of a folder of tree folders or of a CSV manifest (`exclude`: an output folder inside)."""
+#: Names of what `treereg batch` writes that a scan reader would take: the matrix files in each tree's
+#: folder (`io.transforms.export_names`) and the summary beside them. Never read back as scans.
+MATRIX_SUFFIXES = (".cloudcompare.txt", ".pdal.txt")
+SUMMARY_NAMES = ("summary.csv", "scans.csv", "report.html")
+
+
+def find_jobs(source: str | Path) -> list[TreeJob]:
+    """The trees of a folder of tree folders or of a CSV manifest."""
     src = Path(source)
     if not src.exists():
         raise ConfigError(f"{src}: no such folder or manifest")
@@ -51,10 +57,9 @@ def find_jobs(source: str | Path, exclude: Path | None = None) -> list[TreeJob]:
         if src.suffix.lower() != ".csv":
             raise ConfigError(f"{src}: a batch takes a folder of tree folders or a .csv manifest")
         return read_manifest(src)
-    skip = exclude.resolve() if exclude is not None else None
     jobs = []
     for d in sorted(p for p in src.iterdir() if p.is_dir() and not p.name.startswith(".")):
-        if skip is not None and d.resolve() == skip:
+        if is_batch_output(d):  # an earlier campaign's results: its summary is not a tree's scans
             continue
         files = scan_files(d)
         if files:
@@ -66,9 +71,16 @@ def find_jobs(source: str | Path, exclude: Path | None = None) -> list[TreeJob]:
     return jobs
 
 
+def is_batch_output(folder: Path) -> bool:
+    """`folder` holds a campaign's summary (an output folder of `treereg batch`)."""
+    return all((folder / name).is_file() for name in SUMMARY_NAMES)
+
+
 def scan_files(folder: Path) -> list[Path]:
-    """A tree folder's scan files: in truth.json's order when there is one, else sorted by name."""
-    files = sorted(p for p in folder.iterdir() if p.is_file() and extension(p) in READ_EXTENSIONS)
+    """A tree folder's scan files: in truth.json's order when there is one, else sorted by name.
+    The matrix files batch writes are never among them."""
+    files = sorted(p for p in folder.iterdir() if p.is_file() and extension(p) in READ_EXTENSIONS
+                   and not p.name.lower().endswith(MATRIX_SUFFIXES))
     truth = folder / TRUTH_NAME
     if truth.is_file():
         try:

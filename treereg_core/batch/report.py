@@ -11,6 +11,7 @@ import io
 from pathlib import Path
 
 from ..io.atomic import write_text_atomic
+from .jobs import SUMMARY_NAMES
 from .tree import TreeOutcome
 
 TREE_COLUMNS = ("tree", "status", "exit_code", "scans", "verified", "unverified", "failed", "points", "read_s", "register_s",
@@ -58,9 +59,8 @@ def write_summary(outcomes: list[TreeOutcome], out_dir: Path, pictures: dict[str
     scan_rows = [{"tree": o.tree, "scan": s.name, "verdict": s.verdict, "points": str(s.points),
                   "rot_err_deg": _num(s.rot_err_deg, 4), "disp_err_m": _num(s.disp_err_m, 5), "message": s.message}
                  for o in outcomes for s in o.scans]
-    paths = [write_text_atomic(out_dir / "summary.csv", _csv(TREE_COLUMNS, rows)),
-             write_text_atomic(out_dir / "scans.csv", _csv(SCAN_COLUMNS, scan_rows)),
-             write_text_atomic(out_dir / "report.html", report_html(outcomes, pictures, title))]
+    texts = (_csv(TREE_COLUMNS, rows), _csv(SCAN_COLUMNS, scan_rows), report_html(outcomes, pictures, title))
+    paths = [write_text_atomic(out_dir / name, text) for name, text in zip(SUMMARY_NAMES, texts)]
     return paths
 
 

@@ -1,26 +1,36 @@
 """Running a campaign: every tree in a process pool (`workers`) or on a Dask cluster (`dask_address`).
 
 Each finished tree is written at once into `<out>/<tree>/` (transforms.json, the CloudCompare and
-PDAL matrices, picture.png, and last result.json), so an interrupted run resumes where it stopped:
-a tree whose result.json is there with the same fingerprint (files, options, parameters) is not
-run again unless `redo`. A tree that ended in an unexpected error is always retried. Workers use
-one BLAS thread each: N workers on N cores, not N x N threads.
+PDAL matrices, picture.png and result.json, all or none), so an interrupted run resumes where it
+stopped: a tree whose result.json is there with the same fingerprint (scan paths and content,
+options, parameters) and whose files still read back is not run again unless `redo`. A tree that
+ended in an unexpected error is always retried. A run never replaces a tree's result with a worse
+one (a failed re-run keeps the verified result, and says so). Workers use one BLAS thread each: N
+workers on N cores, not N x N threads; Ctrl-C or SIGTERM ends them at once.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import signal
+import threading
+import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
 from contextlib import contextmanager
 from multiprocessing import get_context
 from pathlib import Path
-from typing import Iterator
+from dataclasses import replace
+from typing import Callable, Iterator
+
+import numpy as np
 
 from ..errors import ConfigError
+from ..io import atomic
 from ..io.atomic import write_bytes_atomic, write_text_atomic
-from ..io.transforms import DEFAULT_NAME, write_exports
+from ..io.transforms import (DEFAULT_NAME, export_names, parse_cloudcompare_matrix, parse_pdal_matrix, read_transforms,
+                             write_exports)
 from ..params import Params
 from ..results import Progress, no_progress
 from .jobs import TreeJob
@@ -33,32 +43,133 @@ _THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 DASK_CONNECT_TIMEOUT = "10s"
 
 
-def previous(job: TreeJob, params: Params, until: str, out_dir: Path) -> TreeOutcome | None:
-    """The tree's earlier outcome if it is still valid (same fingerprint, not an error), else None."""
-    path = out_dir / job.name / RESULT_NAME
+#: How good a status is: a run never replaces an earlier result with a worse one (nothing verified
+#: instead of verified scans, no transform file instead of one).
+_RANK = {"ok": 2, "partial": 2, "unverified": 1, "failed": 0, "error": 0}
+
+
+def _record(d: Path) -> dict | None:
+    """The tree folder's result.json, or None when there is none or it does not read."""
     try:
-        d = json.loads(path.read_text())
+        rec = json.loads((d / RESULT_NAME).read_text())
     except (OSError, ValueError):
         return None
-    if d.get("fingerprint") != fingerprint(job, params, until) or d.get("status") == "error":
+    return rec if isinstance(rec, dict) else None
+
+
+def result_problem(d: Path, rec: dict) -> str | None:
+    """What is wrong with the files a result.json vouches for (one missing, or not reading back as the
+    transforms it was written from), or None when every one is there and sound."""
+    files = rec.get("files")
+    if not isinstance(files, list) or not all(isinstance(f, str) for f in files):
+        return f"its {RESULT_NAME} does not list its files"
+    for name in files:
+        if not (d / name).is_file():
+            return f"its {name} is missing"
+    if DEFAULT_NAME not in files:
         return None
-    scans = tuple(ScanOutcome(**s) for s in d.get("scans", []))
-    return TreeOutcome(d["tree"], d["status"], int(d["exit_code"]), d.get("message", ""), scans,
-                       dict(d.get("seconds", {})), d["fingerprint"])
+    path = d / DEFAULT_NAME
+    try:
+        tf = read_transforms(path)
+    except ConfigError as e:
+        return f"its {DEFAULT_NAME} does not read ({str(e).removeprefix(f'{path}: ')})"
+    for scan, names in export_names(tf.names).items():
+        for name, parse in zip(names, (parse_cloudcompare_matrix, parse_pdal_matrix)):
+            try:
+                same = np.allclose(parse((d / name).read_text()), tf.matrix(scan), rtol=0, atol=1e-12)
+            except (ConfigError, OSError, UnicodeDecodeError) as e:
+                return f"its {name} does not read ({e})"
+            if not same:
+                return f"its {name} does not hold the transform of {scan} in {DEFAULT_NAME}"
+    return None
 
 
-def write_tree(outcome: TreeOutcome, out_dir: Path) -> None:
-    """A tree's files; result.json last (its presence marks the tree as done). Files of an earlier
-    run that this outcome does not have (a transform that failed now) are removed, never left stale."""
+def _outcome(rec: dict) -> TreeOutcome:
+    scans = tuple(ScanOutcome(**s) for s in rec.get("scans", []))
+    return TreeOutcome(rec["tree"], rec["status"], int(rec["exit_code"]), rec.get("message", ""), scans,
+                       dict(rec.get("seconds", {})), rec["fingerprint"], kept=rec.get("kept"))
+
+
+def previous(job: TreeJob, params: Params, until: str, out_dir: Path) -> tuple[TreeOutcome | None, str | None]:
+    """The tree's earlier outcome if it still stands (same fingerprint, not an error, every file it
+    vouches for there and sound), else None and, when that is not plain (changed input, an error,
+    never run), why the tree is run again."""
+    d = out_dir / job.name
+    if not (d / RESULT_NAME).exists():
+        return None, None
+    rec = _record(d)
+    if rec is None:
+        return None, f"its {RESULT_NAME} does not read"
+    if rec.get("fingerprint") != fingerprint(job, params, until) or rec.get("status") == "error":
+        return None, None
+    problem = result_problem(d, rec)
+    if problem is not None:
+        return None, problem
+    try:
+        return _outcome(rec), None
+    except (KeyError, TypeError, ValueError):
+        return None, f"its {RESULT_NAME} does not read"
+
+
+def _standing(d: Path) -> dict | None:
+    """The earlier result in a tree folder whose files are there and sound: its status, when it was
+    written and its files (a result kept by a later failed run counts as itself)."""
+    rec = _record(d)
+    if rec is None or result_problem(d, rec) is not None or not rec["files"]:
+        return None
+    own = rec.get("kept") if isinstance(rec.get("kept"), dict) else rec
+    if own.get("status") not in _RANK:
+        return None
+    return {"status": own["status"], "written": str(own.get("written", "an earlier run")), "files": rec["files"]}
+
+
+def _keeping(outcome: TreeOutcome, earlier: dict) -> TreeOutcome:
+    """This run's outcome, saying that the earlier, better result stays in place."""
+    what = "verified" if _RANK[earlier["status"]] == 2 else "unverified"
+    why = f"{outcome.message}; " if outcome.message else ""
+    return replace(outcome, message=f"{why}the previous {what} result of {earlier['written']} is kept "
+                                    f"(this run replaced none of its files)",
+                   kept={"status": earlier["status"], "written": earlier["written"]}, transforms=None, picture_png=None)
+
+
+def _result_json(outcome: TreeOutcome, files: list[str]) -> str:
+    rec = {**outcome.summary(), "files": files, "written": time.strftime("%Y-%m-%d %H:%M")}
+    return json.dumps(rec, indent=1) + "\n"
+
+
+def _ours(d: Path) -> list[Path]:
+    """The files a tree's result can have (result.json aside)."""
+    return [d / DEFAULT_NAME, d / PICTURE_NAME, *d.glob("*.cloudcompare.txt"), *d.glob("*.pdal.txt")]
+
+
+def write_tree(outcome: TreeOutcome, out_dir: Path) -> TreeOutcome:
+    """A tree's files, written together with its result.json (whose presence marks the tree as done):
+    all of them or, interrupted, none replace the earlier ones. Returns the outcome as recorded.
+
+    An outcome worse than the earlier result standing in the folder (`_RANK`: a failed re-run, nothing
+    verified where scans were) leaves that result's files in place and says so in its message. An
+    outcome with files of its own replaces the earlier ones, and files of the earlier run it does not
+    have (a transform that failed now) are removed, never left stale. Nothing is removed otherwise.
+    """
     d = out_dir / outcome.tree
     d.mkdir(parents=True, exist_ok=True)
-    for old in [d / DEFAULT_NAME, d / PICTURE_NAME, *d.glob("*.cloudcompare.txt"), *d.glob("*.pdal.txt")]:
-        old.unlink(missing_ok=True)
-    if outcome.transforms is not None:
-        write_exports(d, outcome.transforms)
-    if outcome.picture_png is not None:
-        write_bytes_atomic(d / PICTURE_NAME, outcome.picture_png)
-    write_text_atomic(d / RESULT_NAME, json.dumps(outcome.summary(), indent=1) + "\n")
+    earlier = _standing(d)
+    if earlier is not None and _RANK.get(outcome.status, 0) < _RANK[earlier["status"]]:
+        outcome = _keeping(outcome, earlier)
+        write_text_atomic(d / RESULT_NAME, _result_json(outcome, earlier["files"]))
+        return outcome
+    files: list[str] = []
+    with atomic.batch():
+        if outcome.transforms is not None:
+            files += [p.name for p in write_exports(d, outcome.transforms)]
+        if outcome.picture_png is not None:
+            files.append(write_bytes_atomic(d / PICTURE_NAME, outcome.picture_png).name)
+        write_text_atomic(d / RESULT_NAME, _result_json(outcome, files))
+    if files:
+        for old in _ours(d):
+            if old.name not in files:
+                old.unlink(missing_ok=True)
+    return without_payload(outcome)
 
 
 def picture_of(tree: str, out_dir: Path) -> bytes | None:
@@ -86,12 +197,14 @@ def _crashed(job: TreeJob, params: Params, until: str, why: str) -> TreeOutcome:
 
 
 def run_batch(jobs: list[TreeJob], params: Params, out_dir: Path, *, until: str = "fine", workers: int | None = None,
-              dask_address: str | None = None, redo: bool = False, progress: Progress | None = None
-              ) -> tuple[list[TreeOutcome], int]:
+              dask_address: str | None = None, redo: bool = False, progress: Progress | None = None,
+              notice: Callable[[str], None] | None = None) -> tuple[list[TreeOutcome], int]:
     """Register every tree; returns the outcomes in job order and how many were run (not resumed).
 
     `workers`: processes of the local pool (default: all cores; 1 runs in this process).
     `dask_address`: run on the Dask cluster at this scheduler address instead.
+    `notice`: told, as "<tree>: <why>; registering it again", of a result that cannot be trusted.
+    Ctrl-C (KeyboardInterrupt) stops the workers at once; the trees finished are written, the others not.
     """
     progress = progress or no_progress
     out_dir = Path(out_dir)
@@ -99,15 +212,16 @@ def run_batch(jobs: list[TreeJob], params: Params, out_dir: Path, *, until: str 
     done: dict[str, TreeOutcome] = {}
     if not redo:
         for job in jobs:
-            prev = previous(job, params, until, out_dir)
+            prev, why = previous(job, params, until, out_dir)
             if prev is not None:
                 done[job.name] = prev
+            elif why and notice is not None:
+                notice(f"{job.name}: {why}; registering it again")
     todo = [j for j in jobs if j.name not in done]
     total = len(jobs)
 
     def finished(outcome: TreeOutcome) -> None:
-        write_tree(outcome, out_dir)
-        done[outcome.tree] = without_payload(outcome)
+        done[outcome.tree] = write_tree(outcome, out_dir)
         progress(len(done) / total, f"{outcome.tree}: {outcome.status}")
 
     client = _dask_client(dask_address) if dask_address and todo else None  # unreachable: say so first
@@ -122,6 +236,30 @@ def run_batch(jobs: list[TreeJob], params: Params, out_dir: Path, *, until: str 
     return [done[j.name] for j in jobs], len(todo)
 
 
+@contextmanager
+def _workers_ignore_ctrl_c() -> Iterator[None]:
+    """Workers started inside are born ignoring SIGINT (an ignored signal stays ignored across exec,
+    and Python keeps it so): Ctrl-C reaches the terminal's whole process group, and it is the main
+    process's to handle, by stopping them, without a traceback from each."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+def _stop_workers(pool: ProcessPoolExecutor) -> None:
+    """End the pool's processes now rather than after their trees (an interrupt, SIGTERM): none is
+    left running, orphaned, with its memory."""
+    processes = getattr(pool, "_processes", None) or {}  # the executor's own table (no public one before 3.14)
+    for proc in list(processes.values()):
+        proc.terminate()
+    pool.shutdown(wait=True, cancel_futures=True)
+
+
 def _run_pool(todo: list[TreeJob], params: Params, until: str, workers: int, finished) -> None:
     """A process pool; a worker that dies (killed for memory, a crash in a library) fails its tree,
     and the others are run again in a new pool (a tree that breaks the pool twice is given up)."""
@@ -131,13 +269,18 @@ def _run_pool(todo: list[TreeJob], params: Params, until: str, workers: int, fin
         broken: list[TreeJob] = []
         with _one_thread_each(), ProcessPoolExecutor(max_workers=min(workers, len(left)),
                                                      mp_context=get_context("spawn")) as pool:
-            futures = {pool.submit(run_tree, job, params, until): job for job in left}
-            for fut in as_completed(futures):
-                job = futures[fut]
-                try:
-                    finished(fut.result())
-                except BrokenProcessPool:
-                    broken.append(job)
+            try:
+                with _workers_ignore_ctrl_c():  # the workers start at submit
+                    futures = {pool.submit(run_tree, job, params, until): job for job in left}
+                for fut in as_completed(futures):
+                    job = futures[fut]
+                    try:
+                        finished(fut.result())
+                    except BrokenProcessPool:
+                        broken.append(job)
+            except BaseException:
+                _stop_workers(pool)
+                raise
         left = []
         for job in broken:
             attempts[job.name] += 1
@@ -161,8 +304,8 @@ def _dask_client(address: str):
 def _run_dask(todo: list[TreeJob], params: Params, until: str, client, finished) -> None:
     from distributed import as_completed as dask_completed
 
+    futures = {}
     try:
-        futures = {}
         for job in todo:
             fut = client.submit(run_tree, job, params, until, pure=False, key=f"treereg-{job.name}-{os.getpid()}")
             futures[fut] = job
@@ -172,5 +315,8 @@ def _run_dask(todo: list[TreeJob], params: Params, until: str, client, finished)
                 finished(fut.result())
             except Exception as e:  # noqa: BLE001 - a lost worker (KilledWorker, ...) fails this tree only
                 finished(_crashed(job, params, until, f"the Dask worker failed: {type(e).__name__}: {e}"))
+    except KeyboardInterrupt:
+        client.cancel(list(futures))  # the cluster stops this campaign's trees too
+        raise
     finally:
         client.close()

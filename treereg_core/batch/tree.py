@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
+import stat
 import time
 import traceback
 from dataclasses import dataclass, replace
@@ -31,6 +33,10 @@ from .picture import tree_picture
 
 #: Exit codes as `treereg register` gives them: 0 all registered, 1 some or all failed, 2 bad input.
 OK, FAILED, BAD_INPUT = 0, 1, 2
+#: Bytes hashed at each end of a scan file for the resume fingerprint (with its size): a multi-GB
+#: scan is fingerprinted in milliseconds, and a scan replaced by another file is seen even when
+#: its size and time were kept (`cp -p`); a file of up to twice this is hashed whole.
+FINGERPRINT_BYTES = 1 << 20
 
 
 @dataclass(frozen=True)
@@ -66,23 +72,39 @@ class TreeOutcome:
     fingerprint: str
     transforms: TransformFile | None = None
     picture_png: bytes | None = None
+    kept: dict | None = None  # the earlier result left in place of this run's worse one: status, written
 
     def summary(self) -> dict:
         """JSON-ready record (what result.json holds; the transforms are in transforms.json)."""
         return {"tree": self.tree, "status": self.status, "exit_code": self.exit_code, "message": self.message,
-                "scans": [s.__dict__ for s in self.scans], "seconds": self.seconds, "fingerprint": self.fingerprint}
+                "scans": [s.__dict__ for s in self.scans], "seconds": self.seconds, "fingerprint": self.fingerprint,
+                "kept": self.kept}
+
+
+def content_digest(path: Path) -> str:
+    """A scan file's content: a hash of its size and its first and last `FINGERPRINT_BYTES`."""
+    try:
+        if not stat.S_ISREG(os.stat(path).st_mode):  # a FIFO would block the read
+            return "not a regular file"
+        h = hashlib.sha256()
+        with open(path, "rb") as fh:
+            size = os.fstat(fh.fileno()).st_size
+            h.update(f"{size}|".encode())
+            h.update(fh.read(FINGERPRINT_BYTES))
+            if size > FINGERPRINT_BYTES:
+                fh.seek(max(FINGERPRINT_BYTES, size - FINGERPRINT_BYTES))
+                h.update(fh.read(FINGERPRINT_BYTES))
+        return h.hexdigest()
+    except OSError as e:
+        return f"unreadable ({e.errno})"
 
 
 def fingerprint(job: TreeJob, params: Params, until: str) -> str:
-    """What a tree's result depends on: its files (name, size, time), its options and the parameters.
+    """What a tree's result depends on: its files (path and content), its options and the parameters.
     A resumed run redoes a tree whose fingerprint changed."""
     h = hashlib.sha256()
     for f in job.scans:
-        try:
-            st = f.stat()
-            h.update(f"{f.resolve()}|{st.st_size}|{st.st_mtime_ns}".encode())
-        except OSError:
-            h.update(f"{f}|missing".encode())
+        h.update(f"{Path(f).resolve()}|{content_digest(Path(f))}".encode())
     h.update(json.dumps([job.angular_step_deg, job.target_xy_m, until, to_dict(params)], sort_keys=True).encode())
     return h.hexdigest()[:16]
 

@@ -12,18 +12,25 @@ atomically (a temporary file beside the target, renamed over it only when comple
 - `batch()` groups several writes (a case folder, a set of exports): every file is written to its
   temporary first, and only when all succeeded are they renamed, with Ctrl-C held off for those
   few microseconds. An interrupted or failed batch leaves every previous file as it was.
+- `check_distinct` refuses, before anything is read, an output that is one of the inputs (the same
+  file, also through a symbolic or hard link) or two outputs that are one file.
+- Temporaries are named `.<target>.treereg<pid>.<random>.tmp`. A process killed mid-write (SIGKILL,
+  a power cut) cannot remove its own; the next write into that folder removes them when the
+  process named by the pid no longer runs and the file is a minute old (`remove_stale_temporaries`).
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
+import re
 import signal
 import stat
 import tempfile
 import threading
+import time
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import Callable, Iterable, Iterator, Sequence
 
 from ..errors import OutputError
 
@@ -62,7 +69,7 @@ def _check_can_create_in(folder: Path, label: str) -> None:
         raise OutputError(label, f"cannot create the folder {folder}: {existing} is a file, not a folder")
     # The only truthful test (permissions, read-only file systems, root on /sys...): make a file.
     try:
-        fd, probe = tempfile.mkstemp(prefix=".treereg-check-", dir=existing)
+        fd, probe = _mkstemp(existing, "treereg-check")
     except OSError as e:
         what = "a file" if existing == folder else f"the folder {folder}"
         raise OutputError(label, f"cannot create {what} in {existing} ({_reason(e)})") from None
@@ -113,6 +120,90 @@ def check_output_dir(path: str | Path, label: str | None = None) -> Path:
     return target
 
 
+def _identity(path: str | Path) -> tuple:
+    """What makes two paths one file: an existing file's device and inode (so symbolic and hard links
+    to it count), else the path with every link resolved (a file yet to be written)."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return ("path", os.path.realpath(path))
+    return ("inode", st.st_dev, st.st_ino)
+
+
+def same_file(a: str | Path, b: str | Path) -> bool:
+    """`a` and `b` are (or, written, would be) one file."""
+    return _identity(a) == _identity(b)
+
+
+def check_distinct(outputs: Sequence[tuple[str, str | Path]], inputs: Iterable[str | Path] = (),
+                   advice: str = "choose another name") -> None:
+    """No output is an input and no two outputs are one file; else `OutputError` naming the output.
+
+    `outputs` are (what, path): `what` says which output it is in the message ("--merged", "the
+    export"). Call it before anything is read: a long run must not end by replacing a scan.
+    """
+    sources = [(_identity(p), p) for p in inputs]
+    seen: dict[tuple, str] = {}
+    for what, path in outputs:
+        key = _identity(path)
+        for k, src in sources:
+            if k == key:
+                link = "" if str(src) == str(path) else " (the same file)"
+                raise OutputError(str(path), f"{what} is the input {src}{link}; treereg never replaces an "
+                                  f"input: {advice}")
+        if key in seen:
+            raise OutputError(str(path), f"{seen[key]} and {what} are the same file; each output needs its own name")
+        seen[key] = what
+
+
+# ---- temporaries -------------------------------------------------------------------------------
+#: Our temporaries' names (see `_mkstemp`): the writing process's pid, then mkstemp's 8 random characters.
+_TEMPORARY = re.compile(r"^\..+\.treereg(\d{1,10})\.[a-z0-9_]{8}\.tmp$")
+#: A temporary this old (seconds since its last write) whose process is gone is stale.
+STALE_AFTER_S = 60.0
+
+
+def _mkstemp(folder: Path, name: str) -> tuple[int, str]:
+    """A new temporary in `folder` for `name`, named so that `remove_stale_temporaries` knows it as ours."""
+    return tempfile.mkstemp(prefix=f".{name}.treereg{os.getpid()}.", suffix=".tmp", dir=folder)
+
+
+def _running(pid: int) -> bool:
+    """A process `pid` exists on this machine (another user's too); when unsure, yes."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (OSError, OverflowError):  # not ours to signal (it exists), or no such pid possible: keep
+        return True
+    return True
+
+
+def remove_stale_temporaries(folder: str | Path) -> list[Path]:
+    """Remove what a killed treereg left in `folder`: files named as our temporaries, regular files of
+    this user, untouched for `STALE_AFTER_S`, whose writing process no longer runs (a pid reused
+    by another process keeps its file: the safe side). Never anything else. Returns the removed."""
+    removed: list[Path] = []
+    try:
+        entries = list(os.scandir(folder))
+    except OSError:
+        return removed
+    for e in entries:
+        m = _TEMPORARY.match(e.name)
+        if m is None or int(m.group(1)) == os.getpid() or _running(int(m.group(1))):
+            continue
+        try:
+            st = e.stat(follow_symlinks=False)
+            if (not stat.S_ISREG(st.st_mode) or st.st_uid != os.geteuid()
+                    or time.time() - st.st_mtime < STALE_AFTER_S):
+                continue
+            os.unlink(e.path)
+        except OSError:
+            continue
+        removed.append(Path(e.path))
+    return removed
+
+
 # ---- writing -----------------------------------------------------------------------------------
 class _Batch:
     def __init__(self) -> None:
@@ -143,18 +234,21 @@ def batch() -> Iterator[None]:
 
 @contextlib.contextmanager
 def _interrupts_held() -> Iterator[None]:
-    """Ctrl-C during the final renames waits until they are done (main thread only; elsewhere no signal arrives)."""
+    """Ctrl-C or SIGTERM during the final renames waits until they are done, then is delivered to the
+    handler that was in force (main thread only; elsewhere no signal arrives)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
     caught: list[int] = []
-    previous = signal.signal(signal.SIGINT, lambda signum, frame: caught.append(signum))
+    held = (signal.SIGINT, signal.SIGTERM)
+    previous = {s: signal.signal(s, lambda signum, frame: caught.append(signum)) for s in held}
     try:
         yield
     finally:
-        signal.signal(signal.SIGINT, previous)
-    if caught:
-        raise KeyboardInterrupt
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+    for signum in dict.fromkeys(caught):  # once each, in the order they came
+        signal.raise_signal(signum)
 
 
 def write_atomic(path: str | Path, write: Callable[[Path], None]) -> Path:
@@ -168,7 +262,8 @@ def write_atomic(path: str | Path, write: Callable[[Path], None]) -> Path:
     target = check_output_file(path)
     try:
         target.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+        remove_stale_temporaries(target.parent)
+        fd, tmp_name = _mkstemp(target.parent, target.name)
     except OSError as e:
         raise OutputError(str(path), f"cannot be written ({_reason(e)})") from None
     os.close(fd)

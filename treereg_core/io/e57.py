@@ -22,7 +22,7 @@ import numpy as np
 
 from ..errors import ScanError
 from .atomic import write_atomic
-from .record import ScanRecord
+from .record import POSE_TOL, NotRigid, ScanRecord, rigid_pose
 
 #: Integer fields are read as int64 ('q'), the only integer type pye57's buffers take whole.
 _INT, _FLOAT = "q", "d"
@@ -81,6 +81,23 @@ def _scan_name(header, stem: str, k: int) -> str:
     return name or f"{stem}#{k + 1}"
 
 
+def _file_pose(header, what: str) -> np.ndarray:
+    """The pose an E57 scan header gives, checked rigid (`rigid_pose`): a unit quaternion and a finite
+    translation. Scipy would quietly normalise a quaternion of another length (a scale); refused here."""
+    q = np.asarray(header.rotation, dtype=np.float64)
+    t = np.asarray(header.translation, dtype=np.float64)
+    try:
+        if not (np.isfinite(q).all() and np.isfinite(t).all()):
+            raise NotRigid("holds NaN or infinite numbers")
+        norm = float(np.linalg.norm(q))
+        if abs(norm - 1.0) > POSE_TOL:
+            raise NotRigid(f"is not rigid: its rotation quaternion has length {norm:.3g}, not 1 (a scale); "
+                           "export the scan with a rigid pose (rotation and translation only)")
+        return rigid_pose(pose_matrix(q, t))
+    except NotRigid as e:
+        raise NotRigid(f"{what}: the pose in the scan's header {e}") from None
+
+
 def read_e57_scan(e57, index: int, stem: str) -> ScanRecord:
     """Scan `index` of an open `pye57.E57`: points in the scan's own frame, its pose, grid, returns."""
     header = e57.get_header(index)
@@ -103,8 +120,9 @@ def read_e57_scan(e57, index: int, stem: str) -> ScanRecord:
         r, az, el = d["sphericalRange"], d["sphericalAzimuth"], d["sphericalElevation"]
         pts = np.column_stack([r * np.cos(el) * np.cos(az), r * np.cos(el) * np.sin(az), r * np.sin(el)])
     grid = (d["rowIndex"], d["columnIndex"]) if "rowIndex" in d and "columnIndex" in d else None
-    pose = pose_matrix(header.rotation, header.translation) if header.has_pose() else np.eye(4)
-    rec = ScanRecord(_scan_name(header, stem, index), pts, pose, grid, d.get("returnIndex"))
+    name = _scan_name(header, stem, index)
+    pose = _file_pose(header, f"scan {index + 1} ({name})") if header.has_pose() else np.eye(4)
+    rec = ScanRecord(name, pts, pose, grid, d.get("returnIndex"))
     if invalid in d:  # 0 = valid; 1 = a direction without a range, 2 = nothing
         rec = rec.select(d[invalid] == 0)
     return rec
@@ -126,6 +144,8 @@ def read_e57(path: str | Path) -> list[ScanRecord]:
             records = [read_e57_scan(e57, k, path.stem) for k in range(e57.scan_count)]
     except ScanError:
         raise
+    except NotRigid as e:  # refused here, not after a whole run that computed with it
+        raise ScanError(str(path), str(e)) from None
     except Exception as e:  # libe57 raises its own exception types for malformed files
         raise ScanError(str(path), f"not a readable E57 file ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})") from None
     if not records:
@@ -135,6 +155,18 @@ def read_e57(path: str | Path) -> list[ScanRecord]:
         records = [ScanRecord(f"{r.name}#{k + 1}", r.points, r.pose, r.grid, r.return_index)
                    for k, r in enumerate(records)]
     return records
+
+
+def _text(name: str) -> str:
+    """A scan name as E57 text, which is UTF-8: the bytes of a file name that is not (kept by Python
+    as lone surrogates) are written as \\xff escapes."""
+    try:
+        return name.encode("utf-8").decode("utf-8")
+    except UnicodeEncodeError:
+        try:
+            return name.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+        except UnicodeEncodeError:
+            return name.encode("utf-8", "backslashreplace").decode("utf-8")
 
 
 def write_e57(path: str | Path, scans: Sequence[tuple[str, np.ndarray, np.ndarray]]) -> Path:
@@ -159,7 +191,7 @@ def write_e57(path: str | Path, scans: Sequence[tuple[str, np.ndarray, np.ndarra
                 pts = np.asarray(pts, dtype=np.float64)
                 q, t = pose_quaternion(T)
                 e57.write_scan_raw({"cartesianX": pts[:, 0], "cartesianY": pts[:, 1], "cartesianZ": pts[:, 2]},
-                                   name=str(name), rotation=q, translation=t)
+                                   name=_text(str(name)), rotation=q, translation=t)
         finally:
             e57.close()
 

@@ -30,7 +30,7 @@ from typing import TextIO
 import numpy as np
 
 from ..errors import ScanError
-from .record import ScanRecord
+from .record import NotRigid, ScanRecord, rigid_pose
 
 _HEADER_LINES = 10
 
@@ -56,9 +56,10 @@ def _pose(header: list[str], path: Path, first_line: int) -> np.ndarray:
         S[:3, :3] = np.array(nums[1:4]).T  # axes X, Y, Z as columns
         S[:3, 3] = nums[0]
         T = S
-    if np.abs(T[3] - (0, 0, 0, 1)).max() > 1e-9 or not np.isfinite(T).all():
-        raise ScanError(str(path), f"line {first_line + 6}: the header's transformation matrix is not a rigid 4 x 4")
-    return T
+    try:
+        return rigid_pose(T)
+    except NotRigid as e:  # refused here, not after a whole run that computed with it
+        raise ScanError(str(path), f"lines {first_line + 2}-{first_line + 9}: the pose in the scan's header {e}") from None
 
 
 def _open(path: Path) -> TextIO:
@@ -80,7 +81,7 @@ def read_ptx(path: str | Path) -> list[ScanRecord]:
         before its grid is complete.
     """
     path = Path(path)
-    records: list[tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray]]] = []
+    records: list[tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray], tuple[int, int]]] = []
     lineno = 0
     try:
         with _open(path) as fh:
@@ -88,6 +89,11 @@ def read_ptx(path: str | Path) -> list[ScanRecord]:
                 header = list(islice(fh, _HEADER_LINES))
                 if not header or all(not h.strip() for h in header):
                     break
+                if records and len(header[0].replace(",", " ").split()) > 1:
+                    c, r = records[-1][3]
+                    raise ScanError(str(path), f"line {lineno + 1}: a point line where the next scan's header should "
+                                               f"start: scan {len(records)} holds more points than its header's "
+                                               f"{c} x {r} grid; check the column and row counts in its header")
                 if len(header) < _HEADER_LINES:
                     raise ScanError(str(path), f"line {lineno + len(header) + 1}: the file ends inside a scan header")
                 cols = _numbers(header[0], 1, "number of columns", path, lineno + 1)[0]
@@ -108,7 +114,7 @@ def read_ptx(path: str | Path) -> list[ScanRecord]:
                                                f"a point line is not x y z numbers ({e})") from None
                 k = np.arange(n)
                 valid = np.isfinite(xyz).all(axis=1) & np.any(xyz != 0.0, axis=1)  # 0 0 0: no return
-                records.append((xyz[valid], pose, (k[valid] % rows, k[valid] // rows)))
+                records.append((xyz[valid], pose, (k[valid] % rows, k[valid] // rows), (cols, rows)))
                 lineno += _HEADER_LINES + n
     except (OSError, EOFError, gzip.BadGzipFile) as e:
         raise ScanError(str(path), f"cannot read the file ({e})") from None
@@ -116,7 +122,7 @@ def read_ptx(path: str | Path) -> list[ScanRecord]:
         raise ScanError(str(path), "the PTX file holds no scans")
     stem = path.name.split(".")[0]
     names = [path.name] if len(records) == 1 else [f"{stem}#{k + 1}" for k in range(len(records))]
-    return [ScanRecord(nm, pts, pose, grid) for nm, (pts, pose, grid) in zip(names, records)]
+    return [ScanRecord(nm, pts, pose, grid) for nm, (pts, pose, grid, _) in zip(names, records)]
 
 
 def write_ptx(path: str | Path, scans: list[tuple[np.ndarray, np.ndarray, int, int]]) -> Path:

@@ -47,3 +47,36 @@ class ScanRecord:
         if returns == "all" or self.return_index is None:
             return self
         return self.select(self.return_index == 0)
+
+
+#: Largest |R^T R - I| entry accepted in a pose a file's header gives (decimal text keeps about six
+#: digits); within it the rotation is snapped to the nearest exact one, beyond it the pose scales or shears.
+POSE_TOL = 1e-4
+
+
+class NotRigid(ValueError):
+    """A pose a file gives is not a rigid motion; the message completes "the pose ..."."""
+
+
+def rigid_pose(T: np.ndarray) -> np.ndarray:
+    """`T` (4 x 4 T_file_scan from a file's header) as an exact rigid motion, or `NotRigid` saying why
+    not: a pose that scales, shears or mirrors would move the points off their true shape, and every
+    transform computed from it would carry that."""
+    T = np.asarray(T, dtype=np.float64)
+    if not np.isfinite(T).all():
+        raise NotRigid("holds NaN or infinite numbers")
+    if np.abs(T[3] - (0.0, 0.0, 0.0, 1.0)).max() > 1e-9:
+        raise NotRigid(f"has the last row {' '.join(f'{v:g}' for v in T[3])}, not 0 0 0 1")
+    R = T[:3, :3]
+    dev = float(np.abs(R.T @ R - np.eye(3)).max())
+    if dev > POSE_TOL:
+        raise NotRigid(f"is not rigid: its rotation part scales or shears the scan (|R^T R - I| = {dev:.2g}); "
+                       "export the scan with a rigid pose (rotation and translation only)")
+    if np.linalg.det(R) < 0:
+        raise NotRigid("is a mirror (determinant -1), not a rotation; export the scan with a rigid pose")
+    if dev <= 1e-12:
+        return T
+    U, _, Vt = np.linalg.svd(R)
+    out = T.copy()
+    out[:3, :3] = U @ Vt  # the nearest exact rotation: transforms written from it pass the 1e-6 check
+    return out

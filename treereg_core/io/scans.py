@@ -6,15 +6,20 @@ each in its scanner's own frame with the pose the file (or `scanner_position`) g
 Every point reader returns N x 3 float64 metres; every problem a user has to fix raises
 `errors.ScanError`, whose message names the file and says what is wrong and what to do.
 Readers never loop over points in Python: text goes through numpy's C parser, LAS/LAZ is read
-in chunks into one preallocated array, NPY is memory-mapped. Writers are atomic: a temporary file
-beside the target, renamed over it only when complete.
+in chunks into one preallocated array, NPY is memory-mapped. Every reader checks what the file's
+header promises (point counts, types, end of header) and refuses a file cut short rather than read
+part of it. Rows that are no measurement (NaN, no-data values, absurdly far) are dropped with a
+warning before any unit is guessed (`_valid_rows`). Writers are atomic: a temporary file beside the
+target, renamed over it only when complete.
 """
 
 from __future__ import annotations
 
 import gzip
 import io as _io
+import re
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TextIO
 
@@ -50,8 +55,16 @@ MAX_RANGE_M = 300.0
 #: factor brings a cloud closest to these is the one it was written in.
 TYPICAL_EXTENT_M = 20.0
 TYPICAL_RANGE_M = 15.0
+#: A tree scan in metres spans at least this (a sapling); a smaller cloud is in a larger unit.
+MIN_EXTENT_M = 0.2
 #: Units a point file may be in besides metres: name, factor to metres.
-OTHER_UNITS: tuple[tuple[str, float], ...] = (("centimetres", 0.01), ("millimetres", 0.001))
+OTHER_UNITS: tuple[tuple[str, float], ...] = (("centimetres", 0.01), ("millimetres", 0.001), ("kilometres", 1000.0))
+#: Values files write in every coordinate of a row for "no measurement" (GIS and scanner no-data).
+NO_DATA_VALUES: tuple[float, ...] = (-9999.0, -99999.0, -999999.0)
+#: A point farther than this many times the points' median spread from their median point is a
+#: corrupt or stray row, not a measurement (the same in any unit): 1000 x a tree scan's ~10 m is
+#: 10 km, beyond any terrestrial scanner's reach.
+OUTLIER_FACTOR = 1000.0
 #: Points a median distance of more than this fraction of their range apart are a scene seen from the
 #: origin; closer together, they sit far from the origin: not the scanner's frame (georeferenced).
 MIN_SPREAD_TO_RANGE = 0.02
@@ -89,7 +102,8 @@ def read_points(path: str | Path, check_units: bool = True) -> np.ndarray:
     Returns
     -------
     np.ndarray
-        N x 3 float64. Rows with NaN or infinite coordinates are dropped with a `ScanWarning`.
+        N x 3 float64. Rows with NaN or infinite coordinates, no-data rows and rows absurdly far
+        from the rest are dropped with a `ScanWarning` (`_valid_rows`).
 
     Raises
     ------
@@ -105,7 +119,8 @@ def read_points(path: str | Path, check_units: bool = True) -> np.ndarray:
             raise ScanError(str(path), f"holds {len(records)} scans; read them with read_scans")
         return records[0].points
     pts, _ = _read_single(path, ext)
-    pts = _drop_non_finite(path, pts)
+    keep = _valid_rows(str(path), pts)
+    pts = pts if keep is None else np.ascontiguousarray(pts[keep])
     if check_units:
         check_metres(pts, str(path))
     return pts
@@ -147,8 +162,9 @@ def _read_single(path: Path, ext: str) -> tuple[np.ndarray, np.ndarray | None]:
 def read_records(path: str | Path, check_units: bool = True) -> list[ScanRecord]:
     """Every scan a file holds, as stored (`ScanRecord`: points, pose, grid, return numbers).
 
-    Rows with NaN or infinite coordinates are dropped (with a `ScanWarning`); with `check_units`,
-    millimetre-looking coordinates are refused (`check_metres`).
+    Rows with NaN or infinite coordinates, no-data rows and absurdly far rows are dropped (with a
+    `ScanWarning`, `_valid_rows`); with `check_units`, coordinates that look like another unit
+    are refused (`check_metres`).
     """
     path = Path(path)
     ext = _check_file(path)
@@ -164,12 +180,10 @@ def read_records(path: str | Path, check_units: bool = True) -> list[ScanRecord]
     out = []
     for r in records:
         label = str(path) if len(records) == 1 else f"{path} [{r.name}]"
-        finite = np.isfinite(r.points).all(axis=1)
-        if not finite.all():
-            _drop_non_finite(Path(label), r.points)  # warns, or raises when nothing is left
-            r = r.select(finite)
         if len(r.points) == 0:
             raise ScanError(label, "the scan holds no valid points")
+        keep = _valid_rows(label, r.points)  # warns for each kind of row dropped
+        r = r if keep is None else r.select(keep)
         if check_units:
             # Points spread like a scene seen from the origin: their distance from it tells the unit
             # too. Far and close together (georeferenced) is `record_to_scan`'s to say.
@@ -230,6 +244,10 @@ def record_to_scan(
     pose = record.pose
     pts = record.points
     if scanner_position is not None:
+        if not np.isfinite(np.asarray(scanner_position, dtype=np.float64)).all():
+            where = ", ".join(f"{float(v):g}" for v in scanner_position)
+            raise ScanError(str(source), f"the scanner position given for it, ({where}), is not a point: give "
+                                         "--scanner-position X Y Z as three finite numbers")
         pts, shift = to_scanner_frame(pts, scanner_position)
         pose = pose @ shift
     else:
@@ -307,8 +325,8 @@ def _seen_from_origin(points: np.ndarray) -> bool:
 def check_metres(points: np.ndarray, label: str, scanner_frame: bool = False) -> None:
     """Raise `ScanError`, naming the likely unit and its factor, when the points are not in metres.
 
-    A tree cloud in metres spans at most `MAX_EXTENT_M` (and, seen from its scanner, lies within
-    `MAX_RANGE_M`). Beyond that, the unit is the one (centimetres or millimetres) whose factor brings
+    A tree cloud in metres spans `MIN_EXTENT_M` to `MAX_EXTENT_M` (and, seen from its scanner, lies
+    within `MAX_RANGE_M`). Outside that, the unit is the one (`OTHER_UNITS`) whose factor brings
     the extent (and the range) closest to a typical tree scan's; the message gives the sizes in
     metres that factor would make, so the user can check. The extent does not change with a shift,
     so georeferenced clouds in metres pass (`record_to_scan` tests a scan's frame).
@@ -316,7 +334,7 @@ def check_metres(points: np.ndarray, label: str, scanner_frame: bool = False) ->
     if len(points) == 0:
         return
     extent, _, rng = _size(points)
-    if extent <= MAX_EXTENT_M and (not scanner_frame or rng <= MAX_RANGE_M):
+    if MIN_EXTENT_M <= extent <= MAX_EXTENT_M and (not scanner_frame or rng <= MAX_RANGE_M):
         return
 
     def misfit(f: float) -> float:
@@ -325,30 +343,85 @@ def check_metres(points: np.ndarray, label: str, scanner_frame: bool = False) ->
 
     unit, f = min(OTHER_UNITS, key=lambda u: misfit(u[1]))
     seen = f"{extent * f:,.1f} m" + (f", a median {rng * f:,.1f} m from the scanner" if scanner_frame else "")
-    where = f" (median distance from the scanner {rng:,.0f})" if scanner_frame else ""
+    where = f" (median distance from the scanner {_units(rng)})" if scanner_frame else ""
     raise ScanError(
         label,
-        f"coordinates span {extent:,.0f} units{where}; treereg expects metres and this looks like {unit}: "
+        f"coordinates span {_units(extent)} units{where}; treereg expects metres and this looks like {unit}: "
         f"convert the file to metres (scale the coordinates by {f:g}, which makes the scan span {seen}) "
         "and read it again",
     )
 
 
-def _drop_non_finite(path: Path, pts: np.ndarray) -> np.ndarray:
-    if np.isfinite(pts).all():
-        return pts
-    finite = np.isfinite(pts).all(axis=1)
-    n_bad = int(len(pts) - finite.sum())
-    if n_bad == 0:
-        return pts
-    if n_bad == len(pts):
-        raise ScanError(str(path), f"all {n_bad} points have NaN or infinite coordinates; nothing is left")
-    warnings.warn(
-        f"{path}: dropped {n_bad} of {len(pts)} points with NaN or infinite coordinates",
-        ScanWarning,
-        stacklevel=3,
-    )
-    return np.ascontiguousarray(pts[finite])
+def _units(x: float) -> str:
+    """A size in file units as a person reads it: 24,620 or 0.0246."""
+    return f"{x:,.0f}" if x >= 100 else f"{x:.3g}"
+
+
+def _valid_rows(label: str, pts: np.ndarray) -> np.ndarray | None:
+    """Which rows of a file's points are measurements: rows with NaN or infinite coordinates, no-data
+    rows (`NO_DATA_VALUES`) and rows absurdly far from the rest (`OUTLIER_FACTOR`) are not. Each kind
+    dropped gets one `ScanWarning` naming its count; None when every row is kept.
+
+    Runs before any unit is guessed, so a few such rows are named as what they are, not read as
+    a scan in centimetres. Raises `ScanError` when nothing is left or every point is the same.
+    """
+    n = len(pts)
+    keep = np.isfinite(pts).all(axis=1)
+    if not keep.any():
+        raise ScanError(label, f"all {n} points have NaN or infinite coordinates; nothing is left")
+    _warn_dropped(label, n, n - int(keep.sum()), "with NaN or infinite coordinates")
+    x, y, z = pts[:, 0], pts[:, 1], pts[:, 2]
+    no_data = keep & (x == y) & (y == z) & np.isin(x, NO_DATA_VALUES)
+    if no_data.any():
+        v = float(x[np.flatnonzero(no_data)[0]])
+        keep &= ~no_data
+        if not keep.any():
+            raise ScanError(label, f"all {n} points are the no-data row ({v:g}, {v:g}, {v:g}); the file holds no measurement")
+        _warn_dropped(label, n, int(no_data.sum()), f"at ({v:g}, {v:g}, {v:g}) (a no-data value, not a measurement)")
+    far, reach, spread = _far_rows(pts, keep)
+    if far.any():
+        keep &= ~far
+        _warn_dropped(label, n, int(far.sum()), f"lying far outside the scan (up to {reach:.3g} units from its median "
+                                                f"point, while half the points lie within {spread:.3g} units of it): corrupt or stray rows")
+    _check_not_one_point(label, pts, keep)
+    return None if keep.all() else keep
+
+
+def _warn_dropped(label: str, n: int, n_bad: int, why: str) -> None:
+    if n_bad:
+        warnings.warn(f"{label}: dropped {n_bad} of {n} points {why}", ScanWarning, stacklevel=4)
+
+
+def _far_rows(pts: np.ndarray, keep: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """Rows (among `keep`) farther than `OUTLIER_FACTOR` times the points' median spread from their
+    median point (largest coordinate difference), the farthest such distance, and the spread."""
+    idx = np.flatnonzero(keep)
+    sample = pts[idx[:: max(1, len(idx) // _SIZE_SAMPLE)]]
+    centre = np.median(sample, axis=0)
+    spread = float(np.median(np.abs(sample - centre).max(axis=1)))
+    far = np.zeros(len(pts), dtype=bool)
+    if spread == 0.0:
+        return far, 0.0, 0.0  # most points are one point: `_check_not_one_point` or the step estimate says so
+    limit, reach = OUTLIER_FACTOR * spread, 0.0
+    with np.errstate(over="ignore", invalid="ignore"):  # 1e308 - -1e308 is inf: far, as it should be
+        for a in range(0, len(pts), _PLY_CHUNK):
+            d = np.abs(pts[a:a + _PLY_CHUNK] - centre).max(axis=1)
+            hit = (d > limit) & keep[a:a + _PLY_CHUNK]
+            if hit.any():
+                far[a:a + _PLY_CHUNK] = hit
+                reach = max(reach, float(d[hit].max()))
+    return far, reach, spread
+
+
+def _check_not_one_point(label: str, pts: np.ndarray, keep: np.ndarray) -> None:
+    """Refuse points that are all one point (a sample first: the full check only when it is)."""
+    idx = np.flatnonzero(keep)
+    first = pts[idx[0]]
+    if np.any(pts[idx[:: max(1, len(idx) // _SIZE_SAMPLE)]] != first):
+        return
+    if np.all(pts[idx] == first):
+        raise ScanError(label, f"all {len(idx)} points are the same point ({first[0]:g}, {first[1]:g}, {first[2]:g}), "
+                               "so the file holds no scan")
 
 
 def _as_xyz(path: Path, arr: np.ndarray, what: str) -> np.ndarray:
@@ -376,6 +449,11 @@ def _read_npz(path: Path) -> np.ndarray:
             keys = list(z.keys())
             if not keys:
                 raise ScanError(str(path), "the .npz archive holds no arrays")
+            if len(keys) > 1 and "points" not in keys:
+                # Which array holds the scan is not ours to guess: say what is there.
+                raise ScanError(str(path), f"the .npz archive holds {len(keys)} arrays ({', '.join(keys[:10])}) and "
+                                           "none is named 'points': save the scan's N x 3 array alone, or under the "
+                                           "name 'points'")
             key = "points" if "points" in keys else keys[0]
             arr = z[key]
     except ScanError:
@@ -389,53 +467,91 @@ def _read_npz(path: Path) -> np.ndarray:
 _PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
               "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
               "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}
+#: A PLY header longer than this (bytes) has no end_header: the file is not a PLY, or cut in its header.
+_PLY_MAX_HEADER = 1 << 16
 
 
-def _ply_binary_layout(path: Path) -> tuple[int, int, np.dtype] | None:
-    """(byte offset of the vertex data, vertex count, vertex record dtype) of a binary PLY whose
-    first element is the vertex element with scalar properties only; None for any other layout
-    (ASCII, lists before the vertices, ...), which the general reader handles."""
+@dataclass(frozen=True)
+class _PlyElement:
+    name: str
+    count: int
+    props: tuple[tuple[str, str], ...]  # (name, PLY type, or "list")
+
+
+@dataclass(frozen=True)
+class _PlyHeader:
+    format: str  # "ascii", "binary_little_endian" or "binary_big_endian"
+    offset: int  # byte offset of the data
+    lines: int  # lines of the header, end_header included
+    elements: tuple[_PlyElement, ...]
+
+
+def _ply_header(path: Path) -> _PlyHeader:
+    """The header of a PLY file, checked: it ends (end_header), has a known format, a vertex element
+    and x, y, z properties of a type that can hold coordinates."""
     with open(path, "rb") as fh:
-        if fh.read(4) != b"ply\n":
-            return None
-        lines: list[str] = []
-        while True:
-            raw = fh.readline(1 << 12)
-            if not raw:
-                return None
-            line = raw.decode("ascii", errors="replace").strip()
-            if line == "end_header":
-                break
-            lines.append(line)
-            if len(lines) > 500:
-                return None
-        offset = fh.tell()
-    fmt = next((ln.split()[1] for ln in lines if ln.startswith("format ")), "")
-    order = {"binary_little_endian": "<", "binary_big_endian": ">"}.get(fmt)
-    elements = [ln.split() for ln in lines if ln.startswith(("element ", "property "))]
-    if order is None or not elements or elements[0][:2] != ["element", "vertex"] or len(elements[0]) != 3:
-        return None
-    props: list[tuple[str, str]] = []
-    for e in elements[1:]:
-        if e[0] == "element":
-            break
-        if len(e) != 3 or e[1] not in _PLY_TYPES:
-            return None  # a list property: the general reader
-        props.append((e[2], order + _PLY_TYPES[e[1]]))
-    names = [n for n, _ in props]
-    if not {"x", "y", "z"} <= set(names) or len(set(names)) != len(names):
-        return None
-    return offset, int(elements[0][2]), np.dtype(props)
+        head = fh.read(_PLY_MAX_HEADER)
+    end = re.search(rb"^end_header[ \t]*\r?\n", head, flags=re.MULTILINE)
+    if not head.startswith(b"ply"):
+        raise ScanError(str(path), "not a readable PLY file (it does not start with 'ply')")
+    if end is None:
+        raise ScanError(str(path), "the PLY header has no end_header line: the file is cut inside its header, "
+                                   "or not a PLY file")
+    lines = [ln.strip() for ln in head[:end.start()].decode("ascii", errors="replace").splitlines()]
+    fmt = next((ln.split()[1] for ln in lines if ln.startswith("format ") and len(ln.split()) > 1), "")
+    if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
+        raise ScanError(str(path), f"the PLY header names no known format (format {fmt or '(missing)'!r}; "
+                                   "expected ascii, binary_little_endian or binary_big_endian)")
+    elements: list[list] = []
+    for ln in lines:
+        words = ln.split()
+        if words[:1] == ["element"]:
+            if len(words) != 3 or not words[2].isdigit():
+                raise ScanError(str(path), f"the PLY header line {ln[:60]!r} is not 'element NAME COUNT'")
+            elements.append([words[1], int(words[2]), []])
+        elif words[:1] == ["property"] and elements:
+            kind = "list" if words[1:2] == ["list"] else (words[1] if len(words) == 3 else "?")
+            elements[-1][2].append((words[-1], kind))
+    header = _PlyHeader(fmt, end.end(), len(lines) + 1, tuple(_PlyElement(n, c, tuple(p)) for n, c, p in elements))
+    _check_ply_vertices(path, header)
+    return header
+
+
+def _check_ply_vertices(path: Path, header: _PlyHeader) -> None:
+    """Refuse a PLY whose vertices cannot be a scan: none, no x y z, or x y z of a type that cannot
+    hold coordinates (a list, or 8-bit integers: 256 values at most)."""
+    vertex = next((e for e in header.elements if e.name == "vertex"), None)
+    if vertex is None:
+        raise ScanError(str(path), "the PLY file holds no points (no vertex element)")
+    types = dict(vertex.props)
+    missing = [c for c in "xyz" if c not in types]
+    if missing:
+        raise ScanError(str(path), f"the PLY vertex element has no {', '.join(missing)} property "
+                                   f"(it has {', '.join(types) or 'none'})")
+    for c in "xyz":
+        if types[c] == "list":
+            raise ScanError(str(path), f"the PLY file declares {c} as a list property, not one number per point: "
+                                       "export the scan with float or double x, y, z")
+        if types[c] not in _PLY_TYPES:
+            raise ScanError(str(path), f"the PLY file declares {c} with the unknown type {types[c]!r}")
+        if np.dtype(_PLY_TYPES[types[c]]).itemsize == 1:
+            info = np.iinfo(_PLY_TYPES[types[c]])
+            raise ScanError(str(path), f"the PLY file declares {c} as {types[c]} (whole numbers {info.min} to "
+                                       f"{info.max}), which cannot hold a scan's coordinates: export the scan "
+                                       "with float or double x, y, z")
 
 
 def _read_ply(path: Path) -> np.ndarray:
     try:
-        layout = _ply_binary_layout(path)
-    except (OSError, ValueError):
-        layout = None
-    if layout is not None:
-        return _read_ply_binary(path, *layout)
-    import trimesh
+        header = _ply_header(path)
+    except OSError as e:
+        raise ScanError(str(path), f"cannot read the file ({e.strerror or e})") from None
+    first = header.elements[0]
+    if first.name == "vertex" and all(t in _PLY_TYPES for _, t in first.props):
+        if header.format == "ascii":
+            return _read_ply_ascii(path, header)
+        return _read_ply_binary(path, header)
+    import trimesh  # another layout (lists among the vertex properties, vertices not first)
 
     try:
         geom = trimesh.load(path, file_type="ply", process=False)
@@ -447,16 +563,30 @@ def _read_ply(path: Path) -> np.ndarray:
     return _as_xyz(path, np.asarray(vertices), "the vertex element")
 
 
-def _read_ply_binary(path: Path, offset: int, n: int, record: np.dtype) -> np.ndarray:
+def _ply_count_message(path: Path, n: int, have: int, what: str = "points") -> ScanError:
+    """The header and the data disagree: too little data is a truncated file, too much a wrong count."""
+    if have < n:
+        return ScanError(str(path), f"the PLY file is truncated: its header announces {n} {what}, the file holds {have}")
+    return ScanError(str(path), f"the PLY file holds more than its header announces: its header announces {n} "
+                                f"{what}, the file holds {have}; the file is damaged (fix the count in its header "
+                                "or export it again)")
+
+
+def _read_ply_binary(path: Path, header: _PlyHeader) -> np.ndarray:
     """x, y, z of a binary PLY's vertices, memory-mapped and copied once, in chunks, into float64
     (other properties are never loaded: one full-resolution copy of the scan, no more)."""
+    order = "<" if header.format == "binary_little_endian" else ">"
+    vertex = header.elements[0]
+    record = np.dtype([(name, order + _PLY_TYPES[t]) for name, t in vertex.props])
+    n = vertex.count
     if n <= 0:
         raise ScanError(str(path), "the PLY file holds no points (its vertex element is empty)")
-    have = (path.stat().st_size - offset) // record.itemsize
-    if have < n:
-        raise ScanError(str(path), f"the PLY file is truncated: its header announces {n} points, "
-                                   f"the file holds {have}")
-    vertices = np.memmap(path, dtype=record, mode="r", offset=offset, shape=(n,))
+    size = path.stat().st_size - header.offset
+    have = size // record.itemsize
+    # With the vertices the only element, the file's size is known: more whole records is a wrong count.
+    if have < n or (len(header.elements) == 1 and have > n):
+        raise _ply_count_message(path, n, have)
+    vertices = np.memmap(path, dtype=record, mode="r", offset=header.offset, shape=(n,))
     out = np.empty((n, 3), dtype=np.float64)
     for a in range(0, n, _PLY_CHUNK):
         chunk = vertices[a:a + _PLY_CHUNK]
@@ -464,6 +594,49 @@ def _read_ply_binary(path: Path, offset: int, n: int, record: np.dtype) -> np.nd
             out[a:a + len(chunk), k] = chunk[name]
     del vertices
     return out
+
+
+def _data_lines(path: Path, offset: int) -> int:
+    """Lines of data from byte `offset` to the end of the file, counted in chunks (a last line
+    without a newline counts; blank lines at the end do not)."""
+    count = 0
+    with open(path, "rb") as fh:
+        fh.seek(offset)
+        while chunk := fh.read(1 << 24):
+            count += chunk.count(b"\n")
+        size = fh.tell() - offset
+        fh.seek(offset + max(0, size - 4096))
+        tail = fh.read()
+    body = tail.rstrip()
+    if not body and size <= 4096:
+        return 0
+    return count - tail[len(body):].count(b"\n") + 1
+
+
+def _read_ply_ascii(path: Path, header: _PlyHeader) -> np.ndarray:
+    """x, y, z of an ASCII PLY's vertices (numpy's C parser), after checking the file holds as many
+    lines as its header announces (one per vertex, face, ...): a file cut short or with a wrong
+    count is named, not read in part."""
+    vertex = header.elements[0]
+    n = vertex.count
+    if n <= 0:
+        raise ScanError(str(path), "the PLY file holds no points (its vertex element is empty)")
+    have = _data_lines(path, header.offset)
+    total = sum(e.count for e in header.elements)
+    if have < n:
+        raise _ply_count_message(path, n, have)
+    if have != total:
+        what = "points" if len(header.elements) == 1 else f"lines of data ({n} points and {total - n} other items)"
+        raise _ply_count_message(path, total, have, what)
+    names = [name for name, _ in vertex.props]
+    cols = tuple(names.index(c) for c in "xyz")
+    try:
+        with open(path, encoding="ascii", errors="replace") as fh:
+            for _ in range(header.lines):
+                fh.readline()
+            return np.loadtxt(fh, dtype=np.float64, usecols=cols, max_rows=n, ndmin=2, comments=None)
+    except ValueError:
+        raise ScanError(str(path), _first_bad_line(path, False, None, header.lines, cols)) from None
 
 
 def _read_las(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
@@ -474,24 +647,43 @@ def _read_las(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
             n = int(reader.header.point_count)
             if n == 0:
                 raise ScanError(str(path), "the LAS/LAZ file holds no points")
+            if not reader.header.are_points_compressed:
+                _check_las_size(path, reader.header, n)
             out = np.empty((n, 3), dtype=np.float64)
             ret = np.empty(n, dtype=np.int16)
             i = 0
-            # Chunks keep memory bounded: only x, y, z (and the return number) are ever held.
-            for chunk in reader.chunk_iterator(_LAS_CHUNK):
-                m = len(chunk)
-                out[i : i + m, 0] = chunk.x
-                out[i : i + m, 1] = chunk.y
-                out[i : i + m, 2] = chunk.z
-                ret[i : i + m] = np.asarray(chunk.return_number, dtype=np.int16) - 1
-                i += m
+            try:
+                # Chunks keep memory bounded: only x, y, z (and the return number) are ever held.
+                for chunk in reader.chunk_iterator(_LAS_CHUNK):
+                    m = min(len(chunk), n - i)
+                    out[i : i + m, 0] = chunk.x[:m]
+                    out[i : i + m, 1] = chunk.y[:m]
+                    out[i : i + m, 2] = chunk.z[:m]
+                    ret[i : i + m] = np.asarray(chunk.return_number[:m], dtype=np.int16) - 1
+                    i += m
+            except Exception as e:  # lazrs raises its own types for a file cut short
+                raise ScanError(str(path), f"the LAZ file is truncated or damaged: its header announces {n} points, "
+                                           f"{i} could be read ({type(e).__name__}: {e})") from None
+            if i < n:
+                raise ScanError(str(path), f"the LAS/LAZ file is truncated: its header announces {n} points, the file holds {i}")
     except ScanError:
         raise
     except Exception as e:  # laspy / lazrs raise their own types for bad files
         raise ScanError(str(path), f"not a readable LAS/LAZ file ({type(e).__name__}: {e})") from None
-    ret = ret[:i]
     # Writers that do not number returns leave 0 (-1 here): then there is nothing to select on.
-    return out[:i], (ret if (ret >= 0).all() and (ret > 0).any() else None)
+    return out, (ret if (ret >= 0).all() and (ret > 0).any() else None)
+
+
+def _check_las_size(path: Path, header, n: int) -> None:
+    """An uncompressed LAS file holds exactly its header's count of fixed-size records (before any
+    extended VLRs): fewer is a truncated file, more a wrong count; either is named, not read in part."""
+    end = int(header.start_of_first_evlr) if getattr(header, "number_of_evlrs", 0) else path.stat().st_size
+    have = max(0, end - int(header.offset_to_point_data)) // int(header.point_format.size)
+    if have < n:
+        raise ScanError(str(path), f"the LAS file is truncated: its header announces {n} points, the file holds {have}")
+    if have > n:
+        raise ScanError(str(path), f"the LAS file holds more than its header announces: its header announces {n} "
+                                   f"points, the file holds {have}; the file is damaged (export it again)")
 
 
 # ---- text --------------------------------------------------------------------------------------
@@ -527,12 +719,30 @@ def _is_header(fields: list[str]) -> bool:
     return not any(_is_number(f) for f in fields[:3])
 
 
-def _sniff(path: Path, gzipped: bool) -> tuple[str | None, int, int | None]:
-    """Delimiter (None = whitespace), the number of lines to skip before the data, and the column
-    holding the return number (None when no header or comment line names one).
+#: Bytes that never occur in a text file (control characters other than tab, newlines, form feed).
+_BINARY_BYTES = bytes(set(range(32)) - {9, 10, 11, 12, 13, 26})
 
-    Comment lines ('#', '//') and blank lines may come first; then at most one header line.
+
+def _check_text(path: Path, gzipped: bool) -> None:
+    """Refuse a file that is not text (a binary file given an .xyz name), without echoing its bytes."""
+    try:
+        with (gzip.open(path, "rb") if gzipped else open(path, "rb")) as fh:
+            head = fh.read(1 << 16)
+    except (OSError, EOFError, gzip.BadGzipFile) as e:
+        raise ScanError(str(path), f"cannot read the file ({e})") from None
+    if b"\0" in head or len(head.translate(None, _BINARY_BYTES)) < 0.99 * len(head):
+        raise ScanError(str(path), f"not a text file (it holds binary data): a {extension(path)} scan is text, "
+                                   "x y z on each line; check that this is the scan, and that its extension names its format")
+
+
+def _sniff(path: Path, gzipped: bool) -> tuple[str | None, int, tuple[int, ...]]:
+    """Delimiter (None = whitespace), the number of lines to skip before the data, and the columns
+    to read: x, y, z and, when a header or comment line names one, the return number.
+
+    Comment lines ('#', '//') and blank lines may come first; then at most one header line. A
+    header naming x, y and z ("id,x,y,z") says where they are; else they are the first three columns.
     """
+    _check_text(path, gzipped)
     try:
         with _open_text(path, gzipped) as fh:
             head = [fh.readline(1 << 16) for _ in range(64)]  # bounded, even for a binary file
@@ -540,9 +750,9 @@ def _sniff(path: Path, gzipped: bool) -> tuple[str | None, int, int | None]:
         raise ScanError(str(path), f"cannot read the file ({e})") from None
     head = [h for h in head if h]
     lineno = 0
-    ret_col = None
+    cols = None
     while lineno < len(head) and _is_comment(head[lineno]):
-        ret_col = _return_column(head[lineno].strip().lstrip("#/ ")) if ret_col is None else ret_col
+        cols = cols or _named_columns(head[lineno].strip().lstrip("#/ "))
         lineno += 1
     if lineno == len(head):
         raise ScanError(str(path), "the file holds no points (only blank or comment lines)")
@@ -551,24 +761,26 @@ def _sniff(path: Path, gzipped: bool) -> tuple[str | None, int, int | None]:
     skip = lineno
     if _is_header(_split(first, delimiter)):
         skip += 1  # one header line ("x y z", "X,Y,Z,intensity", ...)
-        ret_col = _return_column(first) if ret_col is None else ret_col
+        cols = cols or _named_columns(first)
         rest = [h for h in head[skip:] if not _is_comment(h)]
         if rest:
             # the delimiter is better read off a data line than off the header
             delimiter = "," if "," in rest[0] else (";" if ";" in rest[0] else None)
-    return delimiter, skip, ret_col
+    return delimiter, skip, cols or (0, 1, 2)
 
 
-def _return_column(line: str) -> int | None:
-    """Index of the column a header line names as the return number (see `RETURN_COLUMNS`)."""
-    names = [f.strip().lower() for f in line.split(";")[0].replace(",", " ").split()]
-    hit = [i for i, n in enumerate(names) if n in RETURN_COLUMNS]
-    return hit[0] if hit and names[:3] == ["x", "y", "z"] else None
+def _named_columns(line: str) -> tuple[int, ...] | None:
+    """The columns of x, y, z (and of the return number, see `RETURN_COLUMNS`) a header line names,
+    or None when it does not name all of x, y and z. Units after a name ("X[m]", "y (m)") are ignored."""
+    names = [re.sub(r"[\[(].*$", "", f).strip().strip("\"'").lower() for f in re.split(r"[,;\s]+", line.strip())]
+    if not {"x", "y", "z"} <= set(names):
+        return None
+    ret = [i for i, n in enumerate(names) if n in RETURN_COLUMNS]
+    return tuple(names.index(c) for c in "xyz") + tuple(ret[:1])
 
 
 def _read_text(path: Path, gzipped: bool) -> tuple[np.ndarray, np.ndarray | None]:
-    delimiter, skip, ret_col = _sniff(path, gzipped)
-    cols = (0, 1, 2) if ret_col is None else (0, 1, 2, ret_col)
+    delimiter, skip, cols = _sniff(path, gzipped)
     try:
         with _open_text(path, gzipped) as fh:
             with warnings.catch_warnings():
@@ -578,34 +790,38 @@ def _read_text(path: Path, gzipped: bool) -> tuple[np.ndarray, np.ndarray | None
                     skiprows=skip, usecols=cols, ndmin=2,
                 )
     except ValueError:
-        raise ScanError(str(path), _first_bad_line(path, gzipped, delimiter, skip)) from None
+        raise ScanError(str(path), _first_bad_line(path, gzipped, delimiter, skip, cols[:3])) from None
     except (OSError, EOFError, gzip.BadGzipFile) as e:
         raise ScanError(str(path), f"cannot read the file ({e})") from None
     if pts.shape[0] == 0:
         raise ScanError(str(path), "the file holds no points (only a header)")
-    if ret_col is None:
+    if len(cols) == 3:
         return pts, None
     ret = pts[:, 3]
     ok = np.isfinite(ret) & (ret >= 1)
     return np.ascontiguousarray(pts[:, :3]), (ret.astype(np.int16) - 1 if ok.all() else None)
 
 
-def _first_bad_line(path: Path, gzipped: bool, delimiter: str | None, skip: int) -> str:
-    """Describe the first line numpy could not parse. Runs only after a parse error, and stops at
-    the first bad line, so the Python loop is never paid on a good file."""
+def _first_bad_line(path: Path, gzipped: bool, delimiter: str | None, skip: int,
+                    cols: tuple[int, ...] = (0, 1, 2)) -> str:
+    """Describe the first line numpy could not parse (x, y, z in columns `cols`). Runs only after a
+    parse error, and stops at the first bad line, so the Python loop is never paid on a good file."""
     with _open_text(path, gzipped) as fh:
         for lineno, line in enumerate(fh, start=1):
             if lineno <= skip or _is_comment(line):
                 continue
+            if line.translate(str.maketrans("", "", _BINARY_BYTES.decode())) != line or "\ufffd" in line:
+                return f"line {lineno} is not text (binary or non-UTF-8 bytes): the file is damaged, or not a text scan"
             body = line.split("#")[0]
             fields = _split(body, delimiter)
-            if len(fields) < 3:
+            if len(fields) <= max(cols):
                 sep = "commas" if delimiter == "," else (f"{delimiter!r}" if delimiter else "spaces")
+                where = "the first three columns" if cols == (0, 1, 2) else f"columns {', '.join(str(c + 1) for c in cols)}"
                 return (f"line {lineno} has {len(fields)} column(s) ({line.strip()[:60]!r}); "
-                        f"x y z are needed in the first three columns, separated by {sep}")
-            for col, f in enumerate(fields[:3], start=1):
-                if not _is_number(f):
-                    return (f"line {lineno}, column {col}: {f!r} is not a number "
+                        f"x y z are needed in {where}, separated by {sep}")
+            for col in cols:
+                if not _is_number(fields[col]):
+                    return (f"line {lineno}, column {col + 1}: {fields[col]!r} is not a number "
                             f"(the line reads {line.strip()[:60]!r})")
     return "the text could not be parsed as x y z numbers"
 

@@ -26,7 +26,7 @@ import numpy as np
 from .._version import __version__
 from ..errors import ConfigError
 from ..geometry.rigid import invert
-from ..params import Params, to_dict
+from ..params import Params, changed_from_defaults, loosened, loosened_text, to_dict
 from ..scan import Scan
 from . import atomic
 from .json_input import load_json
@@ -272,6 +272,12 @@ def export_names(names: Sequence[str], name: str = DEFAULT_NAME) -> dict[str, tu
     return {scan: (f"{out}.{stem}.cloudcompare.txt", f"{out}.{stem}.pdal.txt") for scan, stem in _stems(list(names)).items()}
 
 
+def registered_e57_name(name: str = DEFAULT_NAME) -> str:
+    """The registered scans' E57 written beside transform file `name` (`register --exports`):
+    `<output stem>.registered.e57`, named after it as `export_names` are, never a fixed name."""
+    return f"{Path(name).stem}.registered.e57"
+
+
 def export_paths(out_dir: str | Path, names: Sequence[str], name: str = DEFAULT_NAME) -> list[Path]:
     """The files `write_exports` writes for scans `names`: the transform file first, then per scan
     its CloudCompare and PDAL matrix files (`export_names`); checked before a run, written after it."""
@@ -354,11 +360,27 @@ def registration_file(scans: Sequence[Scan], transforms: dict[str, np.ndarray], 
         extra["unverified"] = unverified
     if unregistered:
         extra["unregistered"] = unregistered
+    # Which parameters differ from the defaults ({key: [value, default]}); a verdict reached with a
+    # verification threshold looser than its default says so (tightened ones cannot verify more).
+    extra["params_changed"] = changed_from_defaults(params)
     if quality is not None:
-        extra["quality"] = quality
+        extra["quality"] = _with_loosened(quality, params, scans[0].name)
     if keep_unverified and unverified:
         extra["kept_unverified"] = sorted(unverified)
     return TransformFile(reference=scans[0].name, transforms=kept, params=to_dict(params), extra=extra)
+
+
+def _with_loosened(quality: dict[str, Any], params: Params, reference: str) -> dict[str, Any]:
+    """`quality` with "loosened" ({key: [value, default]}) and, on every verified scan and pair, a "note"
+    saying it was verified under those thresholds; unchanged when none is looser than its default."""
+    loose = loosened(params)
+    if not loose:
+        return quality
+    note = loosened_text(loose)
+    scans = {n: (dict(e, note=note) if e.get("verdict") == "verified" and n != reference else e)
+             for n, e in quality.get("scans", {}).items()}
+    edges = [dict(e, note=note) if e.get("verdict") == "verified" else e for e in quality.get("edges", [])]
+    return {**quality, "loosened": {k: list(v) for k, v in loose.items()}, "scans": scans, "edges": edges}
 
 
 def user_frame_transforms(scans: Sequence[Scan], transforms: dict[str, np.ndarray]) -> dict[str, np.ndarray]:

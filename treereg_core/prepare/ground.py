@@ -214,7 +214,7 @@ def prepare_scans(scans: list[Scan], *, prepare: PrepareParams, target: TargetPa
         choices = [TargetChoice(None, "") for _ in scans]
     else:
         stems = [find_stems(s.points[g.kept], g.heights(s.points[g.kept])) for s, g in zip(scans, grounds)]
-        choices = choose_targets(stems, target=target)
+        choices = choose_targets(stems, target=target, ref_label=scans[0].label)
     radius = prepare.crop_radius_m if prepare.crop_radius_m is not None else target.radius_m
     return [_finish(s, g, st, ch, prepare, radius) for s, g, st, ch in zip(scans, grounds, stems, choices)]
 

@@ -12,7 +12,8 @@ neighbours swamp it. So before projection each station is cut to a disc around t
    the vertical and a shift. Two stems of one map and two of the other, equally far apart, give
    such a transform; the one under which most stems land on a stem of similar radius wins (RANSAC
    over stem pairs). It places every station in the reference's frame, roughly (centimetres).
-3. **The target.** Given by the user (`tree_at`, x y in the reference's frame: the nearest stem),
+3. **The target.** Given by the user (`tree_at`, x y in the reference's frame: the nearest stem;
+   a point with no stem near it while the reference holds stems elsewhere is refused, naming them),
    or by default the stem the stations surround: among the stems no gap between the stations'
    directions wider than a half turn leaves open, the one whose farthest station is nearest
    (stations stand round the target at similar distances). Each station is then cut to
@@ -29,6 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from ..errors import ConfigError
 from ..fine.fitting import fit_circle_taubin
 from ..geometry.rigid import kabsch_yaw
 from ..params import TargetParams
@@ -50,7 +52,8 @@ MATCH_GATE_M = 0.35
 RADIUS_TOLERANCE = 0.4
 #: Fewest matched stems for a stem-map transform to be trusted.
 MIN_MATCHED = 3
-#: A user's `tree_at` picks the nearest stem within this distance (m), else the point itself.
+#: A user's `tree_at` picks the nearest stem within this distance (m); the point itself only when the
+#: reference holds no stem at all (stems elsewhere mean the point is off the tree: refused).
 PICK_RADIUS_M = 2.0
 
 
@@ -216,8 +219,19 @@ def _surrounded(xy: np.ndarray, stations: np.ndarray) -> tuple[float, float]:
     return float(gaps.max()), float(np.linalg.norm(v, axis=1).max())
 
 
-def choose_targets(stems: list[Stems], *, target: TargetParams) -> list[TargetChoice]:
-    """The target stem in every station's frame (station 0 = the reference), see the module doc."""
+def _off_the_stems(at: np.ndarray, ref: Stems, ref_label: str) -> ConfigError:
+    """`tree_at` names a point with no stem near it, though the reference holds stems: say where they are."""
+    order = np.argsort(np.hypot(*(ref.xy - at).T))[:5]  # the nearest few: enough to pick from
+    where = "; ".join(f"{x:.2f} {y:.2f} (r {r * 100:.0f} cm)" for x, y, r in ref.as_array()[order])
+    more = f" and {len(ref) - len(order)} more" if len(ref) > len(order) else ""
+    return ConfigError(f"--tree-at {at[0]:g} {at[1]:g}: no stem within {PICK_RADIUS_M:g} m of that point in {ref_label}; "
+                       f"the stems found at breast height are at {where}{more} (x y in m); give one of those, "
+                       "or leave --tree-at out to take the stem the stations surround")
+
+
+def choose_targets(stems: list[Stems], *, target: TargetParams, ref_label: str = "the reference scan") -> list[TargetChoice]:
+    """The target stem in every station's frame (station 0 = the reference, named `ref_label` in
+    messages), see the module doc. Raises ConfigError when `tree_at` is off every stem found."""
     n = len(stems)
     keep_all = [TargetChoice(None, "fewer stems than a plot holds: all points kept")] * n
     if target.select == "off":
@@ -234,9 +248,11 @@ def choose_targets(stems: list[Stems], *, target: TargetParams) -> list[TargetCh
         if len(near) and near.min() <= PICK_RADIUS_M:
             k_ref, t_xy = int(near.argmin()), ref.xy[int(near.argmin())]
             how = f"the stem nearest to --tree-at {at[0]:g} {at[1]:g}"
-        else:
+        elif len(ref):
+            raise _off_the_stems(at, ref, ref_label)
+        else:  # no stem found at all (a trunk the search missed): crop at the user's point
             k_ref, t_xy = None, at
-            how = f"--tree-at {at[0]:g} {at[1]:g} (no stem found there)"
+            how = f"--tree-at {at[0]:g} {at[1]:g} (no stem found in the reference: cut at that point)"
     else:
         # Stems seen from at least two stations (one station's stray "stem" is not a tree; a trunk
         # may hide from one station, or its partial arc give another radius there) ...

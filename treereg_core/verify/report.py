@@ -8,6 +8,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
+from ..params import Params, loosened, loosened_text
 from ..scan import Scan
 from ..stage import Pair, StageOutput
 from .evidence import FAILED, UNVERIFIED, VERIFIED
@@ -99,6 +100,14 @@ def motion_lines(scans: Sequence[Scan], pairs: Sequence[Pair], outputs: Mapping[
                    + (f"; the stems agree up to {stable:.1f} m above the base" if stable is not None else "")
                    + "; the pose rests on what did not move")
     return out
+
+
+def verdict_text(verdict: str, params: Params, reference: bool = False) -> str:
+    """A scan's verdict as it is shown: "verified under loosened thresholds (verify.min_margin 0.01 <
+    default 0.03)" when it was verified with a threshold looser than its default (the reference
+    is verified by definition)."""
+    note = loosened_text(loosened(params)) if verdict == VERIFIED and not reference else ""
+    return note or verdict
 
 
 def verdict_lines(verdicts: Mapping[str, tuple[str, tuple[str, ...], str]]) -> list[str]:

@@ -15,6 +15,7 @@ import plotly.graph_objects as go
 import viser
 
 from treereg_core.geometry.rigid import apply_transform
+from treereg_core.verify.report import verdict_text
 
 from ..controller import Snapshot
 from ..palette import GREY, hex_color, scan_color
@@ -66,7 +67,7 @@ def render_verify(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewSt
     out = snap.output("verify")
     t = target_index(snap, "verify", view)
     v = out.items[t]
-    text = f"{pair_label(snap, t)}: **{BADGE.get(v.verdict, v.verdict)}**."
+    text = f"{pair_label(snap, t)}: **{BADGE.get(v.verdict, v.verdict)}**.{_loosened_note(snap, v.verdict)}"
     e = getattr(v, "evidence", None)
     if e is not None and e.sway_m > 0:
         stable = f"; the stems agree up to {e.stable_height_m:.1f} m above the base" if np.isfinite(e.stable_height_m) else ""
@@ -82,6 +83,13 @@ def render_verify(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewSt
         [pair_label(snap, k) for k in range(len(out.items))]
     table = metrics_table({lab: it.metrics for lab, it in zip(labels, out.items)})
     return [], PanelContent(title("verify", snap, t), text=text, table=table)
+
+
+def _loosened_note(snap: Snapshot, verdict: str) -> str:
+    """" ⚠ Verified under loosened thresholds (…)." when a verified verdict rests on a threshold set looser
+    than its default; the same words as transforms.json and the command line."""
+    text = verdict_text(verdict, snap.params) if verdict == "verified" else ""
+    return f" ⚠ {text[0].upper()}{text[1:]}." if text and text != "verified" else ""
 
 
 def graph_figure(snap: Snapshot) -> go.Figure | None:
@@ -122,7 +130,7 @@ def render_graph(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewSta
     n_ok = sum(pl.verdict == "verified" for pl in graph.items)
     text = (f"{n_ok} of {len(graph.items)} scans verified. Every scan is shown at its joint placement. Solid edges: "
             "verified pairs used in the joint solve; dotted: pairs left out (unverified, failed, or dropped because "
-            "a loop did not close).")
+            "a loop did not close).") + _loosened_note(snap, "verified" if n_ok > 1 else "")
     plots = []
     fig = graph_figure(snap)
     if fig is not None and len(snap.scans) > 2:

@@ -157,3 +157,16 @@ def test_every_whole_number_parameter_has_a_range():
             if ints and f.metadata["choices"] is None and (f.metadata["min"] is None or f.metadata["max"] is None):
                 loose.append(f"{s}.{f.name}")
     assert loose == []
+
+
+def test_the_apps_verify_and_placement_panels_say_a_verdict_rests_on_a_loosened_threshold():
+    from types import SimpleNamespace
+
+    from treereg_viewer.renderers.verify import _loosened_note
+
+    loose = SimpleNamespace(params=P.Params().with_value("verify", "min_margin", 0.02))
+    tight = SimpleNamespace(params=P.Params().with_value("verify", "min_margin", 0.05))
+    assert _loosened_note(loose, "verified") == \
+        " ⚠ Verified under loosened thresholds (verify.min_margin 0.02 < default 0.03)."
+    assert _loosened_note(loose, "unverified") == ""  # a refusal needs no warning
+    assert _loosened_note(tight, "verified") == "" and _loosened_note(SimpleNamespace(params=P.Params()), "verified") == ""

@@ -35,7 +35,7 @@ from common import (  # noqa: E402
 )
 
 from treereg_core.evaluate.icp import align_icp  # noqa: E402
-from treereg_core.fine.pose import FINE_SECTIONS, register_fine  # noqa: E402
+from treereg_core.fine.pose import FINE_SECTIONS, FineSections, register_fine  # noqa: E402
 from treereg_core.params import PRESETS, Params  # noqa: E402
 from treereg_core.pipeline import Pipeline  # noqa: E402
 from treereg_core.simulate.cases import CaseSpec, SimulatedCase, benchmark_cases, coarse_like_error  # noqa: E402
@@ -102,7 +102,7 @@ def fine_alone(case: SimulatedCase, k: int, start: np.ndarray, params: Params) -
     prep.run("prepare")
     scans = [it.scan for it in prep.output("prepare").items]
     t0 = time.perf_counter()
-    r = register_fine(scans[0], scans[k], start, **params.pick(*FINE_SECTIONS))
+    r = register_fine(scans[0], scans[k], start, params=FineSections.of(params))
     dt = time.perf_counter() - t0
     return error_of(r.T_ref_target, case, k, dt, r.message), dt
 

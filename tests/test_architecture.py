@@ -8,6 +8,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from conftest import ROOT
 
 PACKAGES = ("treereg_core", "treereg_viewer", "treereg_cli")
@@ -114,6 +116,26 @@ def test_every_stage_is_registered_once_with_its_sections_and_upstream():
 def test_the_public_api_is_one_import():
     import treereg_core as T
 
-    for name in ("register", "Pipeline", "Params", "Scan", "read_scan", "FineResult", "CoarseResult", "STAGES"):
-        assert getattr(T, name) is not None
+    from treereg_core import params, pipeline, scan, stages
+    from treereg_core.coarse import estimate
+    from treereg_core.fine import pose
+    from treereg_core.io import scans
+
+    homes = {"register": pipeline.register, "Pipeline": pipeline.Pipeline, "Params": params.Params, "Scan": scan.Scan,
+             "read_scan": scans.read_scan, "FineResult": pose.FineResult,
+             "CoarseResult": estimate.CoarseResult, "STAGES": stages.STAGES}
+    for name, obj in homes.items():
+        assert getattr(T, name) is obj, name  # the object itself, not a copy or a stand-in
     assert set(T.__all__) >= {"register", "Pipeline", "Params", "Scan", "read_scan"}
+
+
+#: What `mypy --strict` must pass on: the stage model, the registry and the pipeline.
+TYPED = ("treereg_core/stage.py", "treereg_core/stages.py", "treereg_core/pipeline.py")
+
+
+def test_the_stage_model_registry_and_pipeline_pass_mypy_strict(tmp_path):
+    pytest.importorskip("mypy", reason="mypy is not installed (pip install -e '.[test]')")
+    # Imported modules are read for their types, their own errors not reported (--follow-imports=silent).
+    done = subprocess.run([sys.executable, "-m", "mypy", "--strict", "--follow-imports=silent", "--no-incremental",
+                           "--cache-dir", str(tmp_path), *TYPED], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stdout + done.stderr

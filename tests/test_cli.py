@@ -32,8 +32,9 @@ def test_register_writes_transforms_close_to_truth(case_dir, tmp_path, capsys):
     assert tf.params["fine"]["max_iterations"] >= 1  # the parameters used are recorded
     for scan, T_true in zip(case.scans[1:], case.T_ref_scan[1:]):
         T = tf.matrix(scan.name)
-        assert rotation_error_deg(T, T_true) < 0.5
-        assert mean_displacement(T, T_true, scan.points) < 0.03
+        # the placement reaches 0.02 deg and 1.4 mm here; held to about three times that
+        assert rotation_error_deg(T, T_true) < 0.06
+        assert mean_displacement(T, T_true, scan.points) < 0.004
         cc = (out.parent / f"transforms.{scan.name[:-4]}.cloudcompare.txt").read_text()
         assert np.allclose(parse_cloudcompare_matrix(cc), T)
     assert "scan2.ply" in json.dumps(tf.extra["metrics"])
@@ -44,7 +45,7 @@ def test_register_writes_transforms_close_to_truth(case_dir, tmp_path, capsys):
     xyz = np.c_[las.x, las.y, las.z]
     for k, (scan, T_true) in enumerate(zip(case.scans, case.T_ref_scan)):
         true = apply_transform(T_true, scan.points)
-        assert np.abs(xyz[ids == k + 1] - true).mean() < 0.03
+        assert np.abs(xyz[ids == k + 1] - true).mean() < 0.002  # 0.7 mm per coordinate reached
 
     capsys.readouterr()
     assert main(["evaluate", str(out), "--truth", str(d / "truth.json")]) == 0

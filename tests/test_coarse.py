@@ -39,7 +39,7 @@ def test_ransac_recovers_a_known_transform_among_60_percent_outliers(dof):
         R = R @ np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
     T = make_transform(R, [4.0, -7.0, 0.3])
     src, dst, bad = _ties_with_outliers(rng, T)
-    fit = robust.ransac(src, dst, dof=dof, inlier_m=0.3, iterations=1000, seed=0, final_inlier_m=0.08)
+    fit = robust.ransac(src, dst, robust.RansacSettings(dof=dof, inlier_m=0.3, iterations=1000, seed=0, final_inlier_m=0.08))
     assert fit is not None
     assert rotation_error_deg(fit.T, T) < 0.5
     assert np.linalg.norm(fit.T[:3, 3] - T[:3, 3]) < 0.05
@@ -58,7 +58,7 @@ def test_plain_svd_is_ruined_by_the_same_outliers():
 def test_degenerate_ties_are_detected():
     line = np.column_stack([np.zeros(10), np.zeros(10), np.linspace(0, 5, 10)])
     assert robust.is_degenerate(line, 4) and robust.is_degenerate(line, 6)
-    assert robust.ransac(line[:1], line[:1], dof=4) is None
+    assert robust.ransac(line[:1], line[:1], robust.RansacSettings(dof=4)) is None
 
 
 def _small_cases():
@@ -122,7 +122,11 @@ def test_paper_preset_is_literal_and_its_result_is_either_plausible_or_refused(s
             m = r.match
             assert len(m.pairs) <= 3 and all(len(pm.hamming) <= 5 for pm in m.pairs)
             assert r.n_ties <= 15 and r.T_ref_target.shape == (4, 4)
-            assert "SVD" in dict((x.description, x.value) for x in r.metrics).get("estimator", "SVD")
+            estimator = {x.description: x.value for x in r.metrics}.get("estimator")
+            if estimator is None:  # stopped before estimating: too few ties (in matching or coarse)
+                assert not r.ok and "tie points" in r.message, r.message
+            else:  # one SVD over all ties: no RANSAC modes, no chance level measured
+                assert estimator == "SVD over all ties (6 DOF)" and r.modes == () and r.chance_inliers == -1
             if r.ok:  # kept only when enough ties agree and the scanner stays level
                 assert r.n_inliers >= p.coarse.min_ties
                 assert np.degrees(np.arccos(np.clip(r.T_ref_target[2, 2], -1, 1))) <= p.coarse.max_tilt_deg
@@ -170,3 +174,21 @@ def test_implausible_svd_transforms_are_rejected_not_returned_as_success():
     assert res.n_inliers == res.n_ties  # the check is about the pose, not the fit
     # With the check switched off the same transform is returned as the paper would.
     assert estimate_coarse(upside_down, coarse=replace(svd, max_tilt_deg=None)).ok
+
+
+def test_the_result_keeps_the_inlier_distance_its_inliers_were_chosen_with():
+    """RANSAC narrows its inlier distance from inlier_m towards final_inlier_m (halving, stopping
+    early when too few ties remain): the result says which distance its inliers are within, so the
+    app's histogram marks that distance without redoing the narrowing."""
+    match = _demo_like_match()
+    p = replace(Params().coarse, refit_6dof=False)  # no refit: the residuals are those the inliers were chosen on
+    r = estimate_coarse(match, coarse=p)
+    assert r.ok, r.message
+    steps = [p.inlier_m]
+    while steps[-1] > p.final_inlier_m * 1.0001:
+        steps.append(max(steps[-1] / 2.0, p.final_inlier_m))
+    assert r.inlier_m in steps
+    assert np.array_equal(r.inliers, r.residuals_m < r.inlier_m)
+    svd = estimate_coarse(match, coarse=replace(PRESETS["paper"].coarse, max_tilt_deg=None))
+    assert svd.inlier_m == PRESETS["paper"].coarse.inlier_m
+    assert np.array_equal(svd.inliers, svd.residuals_m < svd.inlier_m)

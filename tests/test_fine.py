@@ -10,7 +10,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from treereg_core.fine.pose import FINE_SECTIONS, register_fine
+from treereg_core.fine.pose import FineSections, register_fine
 from treereg_core.prepare.ground import prepare_scan
 from treereg_core.params import PRESETS, Params
 from treereg_core.geometry.rigid import apply_transform, make_transform, mean_displacement, rotation_error_deg, rotation_z
@@ -20,7 +20,7 @@ from treereg_core.fine.surface import surface_of, trimmed_residuals
 
 def fine(ref, tgt, start, params):
     """The fine stage on its own (the slices, arcs and sections of its first iteration made for it)."""
-    return register_fine(ref, tgt, start, **params.pick(*FINE_SECTIONS))
+    return register_fine(ref, tgt, start, params=FineSections.of(params))
 
 
 def _errors(T, T_true, pts):
@@ -50,7 +50,8 @@ def test_fine_from_perturbed_truth_ends_close_and_never_worse(cases):
             assert res.ok
             rot0, disp0 = _errors(start, T_true[k], scans[k].points)
             rot1, disp1 = _errors(res.T_ref_target, T_true[k], scans[k].points)
-            assert rot1 < 0.5 and disp1 < 0.03, (rot1, disp1)
+            # the worst of these six pairs ends at 0.09 deg and 3.2 mm; held to about 2.5 times that
+            assert rot1 < 0.25 and disp1 < 0.008, (rot1, disp1)
             assert disp1 <= disp0 and rot1 <= rot0
             finals.append(disp1)
     # Most pairs end at millimetres, far below the paper's 2.3-3.0 cm.
@@ -144,6 +145,19 @@ def test_fine_result_holds_what_the_app_draws(cases):
     # At the final pose corresponding centres are close (the target drawn in the reference frame).
     assert np.median(sec.correspondences.distances_m) < 0.02
     assert {m.description for m in res.metrics} >= {"fine accepted", "corresponding sections"}
+
+
+def test_the_result_says_when_the_iteration_limit_cut_the_sections_short(cases):
+    """One iteration from a coarse-like start leaves an update of millimetres: the result says it
+    stopped at the limit (the app's Fine panel says so); with the default limit the same start converges."""
+    scans, T_true = cases[1]
+    start = coarse_like_error(T_true[1], scans[1].points, np.random.default_rng(7))
+    capped = fine(scans[0], scans[1], start, Params().with_value("fine", "max_iterations", 1))
+    assert capped.iteration_limit == 1 and capped.iterations == 1
+    assert capped.stopped_at_limit and capped.updates_m[-1] > Params().fine.tolerance_m
+    free = fine(scans[0], scans[1], start, Params())
+    assert free.iteration_limit == Params().fine.max_iterations
+    assert not free.stopped_at_limit and free.updates_m[-1] <= Params().fine.tolerance_m
 
 
 def test_paper_preset_runs_the_literal_tie_point_method(cases):

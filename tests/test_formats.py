@@ -75,13 +75,14 @@ def test_multi_scan_e57_from_another_tool_registers_and_our_e57_reopens_register
     truth = case.truth
     # scan 2: no pose, the transform is the scanner-frame one
     T2 = tf.matrix("stations#2")
-    assert rotation_error_deg(T2, truth["scan2.ply"]) < 0.5
-    assert mean_displacement(T2, truth["scan2.ply"], case.scans[1].points) < 0.01
+    # the demo reaches 0.04 deg and 1.6 mm for scan 2; held to about three times that
+    assert rotation_error_deg(T2, truth["scan2.ply"]) < 0.12
+    assert mean_displacement(T2, truth["scan2.ply"], case.scans[1].points) < 0.005
     # scan 3: its matrix maps the points as the file places them (pose applied) onto the reference
     T3 = tf.matrix("south")
     placed = apply_transform(P3, case.scans[2].points)
     expected = apply_transform(truth["scan3.ply"], case.scans[2].points)
-    assert np.mean(np.linalg.norm(apply_transform(T3, placed) - expected, axis=1)) < 0.01
+    assert np.mean(np.linalg.norm(apply_transform(T3, placed) - expected, axis=1)) < 0.006  # 2.3 mm reached
     assert tf.extra["poses"]["south"][0][3] == pytest.approx(P3[0, 3])
 
     # Our E57: every scan in its own frame, posed where the registration puts it.

@@ -32,6 +32,19 @@ def test_scan_without_ground_is_left_alone():
     assert any("no ground" in str(m.value) for m in prep.metrics)
 
 
+def test_the_ground_height_below_a_point_lies_on_the_ground_found():
+    """`PreparedScan.ground_z` (where the app stands the stem markers): the simulated ground's own
+    points lie at it (within a centimetre); without a plane it is the default given."""
+    case = simulate_case(seed=3, angular_step_deg=(0.25, 0.25), height_m=8.0, ground=True, tilt_deg=0.5)
+    scan, labels = case.scans[0], case.labels[0]
+    prep = prepare_scan(scan, prepare=PrepareParams())
+    ground = scan.points[labels == LABEL_GROUND]
+    assert np.median(np.abs(prep.ground_z(ground[:, :2], 0.0) - ground[:, 2])) < 0.01
+    bare = prepare_scan(simulate_case(seed=4, angular_step_deg=(0.25, 0.25), height_m=8.0, ground=False).scans[0],
+                        prepare=PrepareParams())
+    assert np.array_equal(bare.ground_z(np.zeros((3, 2)), -1.5), np.full(3, -1.5))
+
+
 def test_crop_radius_and_heights():
     rng = np.random.default_rng(0)
     stem = np.column_stack([10 + 0.15 * rng.standard_normal(3000), 2 + 0.15 * rng.standard_normal(3000),

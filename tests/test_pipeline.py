@@ -23,8 +23,9 @@ def test_register_reaches_truth_and_caches(case):
     assert [pipe.status(s) for s in STAGE_NAMES] == ["done"] * upto + ["stale"] * (len(STAGE_NAMES) - upto)
     for scan, T_true in zip(case.scans[1:], case.T_ref_scan[1:]):
         T = pipe.transforms()[scan.name]
-        assert rotation_error_deg(T, T_true) < 0.5
-        assert mean_displacement(T, T_true, scan.points) < 0.03
+        # the fine stage reaches 0.05 deg and 1.6 mm here; held to about three times that
+        assert rotation_error_deg(T, T_true) < 0.15
+        assert mean_displacement(T, T_true, scan.points) < 0.005
 
     coarse_before = pipe.output("coarse")
     # A fine-stage parameter leaves coarse (and everything before it) cached...
@@ -120,3 +121,72 @@ def test_a_scan_no_pair_reaches_fails_and_gets_no_transform(case):
     assert verdicts["scan2.ply"][0] == "verified"
     assert verdicts["scan3.ply"][0] == "failed" and "coarse failed" in "; ".join(verdicts["scan3.ply"][1])
     assert set(pipe.transforms()) == {"scan1.ply", "scan2.ply"}  # no transform claimed for the failed one
+
+
+PAIR_LABELS = ["scan2.ply -> scan1.ply", "scan3.ply -> scan1.ply", "scan3.ply -> scan2.ply"]
+
+
+def test_a_run_tells_its_subscribers_each_stage_it_computes_in_order(case):
+    """Per stage computed: started, progress, one item per scan or pair in order, finished; cached
+    stages are silent; the run's fraction climbs from 0 to 1 over the stages computed."""
+    from treereg_core.stage import ItemFinished, StageFinished, StageProgress, StageStarted
+
+    pipe = Pipeline(list(case.scans), Params(), case.truth())
+    pipe.run("matching")
+    events = []
+    pipe.run("graph", events=events.append)
+    computed = list(STAGE_NAMES[STAGE_NAMES.index("coarse"): STAGE_NAMES.index("graph") + 1])
+    starts = [k for k, e in enumerate(events) if isinstance(e, StageStarted)]
+    assert [events[k].stage for k in starts] == computed
+    for name, a, b in zip(computed, starts, starts[1:] + [len(events)]):
+        mine, out = events[a:b], pipe.output(name)
+        assert mine[0] == StageStarted(name, len(out.items)) and mine[-1] == StageFinished(out)
+        progress = [e for e in mine if isinstance(e, StageProgress)]
+        items = [e for e in mine if isinstance(e, ItemFinished)]
+        assert {e.stage for e in progress + items} == {name}
+        assert mine[1:-1] == progress + items  # the items once the stage has made them
+        assert [e.index for e in items] == list(range(len(out.items)))
+        assert all(e.item is it for e, it in zip(items, out.items))
+        assert [e.label for e in items] == ([s.name for s in case.scans] if name == "graph" else PAIR_LABELS)
+        fractions = [e.stage_fraction for e in progress]
+        assert fractions == sorted(fractions) and fractions[-1] == 1.0
+    run = [e.run_fraction for e in events if isinstance(e, StageProgress)]
+    assert run == sorted(run) and 0.0 <= run[0] < 0.2 and run[-1] == pytest.approx(1.0)
+    assert pipe.run("graph", events=events.append) is pipe.output("graph") and events[-1] == StageFinished(pipe.output("graph"))
+
+
+def test_the_apps_running_stage_comes_from_the_pipelines_events(case, monkeypatch):
+    """The controller runs the pipeline once per request and names the running stage as the events
+    announce it, publishing each time the outputs of the stages before it."""
+    from treereg_core.stage import StageStarted
+    from treereg_viewer.controller import Controller
+
+    calls, started = [], []
+    run = Pipeline.run
+
+    def spy(self, until, events=None):
+        calls.append(until)
+
+        def tee(event):
+            if isinstance(event, StageStarted):
+                started.append(event.stage)
+            events(event)
+        return run(self, until, tee)
+
+    monkeypatch.setattr(Pipeline, "run", spy)
+    ctl = Controller(case.scans[:2], Params(), case.truth())
+    seen = []
+    ctl.subscribe(lambda snap: seen.append((snap.running, set(snap.outputs))) if snap.busy else None)
+    fractions = []
+    ctl.subscribe_progress(lambda f, text: fractions.append((f, text)))
+    try:
+        ctl.request_run("coarse")
+        assert ctl.wait_idle(120)
+    finally:
+        ctl.close()
+    upto = list(STAGE_NAMES[: STAGE_NAMES.index("coarse") + 1])
+    assert calls == ["coarse"] and started == upto
+    assert seen == [(s, set(upto[:k])) for k, s in enumerate(upto)]
+    assert ctl.snapshot.running is None and set(ctl.snapshot.outputs) == set(upto)
+    assert fractions[-1] == (1.0, "coarse: done") and [f for f, _ in fractions] == sorted(f for f, _ in fractions)
+    assert "matching: scan2.ply -> scan1.ply" in [t for _, t in fractions]

@@ -4,7 +4,7 @@ import numpy as np
 
 from treereg_core.params import ProjectionParams
 from treereg_core.coarse.projection import EMPTY, OCCUPIED, project, spherical_deg
-from treereg_core.geometry.rigid import rotation_z
+from treereg_core.geometry.rigid import apply_transform, rotation_z
 from treereg_core.scan import Scan
 from treereg_core.coarse.sequences import build_sequence, sequence_angles_deg
 from treereg_core.coarse.tiepoints import pixel_centroids
@@ -103,6 +103,31 @@ def test_sequence_spans_plus_minus_360_over_n_and_keeps_the_scan_at_zero():
     c0, c90, again = cells(seq.projections[12]), cells(seq.projections[21]), cells(direct)
     assert len(c0 & c90) / len(c0 | c90) < 0.5  # another view of the tree
     assert len(c0 & again) / len(c0 | again) > 0.98  # the same view, cell for cell
+
+
+def test_the_rotation_the_app_poses_an_image_by_gives_that_image():
+    """`ImageSequence.rotation(k)` applied to the scan and projected again gives image k, cell for cell
+    (the app draws the cloud rotated by it next to the image); another image's rotation does not."""
+    rng = np.random.default_rng(3)
+    pts = _tree_like(rng, centre_xy=(6.0, 8.0))
+    scan = Scan.from_points(pts, "s", angular_step_deg=(0.1, 0.1))
+    p = ProjectionParams(theta_deg=10.0, max_image_px=None)
+    seq = build_sequence(scan, projection=p, n_scans=3)
+
+    def cells(proj):
+        rows, cols = np.nonzero(proj.image == OCCUPIED)
+        a_lo, _ = proj.geometry.alpha_interval_deg(cols)
+        b_lo, _ = proj.geometry.beta_interval_deg(rows)
+        return set(zip(np.rint(a_lo / seq.pixel_deg[0]).astype(int), np.rint(b_lo / seq.pixel_deg[1]).astype(int)))
+
+    def posed(k):
+        q = apply_transform(seq.rotation(k), pts)
+        alpha, beta = spherical_deg(q[:, 0], q[:, 1], q[:, 2])
+        return cells(project(alpha, beta, seq.pixel_deg, p.border_px, azimuth_ref_deg=0.0))
+
+    image = cells(seq.projections[21])
+    assert len(image & posed(21)) / len(image | posed(21)) > 0.98
+    assert len(image & posed(3)) / len(image | posed(3)) < 0.5
 
 
 def test_image_size_cap_enlarges_pixels_uniformly():

@@ -30,7 +30,7 @@ def _trunks_in_scan(case, k):
 
 
 def _stems(scan):
-    plane, _ = find_ground(scan.points, 1.0, 0.3)
+    plane, _ = find_ground(scan.points, Params().prepare)  # cells of 1 m, band 0.3 m
     return find_stems(scan.points, scan.points @ plane[:3] + plane[3])
 
 
@@ -92,8 +92,9 @@ def test_plot_registers_and_is_verified_with_the_default_target(plot):
     verdicts = reg.pipeline.verdicts()
     for k, scan in enumerate(plot.scans[1:], start=1):
         T, T_true = reg.transforms[scan.name], plot.T_ref_scan[k]
-        assert rotation_error_deg(T, T_true) < 0.5
-        assert mean_displacement(T, T_true, prepared[k].scan.points) < 0.03
+        # this plot is registered to 0.05 deg and 5 mm; held to about three times that
+        assert rotation_error_deg(T, T_true) < 0.15
+        assert mean_displacement(T, T_true, prepared[k].scan.points) < 0.015
         assert verdicts[scan.name][0] == "verified", verdicts[scan.name]
     # On a sloping plot the densest low cell of a cut station can be a neighbour's stem: the stem
     # profile (the stems' lean and offset the verifier checks) must trace the target the prepare

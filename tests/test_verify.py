@@ -120,10 +120,10 @@ def test_a_pair_that_keeps_a_loop_open_is_dropped_and_every_scan_still_placed_ri
     rng = np.random.default_rng(3)
     poses, samples = _ring(5, rng)
     pairs = [(0, 1), (0, 2), (1, 2), (2, 3), (3, 4), (0, 4), (1, 3)]
-    edges = [Edge(i, j, invert(poses[i]) @ poses[j], VERIFIED) for i, j in pairs]
+    edges = [Edge(i=i, j=j, T=invert(poses[i]) @ poses[j], verdict=VERIFIED) for i, j in pairs]
     # A verified pair that is 8 cm off (what a wrong section match could leave): the loops disagree.
     bad = make_transform(rotation_z(0.5), [0.08, 0.0, 0.0]) @ edges[3].T
-    edges[3] = Edge(2, 3, bad, VERIFIED)
+    edges[3] = Edge(i=2, j=3, T=bad, verdict=VERIFIED)
     placed = place_scans(5, edges, samples, graph=GraphParams(), max_loop_m=0.02)
     assert all(pl.verdict == VERIFIED for pl in placed)
     for k in range(1, 5):
@@ -135,9 +135,9 @@ def test_a_pair_that_keeps_a_loop_open_is_dropped_and_every_scan_still_placed_ri
 def test_a_scan_only_an_unverified_pair_reaches_is_a_best_guess_and_one_without_pairs_fails():
     rng = np.random.default_rng(5)
     poses, samples = _ring(4, rng)
-    edges = [Edge(0, 1, invert(poses[0]) @ poses[1], VERIFIED),
-             Edge(1, 2, invert(poses[1]) @ poses[2], "unverified", ("the heading is ambiguous",)),
-             Edge(0, 3, np.eye(4), "failed", ("coarse: only 2 tie points",))]
+    edges = [Edge(i=0, j=1, T=invert(poses[0]) @ poses[1], verdict=VERIFIED),
+             Edge(i=1, j=2, T=invert(poses[1]) @ poses[2], verdict="unverified", reasons=("the heading is ambiguous",)),
+             Edge(i=0, j=3, T=np.eye(4), verdict="failed", reasons=("coarse: only 2 tie points",))]
     placed = place_scans(4, edges, samples, graph=GraphParams(), max_loop_m=0.02)
     assert [pl.verdict for pl in placed] == [VERIFIED, VERIFIED, "unverified", "failed"]
     assert mean_displacement(placed[2].T_ref_scan, poses[2], samples[2]) < 1e-6  # the best guess, through scan 2
@@ -232,6 +232,21 @@ def test_a_hypothesis_picked_by_hand_becomes_the_result_and_says_so(case):
     pipe.choose("scan2.ply -> scan1.ply", None)
     pipe.run("graph")
     assert pipe.output("hypotheses").items[0].chosen == "coarse" and pipe.verdicts()["scan2.ply"][0] == VERIFIED
+
+
+def test_the_hypotheses_say_how_many_ransac_modes_had_too_little_support_to_be_scored(case):
+    """Every further RANSAC mode is either a candidate or counted as left out (the app says how many)."""
+    def modes_of(params):
+        pipe = Pipeline(list(case.scans[:2]), params)
+        pipe.run("hypotheses")
+        h, c = pipe.output("hypotheses").items[0], pipe.output("coarse").items[0]
+        scored = sum(x.label.startswith("RANSAC mode") for x in h.candidates)
+        return scored, h.unscored_modes, len(c.modes) - 1
+
+    scored, unscored, further = modes_of(Params())
+    assert further >= 1 and scored + unscored == further
+    none_scored = modes_of(Params().with_value("hypotheses", "min_mode_support", 100000))
+    assert none_scored == (0, further, further)
 
 
 # ---- symmetric crowns ------------------------------------------------------------------------------

@@ -157,6 +157,7 @@ def test_next_steps_through_every_stage_and_draws_its_layer(env, case):
             line = app.panel.plots[0].figure.layout.shapes[0].x0
             res, inl = np.asarray(c.residuals_m), np.asarray(c.inliers)
             assert np.mean(res[inl] < line) > 0.95 and np.mean(res[~inl] >= line) > 0.95, line
+            assert line == c.inlier_m  # the distance the result says, not one re-derived in the app
         if name in ("matching", "coarse", "evaluation"):  # viser's client draws a plot `aspect` times as tall as wide: ours are wide
             assert app.panel.plots[0].visible and app.panel.plots[0].aspect < 1.0
         if name == "arcs":  # arcs coloured per component: branch slices hold several arcs, several colours
@@ -427,7 +428,7 @@ def test_paper_preset_runs_and_its_failure_is_explained(small_app, case):
     snap = ctl.snapshot
     assert snap.status("coarse") == "failed"
     message = app.stages.message_md.content
-    assert "scan3.ply" in message and "estimator = ransac" in message
+    assert "scan3.ply" in message and "--set coarse.estimator=ransac" in message
     assert "✗ 4 Coarse" in app.stages.status_md.content
     assert "scan3.ply" not in snap.transforms  # no transform claimed for the failed pair
     assert snap.verdicts["scan3.ply"][0] == "failed"

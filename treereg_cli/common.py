@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import json
 from pathlib import Path
+from typing import Any
 
 from treereg_core import params as P
 from treereg_core.errors import ConfigError
@@ -12,11 +14,18 @@ from treereg_core.params import Params
 from treereg_core.scan import Scan
 
 
+#: How --set, and `treereg params --explain`, say the order in which a run's parameters are applied.
+ORDER = ("--preset, then --config, then each --set in order, then the flags naming one parameter "
+         "(--angular-step, --returns, --tree-at)")
+
+
 def load_params(args: argparse.Namespace) -> Params:
-    """The parameters of a run: a preset (default robust), a config file over it, then --angular-step."""
+    """The parameters of a run, applied in `ORDER`: a preset (default robust), a config file over it,
+    each `--set section.field=value`, then the specific flags."""
     base = P.PRESETS[args.preset] if getattr(args, "preset", None) else P.Params()
     if getattr(args, "config", None):
         base = P.load(args.config, base=base)
+    base = apply_sets(base, getattr(args, "set", None) or [])
     if getattr(args, "angular_step", None):
         base = base.with_value("prepare", "angular_step_deg", angular_steps(args.angular_step))
     if getattr(args, "returns", None):
@@ -36,10 +45,46 @@ def angular_steps(values: list[float]) -> tuple[float, float]:
         raise ConfigError(f"--angular-step: {str(e).split(': ', 1)[1]}") from None
 
 
+def set_value(text: str) -> Any:
+    """The value of `--set key=VALUE`: JSON first (5, 0.02, true, null, [1, 1.6], "ramp"), else
+    None for None, else the text itself (ramp; 1,1.6 for a tuple), which `with_value` then coerces."""
+    try:
+        return json.loads(text)
+    except ValueError:
+        return None if text.strip() == "None" else text
+
+
+def apply_sets(params: Params, settings: list[str]) -> Params:
+    """`params` with each `section.field=value` of `settings` applied in order, checked by
+    `Params.with_value` (a bad key or value: one ConfigError naming it). A key that moved
+    (`params.MOVED`) is taken at its new place."""
+    for setting in settings:
+        key, eq, text = setting.partition("=")
+        section, dot, name = key.strip().partition(".")
+        if not (eq and dot and section and name):
+            raise ConfigError(f"--set {setting}: expected section.field=value (e.g. --set projection.theta_deg=5; "
+                              "`treereg params --explain` lists every key)")
+        section, name = P.MOVED.get((section, name), (section, name))
+        try:
+            params = params.with_value(section, name, set_value(text))
+        except ConfigError as e:
+            raise ConfigError(f"--set {e}") from None
+    return params
+
+
+def add_set_arg(p: argparse.ArgumentParser) -> None:
+    """--set section.field=value (repeatable): any parameter from the command line."""
+    p.add_argument("--set", action="append", metavar="SECTION.FIELD=VALUE",
+                   help="set one parameter (repeatable; `treereg params --explain` lists every key): numbers, "
+                   "true/false, null, lists as 1,1.6 or JSON, words as they are; e.g. --set projection.theta_deg=5. "
+                   f"Applied in this order: {ORDER}")
+
+
 def add_param_args(p: argparse.ArgumentParser) -> None:
-    """--config, --preset, --angular-step: how every command that registers gets its parameters."""
+    """--config, --preset, --set, --angular-step, ...: how every command that registers gets its parameters."""
     p.add_argument("--config", help="parameter JSON file (as saved by the app or `treereg params`)")
     p.add_argument("--preset", choices=tuple(P.PRESETS), help="start from a preset (paper = the paper's literal settings)")
+    add_set_arg(p)
     p.add_argument("--angular-step", nargs="+", type=float, metavar=("H", "V"),
                    help="instrument angular steps in degrees (phi [varphi]); read off the file's grid (PTX, "
                    "structured E57) or estimated from the data when absent")

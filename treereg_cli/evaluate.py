@@ -16,6 +16,7 @@ from treereg_core.io.transforms import TransformFile, check_transform, read_tran
 from treereg_core.prepare.ground import prepare_scan
 from treereg_core.scan import Scan
 
+from .common import add_set_arg, apply_sets
 from .progress import ProgressBar
 
 
@@ -32,6 +33,7 @@ def add(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--scan-dir", help="folder holding the scans (default: the paths recorded in the "
                    "transform file, else the transform file's folder)")
     p.add_argument("--branches", action="store_true", help="also print the per-branch table (paper Figs. 13-14)")
+    add_set_arg(p)  # over the parameters the transform file records (e.g. --set evaluation.max_rms_m=0.02)
     p.set_defaults(func=run)
 
 
@@ -48,6 +50,7 @@ def run(args: argparse.Namespace) -> int:
     tf = read_transforms(args.transforms)
     truth = read_transforms(args.truth) if args.truth else None
     params = P.from_dict(tf.params, source=f"{args.transforms}: params") if tf.params else P.Params()
+    params = apply_sets(params, args.set or [])
     steps = tf.extra.get("angular_step_deg") or {}
     # Best guesses listed under "unverified" are evaluated too (their verdict says what they are).
     unverified = tf.extra.get("unverified") or {}

@@ -1,9 +1,12 @@
-"""A one-line text progress bar on stderr (a `Progress` callback for long commands)."""
+"""A one-line text progress bar on stderr (a `Progress` callback for long commands, or a subscriber
+to a pipeline run's events)."""
 
 from __future__ import annotations
 
 import sys
 import time
+
+from treereg_core.stage import Event, StageProgress
 
 #: Streams a bar has left mid-line (the next message must start on a fresh line).
 _open_lines: set[int] = set()
@@ -19,7 +22,8 @@ def end_line() -> None:
 
 
 class ProgressBar:
-    """A one-line text progress bar on stderr; usable as a `Progress` callback."""
+    """A one-line text progress bar on stderr; usable as a `Progress` callback, and `on_event` as a
+    pipeline run's subscriber (`register(..., events=bar.on_event)`)."""
 
     def __init__(self, label: str, stream=None, width: int = 30) -> None:
         self.label = label
@@ -27,6 +31,17 @@ class ProgressBar:
         self.width = width
         self.t0 = time.perf_counter()
         self._last = -1.0
+        self._done = False
+
+    def on_event(self, event: Event) -> None:
+        """A pipeline event: its progress moves the bar ("matching: scan2 -> scan1")."""
+        if isinstance(event, StageProgress):
+            self(event.run_fraction, event.line)
+
+    def finish(self, text: str = "done") -> None:
+        """Fill the bar and end its line, unless it is already full (a run that stopped early)."""
+        if not self._done:
+            self(1.0, text)
 
     def __call__(self, fraction: float, text: str = "") -> None:
         fraction = min(max(float(fraction), 0.0), 1.0)
@@ -42,4 +57,5 @@ class ProgressBar:
         if fraction >= 1.0:
             self.stream.write("\n")
             _open_lines.discard(id(self.stream))
+            self._done = True
         self.stream.flush()

@@ -88,7 +88,9 @@ def run(args: argparse.Namespace) -> int:
         for path in matrices:
             check_output_file(path)
     t0 = time.perf_counter()
-    reg = register(scans, params, until=UNTIL[args.until], progress=ProgressBar("register"))
+    bar = ProgressBar("register")
+    reg = register(scans, params, until=UNTIL[args.until], events=bar.on_event)
+    bar.finish()  # a run that stopped early left the bar short of full
     seconds = time.perf_counter() - t0
     pipe = reg.pipeline
     if len(reg.transforms) < 2:

@@ -72,6 +72,12 @@ class PrepareParams:
     mixed_pixels: bool = _f(True, "", "remove mixed pixels: returns just behind a range jump on the scan's angular grid with no neighbour at their own range (the comet tails behind every stem's edge)")
     mixed_tolerance_m: float = _f(0.02, "m", "mixed pixels: a neighbouring return continues a surface when its range differs by at most this (plus the slope allowance)", lo=0.001, hi=1.0)
     mixed_slope: float = _f(4.0, "", "mixed pixels: steepest surface kept, as the range change per cell over the cell's width (4 = 76 deg incidence)", lo=0.5, hi=100.0)
+    mixed_dense_share: float = _f(0.02, "", "mixed pixels: tails are many when the returns behind a jump that nothing continues are this share of a scan (clean stations: 0.1-0.8%); then a return needs a neighbour not behind a jump, or two, to be kept", lo=0.0, hi=1.0)
+    mixed_max_share: float = _f(0.4, "", "mixed pixels: the filter stands down when it would remove more than this share of a scan (a surface rougher than the angular grid, not tails)", lo=0.0, hi=1.0)
+    ground_max_slope_deg: float = _f(30.0, "deg", "ground: the plane may be tilted at most this much from level (terrain slope + scanner tilt; raise it on a steep slope)", lo=0.0, hi=90.0)
+    ground_min_cells: int = _f(8, "cells", "ground: the plane needs at least this many cells with their lowest point on it", lo=3, hi=1_000_000)
+    ground_min_cell_share: float = _f(0.3, "", "ground: ...and at least this share of all cells", lo=0.0, hi=1.0)
+    ground_max_below_share: float = _f(0.01, "", "ground: at most this share of the points may lie more than ground_band_m below the plane (else it is no ground: a tree cut out of a larger cloud)", lo=0.0, hi=1.0)
 
 
 @dataclass(frozen=True)
@@ -83,6 +89,16 @@ class TargetParams:
     tree_at: tuple[float, float] | None = _f(None, "m", "the target stem's x y in the reference scan's frame; None = the stem the stations surround")
     radius_m: float = _f(5.0, "m", "keep points within this horizontal distance of the target stem (neighbours farther away swamp the coarse stage; nearer ones help it)", lo=0.5, hi=100.0)
     min_stems: int = _f(3, "stems", "auto selects a target only when a station holds at least this many stems (a scan cut to one tree is left as it is)", lo=2, hi=100)
+    stem_band_m: tuple[float, float] = _f((1.0, 1.6), "m", "stems are looked for in this band of heights above the ground (breast height; raise it over undergrowth)", lo=0.0, hi=20.0)
+    stem_cell_m: float = _f(0.05, "m", "grid cell of the stem search: a stem is a group of connected cells (one cell of dilation joins a far stem's sparse points)", lo=0.005, hi=1.0)
+    stem_max_range_m: float = _f(60.0, "m", "stems are looked for within this horizontal range of the scanner", lo=1.0, hi=1000.0)
+    stem_radius_m: tuple[float, float] = _f((0.03, 0.8), "m", "plausible stem radii (smallest, largest)", lo=0.005, hi=5.0)
+    stem_min_points: int = _f(15, "points", "a stem needs this many points in the band", lo=3, hi=100_000)
+    stem_min_arc_deg: float = _f(40.0, "deg", "...and a fitted circle covering this much arc", lo=0.0, hi=360.0)
+    match_gate_m: float = _f(0.35, "m", "stem maps: two stations' stems match when their centres are this close under the stem-map transform", lo=0.01, hi=10.0)
+    match_radius_tolerance: float = _f(0.4, "", "stem maps: ...and their radii differ by at most this fraction (+ 2 cm; partial arcs measure radii loosely)", lo=0.0, hi=10.0)
+    min_matched: int = _f(3, "stems", "fewest matched stems for a station's stem map to place it (else it keeps all its points)", lo=2, hi=1000)
+    pick_radius_m: float = _f(2.0, "m", "tree_at picks the nearest stem within this distance (a point farther from every stem found is refused)", lo=0.01, hi=100.0)
 
 
 @dataclass(frozen=True)
@@ -337,6 +353,8 @@ class Params:
 
     def with_value(self, section: str, name: str, value: Any) -> "Params":
         """A copy with one field changed (value checked and coerced to the field's type)."""
+        if section not in SECTIONS:
+            raise ConfigError(f"{section}.{name}: no such section; sections are {', '.join(SECTIONS)}")
         sec = getattr(self, section)
         fld = {f.name: f for f in fields(sec)}.get(name)
         if fld is None:
@@ -432,6 +450,27 @@ def loosest(params: Params | None = None) -> Params:
         s, n = key.split(".")
         p = p.with_value(s, n, fld.metadata["min"] if fld.metadata["looser"] == "lower" else fld.metadata["max"])
     return p
+
+
+def set_text(value: Any) -> str:
+    """A value as `--set` takes it: 5, 0.02, true, null, 1,1.6 (a tuple)."""
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, tuple):
+        return ",".join(set_text(v) for v in value)
+    if isinstance(value, float):  # shortest exact text: 0.05, 1e-06, 10
+        return repr(value).removesuffix(".0")
+    return str(value)
+
+
+def set_flag(key: str, value: Any) -> str:
+    """How a hint suggests a parameter change: "--set projection.theta_deg=5". The key and value are
+    checked (`with_value`), so a hint can name no parameter that does not exist, nor a value out of range."""
+    section, _, name = key.partition(".")
+    Params().with_value(section, name, value)
+    return f"--set {key}={set_text(value)}"
 
 
 def changed_from_defaults(params: Params) -> dict[str, list[Any]]:

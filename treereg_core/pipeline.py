@@ -11,17 +11,21 @@ from __future__ import annotations
 import time
 from collections import Counter
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import Sequence
 
 import numpy as np
 
 from .params import Params
-from .results import Progress, no_progress
+from .results import MetricRow, Progress
 from .scan import Scan
+from .coarse.estimate import CoarseResult
+from .coarse.sequences import ImageSequence
 from .coarse.similarity import scan_similarity
-from .stage import Pair, Skipped, StageContext, StageOutput
+from .fine.pose import FineResult
+from .stage import (Event, Events, ItemFinished, Pair, Skipped, Stage, StageContext, StageFinished, StageOutput,
+                    StageProgress, StageResult, StageStarted)
 from .stages import STAGE_NAMES, STAGES, downstream, stage
-from .verify.graph import select_pairs
+from .verify.graph import Placement, select_pairs
 
 
 @dataclass
@@ -33,11 +37,11 @@ class Pipeline:
     truth: dict[str, np.ndarray] | None = None  # scan name -> true T_ref_scan, when known
     _out: dict[str, StageOutput] = field(default_factory=dict, repr=False)
     #: How often each stage has run (what a parameter change cost; tests read it).
-    runs: Counter = field(default_factory=Counter, repr=False)
+    runs: Counter[str] = field(default_factory=Counter, repr=False)
     #: Hypotheses picked by hand (the app): pair label "b -> a" -> candidate label.
     choices: dict[str, str] = field(default_factory=dict)
-    _pairs_key: tuple | None = field(default=None, repr=False)
-    _pairs_cache: tuple = field(default=(), repr=False)
+    _pairs_key: tuple[object, ...] | None = field(default=None, repr=False)
+    _pairs_cache: tuple[tuple[int, int], ...] = field(default=(), repr=False)
 
     # ---- state -------------------------------------------------------------------------
     @property
@@ -54,7 +58,7 @@ class Pipeline:
             if proj is not None and proj.ok:
                 key = (id(proj), self.params.matching.similarity, self.params.graph.extra_pairs)
                 if self._pairs_key != key:
-                    sim = scan_similarity(list(proj.items), self.params.matching.similarity)
+                    sim = scan_similarity(list(proj.items_as(ImageSequence)), self.params.matching.similarity)
                     chosen = select_pairs(sim, self.params.graph.extra_pairs)
                     self._pairs_cache = tuple(star + [e for e in chosen if e[0] != 0])
                     self._pairs_key = key
@@ -121,46 +125,58 @@ class Pipeline:
                 for p in self.pairs]
 
     # ---- running -----------------------------------------------------------------------
-    def run(self, until: str = STAGE_NAMES[-1], progress: Progress | None = None) -> StageOutput | None:
+    def run(self, until: str = STAGE_NAMES[-1], events: Events | None = None) -> StageOutput | None:
         """Run every stage up to `until` (in run order) that has no cached output.
 
         A pair (or scan) that fails at one stage is skipped by the stages that depend on it, which
         go on with the others; the run stops when a per-scan stage fails or a stage has no
-        successful item left. Returns the output of the last stage run (or cached), which may be a
-        failure.
+        successful item left. `events(event)` hears each stage computed start, progress, finish
+        its items and finish (`stage.StageStarted` ...); cached stages are silent. Returns the
+        output of the last stage run (or cached), which may be a failure.
         """
-        progress = progress or no_progress
+        emit = events or _no_events
         if len(self.scans) < 2:
             raise ValueError("registration needs at least two scans")
         todo = STAGES[: STAGE_NAMES.index(stage(until).name) + 1]
+        fresh = self.stale(until)  # what this run computes: the fraction of the run counts these
         last: StageOutput | None = None
-        for k, st in enumerate(todo):
+        for st in todo:
             out = self._out.get(st.name)
             if out is None:
-                out = self._run_stage(st, _sub_progress(progress, k, len(todo), st.name))
+                out = self._run_stage(st, _stage_progress(st.name, fresh.index(st.name), len(fresh), emit), emit)
                 self._out[st.name] = out
                 self.runs[st.name] += 1
+                emit(StageFinished(out))
             last = out
             # A scan that cannot be prepared or projected is an input to fix: stop. A pair that
             # fails later is skipped by the later stages while the other pairs go on.
             if (st.stop_on_failure and not out.ok) or not any(it.ok for it in out.items):
                 break
-        progress(1.0, "done")
         return last
 
-    def _run_stage(self, st: Any, progress: Progress) -> StageOutput:
+    def stale(self, until: str = STAGE_NAMES[-1]) -> list[str]:
+        """The stages up to `until` that have no cached output: what `run(until)` would compute."""
+        return [s for s in STAGE_NAMES[: STAGE_NAMES.index(stage(until).name) + 1] if s not in self._out]
+
+    def _run_stage(self, st: Stage, progress: Progress, emit: Events) -> StageOutput:
         n = len(self.scans) if st.per == "scan" else len(self.pairs)
         why = [self._blocked(st, k) for k in range(n)]
+        emit(StageStarted(st.name, n))
         ctx = StageContext(tuple(self.scans), self.pairs, self.params, self.truth, dict(self._out),
                            tuple(w is None for w in why), progress, dict(self.choices))
         t0 = time.perf_counter()
-        raw = st.run(ctx)
-        items = tuple(Skipped(False, w) if w is not None else it for it, w in zip(raw, why))
+        items = tuple(_item(st, it, w) for it, w in zip(st.run(ctx), why))
+        seconds = time.perf_counter() - t0
+        progress(1.0, "done")
+        # Items are announced once the run function returned: some stages make all items together
+        # (prepare picks the target tree across every scan).
+        for i, it in enumerate(items):
+            emit(ItemFinished(st.name, i, self._item_name(st, i), it))
         bad = [(self._item_name(st, i), it) for i, it in enumerate(items) if not it.ok]
         msg = "; ".join(f"{name}: {it.message}" for name, it in bad)
-        return StageOutput(st.name, not bad, msg, items, time.perf_counter() - t0)
+        return StageOutput(st.name, not bad, msg, items, seconds)
 
-    def _blocked(self, st: Any, k: int) -> str | None:
+    def _blocked(self, st: Stage, k: int) -> str | None:
         """Why item `k` of stage `st` cannot run (a hard dependency failed for it), or None."""
         for dep in st.depends:
             dep_st = stage(dep)
@@ -175,7 +191,7 @@ class Pipeline:
                         if not isinstance(it, Skipped) else it.message
         return None
 
-    def _item_name(self, st: Any, i: int) -> str:
+    def _item_name(self, st: Stage, i: int) -> str:
         if st.per == "scan":
             return self.scans[i].name
         p = self.pairs[i]
@@ -188,27 +204,33 @@ class Pipeline:
         with the reference. The reference maps to the identity; scans with nothing are left out."""
         graph = self._out.get("graph")
         if graph is not None:
-            return {s.name: it.T_ref_scan for s, it in zip(self.scans, graph.items) if it.T_ref_scan is not None}
+            return {s.name: it.T_ref_scan for s, it in zip(self.scans, graph.items_as(Placement))
+                    if it.T_ref_scan is not None}
         out = {self.scans[0].name: np.eye(4)}
         for k, p in enumerate(self.pairs):
-            if p.ref != 0:
-                continue
-            for name in ("fine", "coarse"):
-                o = self._out.get(name)
-                if o is not None and o.items[k].ok:
-                    out[self.scans[p.tgt].name] = o.items[k].T_ref_target
-                    break
+            T = self._pair_transform(k) if p.ref == 0 else None
+            if T is not None:
+                out[self.scans[p.tgt].name] = T
         return out
+
+    def _pair_transform(self, k: int) -> np.ndarray | None:
+        """Pair k's fine transform if it succeeded, else its coarse one, else None."""
+        fine, coarse = self._out.get("fine"), self._out.get("coarse")
+        if fine is not None and fine.items[k].ok:
+            return fine.item(k, FineResult).T_ref_target
+        if coarse is not None and coarse.items[k].ok:
+            return coarse.item(k, CoarseResult).T_ref_target
+        return None
 
     def verdicts(self) -> dict[str, tuple[str, tuple[str, ...], str]]:
         """Per scan name: (verdict, reasons, what to try). Before the graph stage has run nothing is
         verified: the reasons say at which stage the registration stopped."""
         graph = self._out.get("graph")
         if graph is not None:
-            return {s.name: (it.verdict, it.reasons, it.hint) for s, it in zip(self.scans, graph.items)}
+            return {s.name: (it.verdict, it.reasons, it.hint) for s, it in zip(self.scans, graph.items_as(Placement))}
         T = self.transforms()
         last = next((s for s in reversed(STAGE_NAMES) if s in self._out), "none")
-        out = {self.scans[0].name: ("verified", (), "")}
+        out: dict[str, tuple[str, tuple[str, ...], str]] = {self.scans[0].name: ("verified", (), "")}
         for s in self.scans[1:]:
             if s.name in T:
                 out[s.name] = ("unverified", (f"the registration stopped at the {last} stage, before verification",),
@@ -227,13 +249,9 @@ class Pipeline:
                     return f"{st.name}: {it.message}"
         return "not registered"
 
-    def final_stage(self) -> str | None:
-        """Which stage the transforms come from ('graph', 'fine', 'coarse'), None before coarse has run."""
-        return next((s for s in ("graph", "fine", "coarse") if s in self._out), None)
-
-    def pair_metrics(self) -> dict[str, list[dict[str, Any]]]:
+    def pair_metrics(self) -> dict[str, list[MetricRow]]:
         """Per target scan, the metric rows of every per-pair stage that ran (transform files, tables)."""
-        rows: dict[str, list[dict[str, Any]]] = {n: [] for n in self.target_names}
+        rows: dict[str, list[MetricRow]] = {n: [] for n in self.target_names}
         for st in STAGES:
             out = self._out.get(st.name)
             if out is None or st.per != "pair":
@@ -244,13 +262,30 @@ class Pipeline:
         return rows
 
 
-def _sub_progress(progress: Progress, k: int, n: int, name: str) -> Progress:
-    lo, hi = k / n, (k + 1) / n
+def _no_events(event: Event) -> None:
+    """The default subscriber: ignore."""
 
-    def sub(f: float, text: str) -> None:
-        progress(lo + (hi - lo) * f, f"{name}: {text}" if text else name)
 
-    return sub
+def _stage_progress(name: str, j: int, n: int, emit: Events) -> Progress:
+    """The `progress(fraction, text)` a stage is given: StageProgress events of the j-th of the n
+    stages this run computes."""
+    done = 0.0
+
+    def progress(fraction: float, text: str) -> None:
+        nonlocal done
+        done = max(done, min(max(float(fraction), 0.0), 1.0))  # a bar never goes back
+        emit(StageProgress(name, (j + done) / n, done, text))
+
+    return progress
+
+
+def _item(st: Stage, item: StageResult | None, why: str | None) -> StageResult:
+    """An output's item: what the run function returned, or `Skipped` where it could not run."""
+    if why is not None:
+        return Skipped(False, why)
+    if item is None:
+        raise RuntimeError(f"stage {st.name!r} returned no item for a scan or pair it could run on")
+    return item
 
 
 @dataclass(frozen=True)
@@ -268,13 +303,13 @@ def register(
     params: Params | None = None,
     until: str = "graph",
     truth: dict[str, np.ndarray] | None = None,
-    progress: Progress | None = None,
+    events: Events | None = None,
 ) -> Registration:
     """One call: register every scan onto the first; `until` is a stage name (default "graph": fine
     registration, verification and the joint placement, so `pipeline.verdicts()` says which scans
     are verified; "coarse" or "fine" stop earlier, every scan then unverified; "evaluation" adds the
-    paper's evaluation and ICP)."""
+    paper's evaluation and ICP); `events` hears the run (`Pipeline.run`)."""
     pipe = Pipeline(list(scans), params or Params(), truth)
-    last = pipe.run(until, progress)
+    last = pipe.run(until, events)
     ok = last is not None and last.ok and last.stage == until
     return Registration(ok, last.message if last else "", pipe.transforms(), pipe)

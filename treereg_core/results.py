@@ -2,7 +2,7 @@
 
 A stage returns a frozen dataclass with at least `ok: bool` and `message: str` (empty when all is
 well; when `ok` is False, a sentence a user can act on) and `metrics: tuple[Metric, ...]`, rows that
-both the terminal table and the app render.
+both the terminal table and the app render (the protocol `stage.StageResult` says so for type checkers).
 """
 
 from __future__ import annotations
@@ -12,6 +12,9 @@ from typing import Callable
 
 #: progress(fraction in [0, 1], what is being done now)
 Progress = Callable[[float, str], None]
+
+#: One metric of one stage as transforms.json and tables list it: stage, metric, unit, value.
+MetricRow = dict[str, float | int | str]
 
 
 def no_progress(fraction: float, text: str) -> None:

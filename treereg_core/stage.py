@@ -14,13 +14,31 @@ they re-run.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Callable, Literal, Mapping
+from typing import Callable, Literal, Mapping, Protocol, TypeVar, Union
 
 import numpy as np
 
 from .params import Params
 from .results import Metric, Progress
 from .scan import Scan
+
+
+class StageResult(Protocol):
+    """What every item of a stage's output is: a frozen result the registry, the pipeline and the
+    app's renderers read without knowing its stage (read-only members: results are frozen)."""
+
+    @property
+    def ok(self) -> bool: ...
+
+    @property
+    def message(self) -> str: ...
+
+    @property
+    def metrics(self) -> tuple[Metric, ...]: ...
+
+
+R = TypeVar("R", bound=StageResult)
+T = TypeVar("T")
 
 
 @dataclass(frozen=True)
@@ -47,8 +65,20 @@ class StageOutput:
     stage: str
     ok: bool
     message: str
-    items: tuple[Any, ...]
+    items: tuple[StageResult, ...]
     seconds: float
+
+    def item(self, k: int, kind: type[R]) -> R:
+        """Item `k`, which must be a `kind` (a TypeError says which stage broke that promise)."""
+        it = self.items[k]
+        if not isinstance(it, kind):
+            raise TypeError(f"{self.stage} item {k} is a {type(it).__name__}, not a {kind.__name__}")
+        return it
+
+    def items_as(self, kind: type[R]) -> tuple[R, ...]:
+        """Every item, each a `kind` (a stage whose items are never skipped: per-scan ones that stop
+        the run, the graph)."""
+        return tuple(self.item(k, kind) for k in range(len(self.items)))
 
 
 @dataclass(frozen=True)
@@ -65,23 +95,21 @@ class StageContext:
     #: Hypotheses picked by hand: pair label ("scan2.ply -> scan1.ply") -> candidate label.
     choices: Mapping[str, str] = field(default_factory=dict)
 
-    def items(self, stage: str) -> tuple[Any, ...]:
-        return self.outputs[stage].items
+    def item(self, stage: str, k: int, kind: type[R]) -> R:
+        """Item `k` of upstream `stage`, a `kind` (a hard dependency's items are, where live)."""
+        return self.outputs[stage].item(k, kind)
 
-    def item(self, stage: str, k: int) -> Any:
-        return self.outputs[stage].items[k]
-
-    def ok_item(self, stage: str, k: int) -> Any | None:
+    def ok_item(self, stage: str, k: int, kind: type[R]) -> R | None:
         """Item `k` of a (soft) upstream stage if it ran and succeeded, else None."""
         out = self.outputs.get(stage)
-        if out is None or k >= len(out.items) or not getattr(out.items[k], "ok", False):
+        if out is None or k >= len(out.items) or not out.items[k].ok:
             return None
-        return out.items[k]
+        return out.item(k, kind)
 
-    def each(self, fn: Callable[[int], Any], label: Callable[[int], str]) -> list[Any]:
+    def each(self, fn: Callable[[int], T], label: Callable[[int], str]) -> list[T | None]:
         """`fn(k)` for every live item k (None for the others, which the pipeline marks skipped)."""
         n = len(self.live)
-        out: list[Any] = []
+        out: list[T | None] = []
         for k in range(n):
             if not self.live[k]:
                 out.append(None)
@@ -89,6 +117,10 @@ class StageContext:
             self.progress(k / max(n, 1), label(k))
             out.append(fn(k))
         return out
+
+
+#: A stage's run function: one item per scan or pair, None where the item was not live.
+RunFunction = Callable[[StageContext], list[StageResult | None]]
 
 
 @dataclass(frozen=True)
@@ -110,7 +142,7 @@ class Stage:
     depends, uses
         Hard and soft upstream stages (see the module docstring).
     result
-        The type of its items (besides `Skipped`).
+        The type of its items (besides `Skipped`), a `StageResult`.
     run
         `run(context) -> list` with one item per scan or pair (None where not live).
     stop_on_failure
@@ -123,11 +155,63 @@ class Stage:
     per: Literal["scan", "pair"]
     sections: tuple[str, ...]
     depends: tuple[str, ...]
-    result: type
-    run: Callable[[StageContext], list[Any]] = field(repr=False)
+    result: type[StageResult]
+    run: RunFunction = field(repr=False)
     uses: tuple[str, ...] = ()
     stop_on_failure: bool = False
 
     @property
     def upstream(self) -> tuple[str, ...]:
         return self.depends + self.uses
+
+
+# ---- what a run tells its subscribers --------------------------------------------------------------
+# The pipeline emits, per stage it computes: StageStarted, StageProgress (any number), one
+# ItemFinished per item in order, then StageFinished. Cached stages emit nothing.
+
+
+@dataclass(frozen=True)
+class StageStarted:
+    """A stage begins computing `n_items` items (one per scan or pair)."""
+
+    stage: str
+    n_items: int
+
+
+@dataclass(frozen=True)
+class StageProgress:
+    """How far the run has come: `run_fraction` of the stages this run computes, `stage_fraction` of
+    the running stage (both in [0, 1], never going back); `text` what the stage does now."""
+
+    stage: str
+    run_fraction: float
+    stage_fraction: float
+    text: str
+
+    @property
+    def line(self) -> str:
+        """One line for a progress bar: "matching: scan2 -> scan1"."""
+        return f"{self.stage}: {self.text}" if self.text else self.stage
+
+
+@dataclass(frozen=True)
+class ItemFinished:
+    """Item `index` (`label`: a scan's name or "b -> a") of a stage, as its output holds it (a
+    `Skipped` where an earlier stage failed for it)."""
+
+    stage: str
+    index: int
+    label: str
+    item: StageResult
+
+
+@dataclass(frozen=True)
+class StageFinished:
+    """A stage's output, computed and cached."""
+
+    output: StageOutput
+
+
+Event = Union[StageStarted, StageProgress, ItemFinished, StageFinished]
+#: A subscriber to a run's events (called on the thread that runs the pipeline).
+Events = Callable[[Event], None]

@@ -9,37 +9,40 @@ module (a function returning a frozen result with `ok`, `message`, `metrics`) an
 from __future__ import annotations
 
 from dataclasses import replace
-from typing import Any
-
 import numpy as np
 
 from .coarse.estimate import CoarseResult, estimate_coarse
 from .coarse.matching import MatchResult, match_sequences
 from .coarse.sequences import ImageSequence, build_sequence
 from .evaluate.branches import find_branches
+from .fine.fitting import CylinderFit
 from .evaluate.icp import IcpResult, align_icp, icp_off
 from .evaluate.report import PairReport, evaluate_registration
-from .fine.arcs import SliceArcs, separate_scan_slices, separate_slices
-from .fine.pose import FINE_SECTIONS, FineResult, FineStart, StemSeeds, profile_bend, register_fine, straightened
-from .fine.sections import SectionsResult, fit_scan_sections, fit_sections
+from .fine.arcs import ArcResult, SliceArcs, separate_scan_slices, separate_slices
+from .fine.pose import FINE_SECTIONS, FineResult, FineSections, FineStart, StemSeeds, profile_bend, register_fine, straightened
+from .fine.sections import ScanSections, SectionsResult, fit_scan_sections, fit_sections
 from .fine.slicing import SliceResult, slice_scans
-from .fine.surface import scan_surface, surface_of
+from .fine.surface import Surface, scan_surface, surface_of
 from .geometry.rigid import invert, mean_displacement, rotation_error_deg
 from .prepare.ground import PreparedScan, prepare_scans, stem_position
 from .prepare.mixed import remove_mixed
 from .prepare.resolution import working_resolution
 from .results import Metric
 from .scan import Scan
-from .stage import Stage, StageContext
-from .verify.evidence import VERIFIED, PairVerification, gather_evidence, judge, verification
+from .stage import Pair, Stage, StageContext, StageResult
+from .verify.evidence import VERIFIED, PairResults, PairScene, PairVerification, gather_evidence, judge, verification
 from .verify.graph import Edge, Placement, place_scans
 from .verify.hypotheses import HypothesesResult, pass_through, score_hypotheses
-from .verify.visibility import range_image, scan_range_image
+from .verify.visibility import RangeImage, range_image, scan_range_image
 
 
 def _scan(ctx: StageContext, i: int) -> Scan:
     """Scan `i` as prepared (ground removed, cropped): what every stage after preparation uses."""
-    return ctx.item("prepare", i).scan
+    return _prep(ctx, i).scan
+
+
+def _prep(ctx: StageContext, i: int) -> PreparedScan:
+    return ctx.item("prepare", i, PreparedScan)
 
 
 def _label(ctx: StageContext, k: int) -> str:
@@ -47,7 +50,7 @@ def _label(ctx: StageContext, k: int) -> str:
     return f"{ctx.scans[p.tgt].name} -> {ctx.scans[p.ref].name}"
 
 
-def _run_prepare(ctx: StageContext) -> list[Any]:
+def _run_prepare(ctx: StageContext) -> list[StageResult | None]:
     # First each station at the working resolution (prepare/resolution.py); then ground and crops,
     # across scans: the target tree of a plot is chosen from every station's stems at once.
     given = ctx.params.prepare.angular_step_deg
@@ -58,10 +61,12 @@ def _run_prepare(ctx: StageContext) -> list[Any]:
         return s.with_angular_step(given) if given is not None and tuple(given) != s.angular_step_deg else s
 
     pp = ctx.params.prepare
-    work = ctx.each(lambda i: working_resolution(station(i), resolution=ctx.params.resolution),
-                    lambda i: f"working resolution: {ctx.scans[i].name}")
+    # prepare depends on nothing: every scan is live
+    work = [w for w in ctx.each(lambda i: working_resolution(station(i), resolution=ctx.params.resolution),
+                    lambda i: f"working resolution: {ctx.scans[i].name}") if w is not None]
     ctx.progress(0.8, "mixed pixels")
-    mixed = [remove_mixed(w.scan, enabled=pp.mixed_pixels, tolerance_m=pp.mixed_tolerance_m, slope=pp.mixed_slope)
+    mixed = [remove_mixed(w.scan, enabled=pp.mixed_pixels, tolerance_m=pp.mixed_tolerance_m, slope=pp.mixed_slope,
+                          dense_share=pp.mixed_dense_share, max_share=pp.mixed_max_share)
              for w in work]
     ctx.progress(0.9, "ground, stems and the target tree")
     preps = prepare_scans([m.scan for m in mixed], **ctx.params.pick("prepare", "target"))
@@ -70,46 +75,46 @@ def _run_prepare(ctx: StageContext) -> list[Any]:
             for w, m, p in zip(work, mixed, preps)]
 
 
-def _run_projection(ctx: StageContext) -> list[Any]:
+def _run_projection(ctx: StageContext) -> list[StageResult | None]:
     n = len(ctx.scans)
     return ctx.each(lambda i: build_sequence(_scan(ctx, i), projection=ctx.params.projection, n_scans=n),
                     lambda i: ctx.scans[i].name)
 
 
-def _run_matching(ctx: StageContext) -> list[Any]:
+def _run_matching(ctx: StageContext) -> list[StageResult | None]:
     def one(k: int) -> MatchResult:
         p = ctx.pairs[k]
-        return match_sequences(ctx.item("projection", p.ref), ctx.item("projection", p.tgt), _scan(ctx, p.ref),
-                               _scan(ctx, p.tgt), matching=ctx.params.matching)
+        return match_sequences(ctx.item("projection", p.ref, ImageSequence), ctx.item("projection", p.tgt, ImageSequence),
+                               _scan(ctx, p.ref), _scan(ctx, p.tgt), matching=ctx.params.matching)
     return ctx.each(one, lambda k: _label(ctx, k))
 
 
-def _run_coarse(ctx: StageContext) -> list[Any]:
-    return ctx.each(lambda k: estimate_coarse(ctx.item("matching", k), coarse=ctx.params.coarse), lambda k: _label(ctx, k))
+def _run_coarse(ctx: StageContext) -> list[StageResult | None]:
+    return ctx.each(lambda k: estimate_coarse(ctx.item("matching", k, MatchResult), coarse=ctx.params.coarse), lambda k: _label(ctx, k))
 
 
-def _surface(ctx: StageContext, i: int, max_points: int | None = None) -> Any:
+def _surface(ctx: StageContext, i: int, max_points: int | None = None) -> Surface:
     """Scan i's (prepared) surface at the voxel size of the surfaces section, shared by every stage."""
     scan = _scan(ctx, i)
     return scan_surface(scan, scan.points, ctx.params.surface.voxel_m, max_points)
 
 
-def _range_image(ctx: StageContext, i: int) -> Any:
+def _range_image(ctx: StageContext, i: int) -> RangeImage:
     """Scan i's station as a range image for the free-space test, blind where its mixed pixels were."""
-    return scan_range_image(_station(ctx, i), ctx.params.hypotheses.cell_steps, ctx.item("prepare", i).mixed_points)
+    return scan_range_image(_station(ctx, i), ctx.params.hypotheses.cell_steps, _prep(ctx, i).mixed_points)
 
 
 def _station(ctx: StageContext, i: int) -> Scan:
     """Scan i's whole station at the working resolution (ground and neighbours included): what the
     free-space test compares with."""
-    return ctx.item("prepare", i).station or ctx.scans[i]
+    return _prep(ctx, i).station or ctx.scans[i]
 
 
-def _run_hypotheses(ctx: StageContext) -> list[Any]:
+def _run_hypotheses(ctx: StageContext) -> list[StageResult | None]:
     hp = ctx.params.hypotheses
 
     def one(k: int) -> HypothesesResult:
-        p, c = ctx.pairs[k], ctx.item("coarse", k)
+        p, c = ctx.pairs[k], ctx.item("coarse", k, CoarseResult)
         if not hp.enabled:
             return pass_through(c.T_ref_target)
         tgt, ref = _scan(ctx, p.tgt), _scan(ctx, p.ref)
@@ -121,8 +126,9 @@ def _run_hypotheses(ctx: StageContext) -> list[Any]:
             # The crown moved between the stations: every candidate is judged against the reference
             # bent as the target's tree stood (the stems' bend does not depend on the heading).
             station = _station(ctx, p.ref)
-            image = range_image(bend.bend(station.points), tuple(hp.cell_steps * s for s in station.angular_step_deg),
-                                ctx.item("prepare", p.ref).mixed_points)
+            h_step, v_step = station.angular_step_deg
+            image = range_image(bend.bend(station.points), (hp.cell_steps * h_step, hp.cell_steps * v_step),
+                                _prep(ctx, p.ref).mixed_points)
             ref_surf = surface_of(bend.bend(ref.points), ctx.params.surface.voxel_m)
 
             def adjust(T: np.ndarray) -> np.ndarray:
@@ -136,47 +142,47 @@ def _run_hypotheses(ctx: StageContext) -> list[Any]:
 def _stem_xy(ctx: StageContext, i: int) -> np.ndarray | None:
     """Scan i's stem at breast height (its frame): the found stem nearest to its points' centroid,
     when within 2 m of it; None when none was found."""
-    prep = ctx.item("prepare", i)
-    stems = getattr(prep, "stems", None)
-    if prep is None or stems is None or len(stems) == 0:
+    prep = _prep(ctx, i)
+    stems = prep.stems
+    if len(stems) == 0:
         return None
     d = np.hypot(*(stems[:, :2] - prep.scan.points[:, :2].mean(axis=0)).T)
     return stems[int(d.argmin()), :2] if d.min() <= 2.0 else None
 
 
-def _seeds(ctx: StageContext, pair: Any) -> StemSeeds:
+def _seeds(ctx: StageContext, pair: Pair) -> StemSeeds:
     """Where the prepare stage put each scan's stem (the target's, in a plot): the stem profile
     traces from there, not from a neighbour's."""
-    return StemSeeds(ctx.item("prepare", pair.ref).stem_xy, ctx.item("prepare", pair.tgt).stem_xy)
+    return StemSeeds(ref_xy=_prep(ctx, pair.ref).stem_xy, tgt_xy=_prep(ctx, pair.tgt).stem_xy)
 
 
 def _ref_stem_xy(ctx: StageContext, i: int) -> np.ndarray:
     """Scan i's stem at its base (its own frame): what a turn about the stem turns about (the
     target's, where the prepare stage chose one)."""
-    chosen = ctx.item("prepare", i).stem_xy
+    chosen = _prep(ctx, i).stem_xy
     if chosen is not None:
         return np.asarray(chosen, dtype=float)
     pts = _scan(ctx, i).points
     return stem_position(pts, pts[:, 2] - float(np.quantile(pts[:, 2], 0.001)))
 
 
-def _start(ctx: StageContext, k: int) -> Any:
+def _start(ctx: StageContext, k: int) -> np.ndarray:
     """Where fine registration starts for pair k: the hypothesis the surfaces preferred."""
-    return ctx.item("hypotheses", k).T_ref_target
+    return ctx.item("hypotheses", k, HypothesesResult).T_ref_target
 
 
-def _run_slices(ctx: StageContext) -> list[Any]:
+def _run_slices(ctx: StageContext) -> list[StageResult | None]:
     def one(k: int) -> SliceResult:
         p = ctx.pairs[k]
         return slice_scans(_scan(ctx, p.ref), _scan(ctx, p.tgt), _start(ctx, k), slicing=ctx.params.slicing)
     return ctx.each(one, lambda k: _label(ctx, k))
 
 
-def _run_arcs(ctx: StageContext) -> list[Any]:
-    shared: dict[int, Any] = {}  # a reference's arcs depend on it alone: shared by its pairs
+def _run_arcs(ctx: StageContext) -> list[StageResult | None]:
+    shared: dict[int, tuple[ArcResult, ...]] = {}  # a reference's arcs depend on it alone: shared by its pairs
 
     def one(k: int) -> SliceArcs:
-        p, sl = ctx.pairs[k], ctx.item("slices", k)
+        p, sl = ctx.pairs[k], ctx.item("slices", k, SliceResult)
         ref = _scan(ctx, p.ref)
         if p.ref not in shared:
             shared[p.ref] = separate_scan_slices(ref, sl.ref_indices, ctx.params.arcs)
@@ -185,11 +191,11 @@ def _run_arcs(ctx: StageContext) -> list[Any]:
     return ctx.each(one, lambda k: _label(ctx, k))
 
 
-def _run_sections(ctx: StageContext) -> list[Any]:
-    shared: dict[int, Any] = {}  # as for arcs: one fit of the reference's sections
+def _run_sections(ctx: StageContext) -> list[StageResult | None]:
+    shared: dict[int, ScanSections] = {}  # as for arcs: one fit of the reference's sections
 
     def one(k: int) -> SectionsResult:
-        p, sl, ar = ctx.pairs[k], ctx.item("slices", k), ctx.item("arcs", k)
+        p, sl, ar = ctx.pairs[k], ctx.item("slices", k, SliceResult), ctx.item("arcs", k, SliceArcs)
         ref = _scan(ctx, p.ref)
         if p.ref not in shared:
             shared[p.ref] = fit_scan_sections(ref, ar.ref, sl.heights_m, np.eye(4), ctx.params.fitting)
@@ -198,52 +204,53 @@ def _run_sections(ctx: StageContext) -> list[Any]:
     return ctx.each(one, lambda k: _label(ctx, k))
 
 
-def _run_fine(ctx: StageContext) -> list[Any]:
+def _run_fine(ctx: StageContext) -> list[StageResult | None]:
     def one(k: int) -> FineResult:
         p = ctx.pairs[k]
         sl = ctx.outputs["slices"].items[k]
-        start = FineStart(sl, ctx.ok_item("arcs", k), ctx.ok_item("sections", k)) if isinstance(sl, SliceResult) else None
+        start = (FineStart(slices=sl, arcs=ctx.ok_item("arcs", k, SliceArcs), sections=ctx.ok_item("sections", k, SectionsResult))
+                 if isinstance(sl, SliceResult) else None)
         return register_fine(_scan(ctx, p.ref), _scan(ctx, p.tgt), _start(ctx, k), start=start,
-                             seeds=_seeds(ctx, p), **ctx.params.pick(*FINE_SECTIONS))
+                             seeds=_seeds(ctx, p), params=FineSections.of(ctx.params))
     return ctx.each(one, lambda k: _label(ctx, k))
 
 
-def _run_verify(ctx: StageContext) -> list[Any]:
+def _run_verify(ctx: StageContext) -> list[StageResult | None]:
     hp = ctx.params.hypotheses
 
     def one(k: int) -> PairVerification:
-        p, f = ctx.pairs[k], ctx.item("fine", k)
+        p, f = ctx.pairs[k], ctx.item("fine", k, FineResult)
         tgt = _scan(ctx, p.tgt)
         # With wind, the surfaces compared are the target's unbent (as the reference's tree stood).
         tgt_surf = (_surface(ctx, p.tgt, SURFACE_SAMPLE) if f.bend is None else
                     surface_of(f.bend.warp(tgt, f.T_ref_target).points, ctx.params.surface.voxel_m, SURFACE_SAMPLE))
-        e = gather_evidence(_range_image(ctx, p.ref), _surface(ctx, p.ref),
-                            tgt_surf, tgt.points, f.T_ref_target, ctx.item("coarse", k),
-                            ctx.item("hypotheses", k), ctx.item("prepare", p.ref).plane, ctx.item("prepare", p.tgt).plane,
-                            hypotheses=hp, acceptance=ctx.params.acceptance, bend=f.bend, profile=f.profile,
-                            max_motion_m=ctx.params.verify.max_motion_m,
-                            support_inlier_m=ctx.params.coarse.final_inlier_m or ctx.params.coarse.inlier_m,
-                            stable_tolerance_m=ctx.params.wind.stable_tolerance_m,
-                            min_consistency=ctx.params.verify.min_consistency, turn_held=f.turn_held,
-                            axis_xy=_ref_stem_xy(ctx, p.ref), max_heading_deg=ctx.params.verify.max_heading_deg)
+        scene = PairScene(ref_image=_range_image(ctx, p.ref), ref_surface=_surface(ctx, p.ref), tgt_surface=tgt_surf,
+                          tgt_points=tgt.points, ref_plane=_prep(ctx, p.ref).plane, tgt_plane=_prep(ctx, p.tgt).plane,
+                          ref_stem_xy=_ref_stem_xy(ctx, p.ref))
+        found = PairResults(coarse=ctx.item("coarse", k, CoarseResult), hypotheses=ctx.item("hypotheses", k, HypothesesResult),
+                            T_ref_target=f.T_ref_target, bend=f.bend, profile=f.profile, turn_held=f.turn_held)
+        e = gather_evidence(scene, found, verify=ctx.params.verify, hypotheses=hp, acceptance=ctx.params.acceptance,
+                            wind=ctx.params.wind,
+                            support_inlier_m=ctx.params.coarse.final_inlier_m or ctx.params.coarse.inlier_m)
         return verification(f.T_ref_target, e, *judge(e, verify=ctx.params.verify, coarse=ctx.params.coarse,
                                                       acceptance=ctx.params.acceptance))
     return ctx.each(one, lambda k: _label(ctx, k))
 
 
-def _run_graph(ctx: StageContext) -> list[Any]:
+def _run_graph(ctx: StageContext) -> list[StageResult | None]:
     """Every scan placed onto the reference from the verified pairs, jointly (one run for all scans)."""
     ver = ctx.outputs.get("verify")
-    edges = []
+    edges: list[Edge] = []
     for k, p in enumerate(ctx.pairs):
         it = ver.items[k] if ver is not None else None
         if isinstance(it, PairVerification):
-            edges.append(Edge(p.ref, p.tgt, it.T_ref_target, it.verdict, it.reasons,
+            edges.append(Edge(i=p.ref, j=p.tgt, T=it.T_ref_target, verdict=it.verdict, reasons=it.reasons,
                               weight=float(max(it.evidence.seen_by_both, 1))))
         else:  # the pair failed before verification: no transform
-            edges.append(Edge(p.ref, p.tgt, np.eye(4), "failed", (getattr(it, "message", "") or "not registered",)))
+            edges.append(Edge(i=p.ref, j=p.tgt, T=np.eye(4), verdict="failed",
+                              reasons=((it.message if it is not None else "") or "not registered",)))
     rng = np.random.default_rng(0)
-    samples = {}
+    samples: dict[int, np.ndarray] = {}
     for i in range(len(ctx.scans)):
         pts = _scan(ctx, i).points
         samples[i] = pts[rng.choice(len(pts), min(ctx.params.graph.sample_points, len(pts)), replace=False)]
@@ -256,11 +263,12 @@ def _with_step_doubt(ctx: StageContext, i: int, pl: Placement) -> Placement:
     projection images were drawn at a guessed pixel size, so the step is the first thing to give."""
     if pl.verdict == VERIFIED or ctx.params.prepare.angular_step_deg is not None:
         return pl
-    doubtful = [ctx.scans[j] for j in dict.fromkeys((0, i)) if ctx.scans[j].step.low]
+    scans = [ctx.scans[j] for j in dict.fromkeys((0, i))]
+    doubtful = [(s.name, s.step) for s in scans if s.step is not None and s.step.low]
     if not doubtful:
         return pl
-    why = tuple(f"the angular step of {s.name}, {s.step.describe()}, is doubtful, so its projection images may "
-                "be distorted" for s in doubtful)
+    why = tuple(f"the angular step of {name}, {step.describe()}, is doubtful, so its projection images may "
+                "be distorted" for name, step in doubtful)
     hint = "give the instrument's angular steps (--angular-step H V, or prepare.angular_step_deg in the Scans stage)"
     reasons = pl.reasons + why
     return replace(pl, reasons=reasons, message="; ".join(reasons), hint=f"{hint}; {pl.hint}" if pl.hint else hint)
@@ -277,17 +285,17 @@ def _with_truth(ctx: StageContext, i: int, pl: Placement) -> Placement:
     return replace(pl, metrics=pl.metrics + rows)
 
 
-def _run_icp(ctx: StageContext) -> list[Any]:
+def _run_icp(ctx: StageContext) -> list[StageResult | None]:
     def one(k: int) -> IcpResult:
-        p, T = ctx.pairs[k], ctx.item("coarse", k).T_ref_target
+        p, T = ctx.pairs[k], ctx.item("coarse", k, CoarseResult).T_ref_target
         if not ctx.params.icp.enabled:
             return icp_off(T)
         return align_icp(_scan(ctx, p.ref).points, _scan(ctx, p.tgt).points, T, icp=ctx.params.icp)
     return ctx.each(one, lambda k: _label(ctx, k))
 
 
-def _run_evaluation(ctx: StageContext) -> list[Any]:
-    branches: dict[int, Any] = {}  # a reference's branches: found once for all its pairs and transforms
+def _run_evaluation(ctx: StageContext) -> list[StageResult | None]:
+    branches: dict[int, list[CylinderFit]] = {}  # a reference's branches: found once for all its pairs and transforms
 
     def one(k: int) -> PairReport:
         p = ctx.pairs[k]
@@ -297,7 +305,8 @@ def _run_evaluation(ctx: StageContext) -> list[Any]:
         T_true = None
         if ctx.truth and tgt.name in ctx.truth and ref.name in ctx.truth:
             T_true = invert(ctx.truth[ref.name]) @ ctx.truth[tgt.name]
-        return evaluate_registration(ref, tgt, ctx.item("coarse", k).T_ref_target, ctx.item("fine", k).T_ref_target,
+        return evaluate_registration(ref, tgt, ctx.item("coarse", k, CoarseResult).T_ref_target,
+                                     ctx.item("fine", k, FineResult).T_ref_target,
                                      _icp_result(ctx, k), evaluation=ctx.params.evaluation,
                                      T_true=T_true, branches=branches[p.ref])
     return ctx.each(one, lambda k: _label(ctx, k))

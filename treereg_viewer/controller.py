@@ -1,7 +1,7 @@
 """The app's controller: one worker thread runs the pipeline; callbacks only record requests.
 
 viser runs GUI callbacks on a thread pool, so two can run at once and none may block for long.
-Callbacks therefore call the recording methods here (`set_param`, `request_run`, `add_scan_bytes`
+Callbacks therefore call the recording methods here (`set_param`, `request_run`, `add_scan_file`
 ...), which take the one lock for a moment, note what changed and wake the worker. Only the worker
 touches the `Pipeline`; after every change it publishes an immutable `Snapshot` that drawing code
 and exports read without locks. Every browser tab sees the same snapshot: one consistent state.
@@ -10,7 +10,6 @@ and exports read without locks. Every browser tab sees the same snapshot: one co
 from __future__ import annotations
 
 import logging
-import tempfile
 import threading
 import time
 import warnings
@@ -25,7 +24,7 @@ from treereg_core.io.scans import read_scan
 from treereg_core.params import Params
 from treereg_core.pipeline import Pipeline
 from treereg_core.scan import Scan
-from treereg_core.stage import Pair, StageOutput
+from treereg_core.stage import Event, Pair, StageFinished, StageOutput, StageProgress, StageStarted
 from treereg_core.stages import STAGE_NAMES as STAGES
 
 from .stages import label
@@ -77,6 +76,13 @@ ProgressListener = Callable[[float, str], None]
 #: Turns an uploaded file (the name the user picked, the path it was received at) into a Scan and the
 #: notes a user should read (rows repaired, ...), raising ScanError when it cannot.
 ScanParser = Callable[[str, Path], "tuple[Scan, list[str]]"]
+
+
+@dataclass
+class _Run:
+    """The stage a run is computing, as the pipeline's events say (None between stages)."""
+
+    stage: str | None
 
 
 @dataclass
@@ -217,13 +223,6 @@ class Controller:
             self._req.uploads.append((filename, Path(path)))
             self._notify()
 
-    def add_scan_bytes(self, filename: str, data: bytes) -> None:
-        """Queue a file given as bytes (scripts): stored in a private temporary folder, then as `add_scan_file`."""
-        folder = Path(tempfile.mkdtemp(prefix="treereg-upload-"))
-        path = folder / (Path(filename).name or "upload")
-        path.write_bytes(data)
-        self.add_scan_file(filename, path)
-
     def remove_scan(self, name: str) -> None:
         """Queue the removal of a target scan (the reference stays: every transform is onto it)."""
         with self._wake:
@@ -349,40 +348,15 @@ class Controller:
             return
         if rerun_from is not None:
             pipe.invalidate(rerun_from)
-        todo = [s for s in STAGES[: STAGES.index(until) + 1] if pipe.output(s) is None]
+        todo = pipe.stale(until)
         t0 = time.perf_counter()
-        running = {"stage": todo[0] if todo else None, "k": 0}
-        self._publish(busy=True, running=running["stage"], message="Running…" if todo else "")
-
-        def progress(fraction: float, text: str) -> None:
-            stage = text.split(":", 1)[0] if text else None
-            if stage in STAGES and stage != running["stage"]:
-                running["stage"] = stage
-                self._publish(busy=True, running=stage, message=f"Running {label(stage)}…")
-            overall = (running["k"] + min(max(fraction, 0.0), 1.0)) / max(len(todo), 1)
-            for fn in self._progress_listeners:
-                fn(overall if fraction < 1.0 else min(1.0, (running["k"] + 1) / max(len(todo), 1)), text)
-
-        last = None
+        run = _Run(todo[0] if todo else None)
+        self._publish(busy=True, running=run.stage, message="Running…" if todo else "")
         try:
-            # One stage at a time, publishing after each: a tab on an early stage (e.g. Arcs after an
-            # arcs parameter changed) sees its result while the later stages still run.
-            for k, name in enumerate(todo):
-                running["k"] = k
-                if pipe.output(name) is not None:
-                    continue
-                last = pipe.run(name, progress)
-                if pipe.output(name) is None:  # an earlier stage failed for every item: nothing more runs
-                    break
-                nxt = next((s for s in todo[k + 1:] if pipe.output(s) is None), None)
-                if nxt is not None:
-                    running["stage"] = nxt
-                    self._publish(busy=True, running=nxt, message=f"Running {label(nxt)}…")
-            if last is None or last.stage != until:
-                last = pipe.output(until) or last
+            last = pipe.run(until, events=lambda event: self._on_event(run, event))
         except Exception as e:
-            # The stage that raised is the first one still without an output.
-            stage = next((s for s in todo if pipe.output(s) is None), running["stage"] or until)
+            # The stage that raised is the one started and not finished (else the first still stale).
+            stage = run.stage or next((s for s in todo if pipe.output(s) is None), until)
             if isinstance(e, (ConfigError, ScanError)):  # the input asks for the impossible: the message says what to change
                 why = str(e)
             else:
@@ -403,6 +377,20 @@ class Controller:
             self._publish(message=f"Ran {', '.join(label(s) for s in todo)} in {seconds:.1f} s.")
         else:
             self._publish(message="")
+
+    def _on_event(self, run: _Run, event: Event) -> None:
+        """The pipeline's events, on the worker thread: a snapshot as each stage starts (so it holds
+        the outputs of the stages before it: a tab on an early stage, e.g. Arcs after an arcs
+        parameter changed, sees its result while later stages still run), and the progress."""
+        if isinstance(event, StageStarted):
+            if event.stage != run.stage:
+                run.stage = event.stage
+                self._publish(busy=True, running=event.stage, message=f"Running {label(event.stage)}…")
+        elif isinstance(event, StageFinished):
+            run.stage = None
+        elif isinstance(event, StageProgress):
+            for fn in self._progress_listeners:
+                fn(event.run_fraction, event.line)
 
     def _make_snapshot(self, busy: bool, running: str | None, message: str, error: bool) -> Snapshot:
         pipe = self._pipeline

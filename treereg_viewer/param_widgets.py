@@ -199,7 +199,3 @@ class SectionWidgets:
             return
         impl = h._impl  # viser sends only changes: re-send the value as it is
         impl.gui_api._websock_interface.queue_message(_messages.GuiUpdateMessage(impl.uuid, {"value": shown}))
-
-    def set_disabled(self, disabled: bool) -> None:
-        for h in self.handles.values():
-            h.disabled = disabled

@@ -13,11 +13,17 @@ import numpy as np
 
 from ..geometry import robust
 from ..geometry.rigid import rotation_angle_deg
-from ..params import CoarseParams
+from ..params import CoarseParams, set_flag
 from ..results import Metric
 from .matching import MatchResult
 
-@dataclass(frozen=True, eq=False)
+#: What brings more tie points, each with the key and the flag that sets it.
+MORE_PAIRS = f"more image pairs ({set_flag('matching.n_pairs', 15)})"
+MORE_TIES = (f"{MORE_PAIRS} or matches per pair ({set_flag('matching.matches_per_pair', 60)}), or a smaller "
+             f"projection.theta_deg ({set_flag('projection.theta_deg', 5.0)})")
+NO_GROUND = f"removing the ground ({set_flag('prepare.remove_ground', True)})"
+
+@dataclass(frozen=True, eq=False, kw_only=True)
 class CoarseResult:
     """The coarse transform of a target onto the reference.
 
@@ -25,7 +31,10 @@ class CoarseResult:
     ----------
     ok, message, metrics : as every stage result.
     T_ref_target : 4x4 mapping target points into the reference frame (identity when not ok).
-    inliers : (N,) bool per tie point: agrees with the transform within the inlier distance.
+    inliers : (N,) bool per tie point: agrees with the transform within `inlier_m`.
+    inlier_m : the inlier distance `inliers` refers to: RANSAC's last one when it narrowed its
+        distance down towards `final_inlier_m` (NaN when no transform). After a 6-DOF refit the
+        residuals moved a little since the inliers were chosen, so a few may sit across it.
     residuals_m : (N,) |T tgt - ref| per tie point, metres (NaN when no transform).
     n_ties, n_inliers : counts.
     match : the MatchResult the transform came from.
@@ -41,6 +50,7 @@ class CoarseResult:
     metrics: tuple[Metric, ...]
     T_ref_target: np.ndarray
     inliers: np.ndarray
+    inlier_m: float
     residuals_m: np.ndarray
     n_ties: int
     n_inliers: int
@@ -52,8 +62,14 @@ class CoarseResult:
 
 def _coarse_fail(message: str, match: MatchResult, metrics: tuple[Metric, ...], t0: float) -> CoarseResult:
     n = match.n_ties
-    return CoarseResult(False, message, metrics, np.eye(4), np.zeros(n, dtype=bool), np.full(n, np.nan),
-                        n, 0, match, time.perf_counter() - t0)
+    return CoarseResult(ok=False, message=message, metrics=metrics, T_ref_target=np.eye(4),
+                        inliers=np.zeros(n, dtype=bool), inlier_m=float("nan"), residuals_m=np.full(n, np.nan),
+                        n_ties=n, n_inliers=0, match=match, seconds=time.perf_counter() - t0)
+
+
+def _ransac_settings(p: CoarseParams, min_inliers: int) -> robust.RansacSettings:
+    return robust.RansacSettings(dof=p.dof, inlier_m=p.inlier_m, iterations=p.iterations, seed=p.seed,
+                                 final_inlier_m=p.final_inlier_m, min_inliers=min_inliers)
 
 
 def estimate_coarse(match: MatchResult, *, coarse: CoarseParams) -> CoarseResult:
@@ -72,41 +88,43 @@ def estimate_coarse(match: MatchResult, *, coarse: CoarseParams) -> CoarseResult
         return _coarse_fail(match.message, match, (Metric("tie points", "", n),), t0)
     if n < p.min_ties:
         return _coarse_fail(
-            f"only {n} tie points, at least {p.min_ties} are needed; use more image pairs or matches "
-            "per pair, or a smaller theta (e.g. 5 deg)", match, (Metric("tie points", "", n),), t0)
+            f"only {n} tie points, at least {p.min_ties} are needed; try {MORE_TIES}", match,
+            (Metric("tie points", "", n),), t0)
     modes: tuple[tuple[np.ndarray, int], ...] = ()
     chance = -1
     if p.estimator == "svd":
         if robust.is_degenerate(src, p.dof):
             return _coarse_fail(f"the {n} tie points lie on one line: the transform is undetermined; "
-                                "use more image pairs", match, (Metric("tie points", "", n),), t0)
+                                f"try {MORE_PAIRS}", match, (Metric("tie points", "", n),), t0)
         T = robust.fit(src, dst, p.dof)
         res = robust.residuals(T, src, dst)
         inl = res < p.inlier_m
+        inlier_m = p.inlier_m
         how = f"SVD over all ties ({p.dof} DOF)"
     else:
-        found = robust.ransac_modes(src, dst, p.dof, p.inlier_m, p.iterations, p.seed,
-                                    final_inlier_m=p.final_inlier_m, min_inliers=p.min_ties, max_modes=p.modes)
+        found = robust.ransac_modes(src, dst, _ransac_settings(p, p.min_ties), max_modes=p.modes)
         fit = found[0] if found else None
         if fit is None:
             return _coarse_fail(f"no usable sample among {n} tie points (all too close together); "
-                                "use more image pairs or matches per pair", match,
+                                f"try {MORE_TIES}", match,
                                 (Metric("tie points", "", n),), t0)
-        T, inl = fit.T, fit.inliers
+        T, inl, inlier_m = fit.T, fit.inliers, fit.inlier_m
         how = f"RANSAC {p.dof} DOF"
         if fit.n_inliers < p.min_ties:
             return _coarse_fail(
                 f"only {fit.n_inliers} of {n} tie points agree on one transform (within {p.inlier_m:g} m), "
-                f"at least {p.min_ties} are needed; try more image pairs, more matches per pair, "
-                "removing the ground, or a larger inlier distance", match,
+                f"at least {p.min_ties} are needed; try {MORE_TIES}; or {NO_GROUND}; or a larger coarse.inlier_m "
+                f"(e.g. {set_flag('coarse.inlier_m', 0.8)})", match,
                 (Metric("tie points", "", n), Metric("inliers", "", fit.n_inliers)), t0)
         if p.refit_6dof and p.dof == 4 and not robust.is_degenerate(src[inl], 6):
             T = robust.fit(src[inl], dst[inl], 6)
             how += " + 6-DOF refit"
         res = robust.residuals(T, src, dst)
         modes = ((T, int(inl.sum())),) + tuple((m.T, m.n_inliers) for m in found[1:])
-        chance = robust.chance_inliers(src, dst, p.dof, p.inlier_m, p.iterations, p.final_inlier_m,
-                                       shuffles=p.chance_shuffles, seed=p.seed) if p.chance_shuffles else -1
+        # The shuffled runs stop narrowing their inlier distance at RansacSettings' default of 6
+        # inliers, not at min_ties: as they always have (the chance level the verdicts were tuned on).
+        chance = robust.chance_inliers(src, dst, _ransac_settings(p, robust.RansacSettings.min_inliers),
+                                       shuffles=p.chance_shuffles) if p.chance_shuffles else -1
     R = T[:3, :3]
     tilt = float(np.degrees(np.arccos(np.clip(R[2, 2], -1.0, 1.0))))
     yaw = float(np.degrees(np.arctan2(R[1, 0], R[0, 0])))
@@ -124,8 +142,9 @@ def estimate_coarse(match: MatchResult, *, coarse: CoarseParams) -> CoarseResult
         (Metric("distinct RANSAC modes", "", len(modes)),) if modes else ())
     problem = _implausible(n_in, n, tilt, p)
     # A failed check keeps its transform, so the app can show how wrong it is.
-    return CoarseResult(not problem, problem, metrics, T, inl, res, n, n_in, match, time.perf_counter() - t0,
-                        modes, chance)
+    return CoarseResult(ok=not problem, message=problem, metrics=metrics, T_ref_target=T, inliers=inl,
+                        inlier_m=inlier_m, residuals_m=res, n_ties=n, n_inliers=n_in, match=match,
+                        seconds=time.perf_counter() - t0, modes=modes, chance_inliers=chance)
 
 
 def _implausible(n_inliers: int, n_ties: int, tilt_deg: float, p: CoarseParams) -> str:
@@ -135,9 +154,8 @@ def _implausible(n_inliers: int, n_ties: int, tilt_deg: float, p: CoarseParams) 
     comes out upside down: a result is only kept when enough ties agree with it, and when it leaves
     the scanner nearly level (TLS instruments level themselves).
     """
-    fix = ("plain SVD has no defence against wrong matches: use estimator = ransac"
-           if p.estimator == "svd" else
-           "try more image pairs or matches per pair, or removing the ground")
+    fix = (f"plain SVD has no defence against wrong matches: try RANSAC ({set_flag('coarse.estimator', 'ransac')})"
+           if p.estimator == "svd" else f"try {MORE_TIES}, or {NO_GROUND}")
     if n_inliers < p.min_ties:
         return (f"only {n_inliers} of {n_ties} tie points agree with the transform within {p.inlier_m:g} m "
                 f"(at least {p.min_ties} needed), so it is unreliable; {fix}")

@@ -13,11 +13,11 @@ from __future__ import annotations
 import threading
 import time
 import weakref
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ..params import MatchingParams
+from ..params import MatchingParams, set_flag
 from ..results import Metric, Progress, no_progress
 from ..scan import Scan
 from . import features, similarity
@@ -47,7 +47,7 @@ def sequence_features(seq: ImageSequence, index: int, p: MatchingParams) -> Imag
     return found
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, eq=False, kw_only=True)
 class PairMatches:
     """ORB matches of one image pair (image i of the reference sequence, image j of the target's).
 
@@ -77,7 +77,7 @@ class PairMatches:
     n_keypoints_tgt: int
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, eq=False, kw_only=True)
 class MatchResult:
     """Tie points of a target scan against the reference, with everything the app draws.
 
@@ -114,7 +114,8 @@ def _fail_match(message: str, sim: np.ndarray, measure: str, pairs: tuple[PairMa
                 metrics: tuple[Metric, ...], t0: float) -> MatchResult:
     z3 = np.zeros((0, 3))
     zi = np.zeros(0, dtype=np.int64)
-    return MatchResult(False, message, metrics, sim, measure, pairs, z3, z3, zi, zi, time.perf_counter() - t0)
+    return MatchResult(ok=False, message=message, metrics=metrics, similarity=sim, measure=measure, pairs=pairs,
+                       ref_xyz=z3, tgt_xyz=z3, tie_pair=zi, tie_match=zi, seconds=time.perf_counter() - t0)
 
 
 def match_sequences(
@@ -189,26 +190,27 @@ def match_sequences(
         what = f"{n_matches} ORB matches" + (f", {n_kept} after the beta check" if p.beta_check else "")
         return _fail_match(f"only {len(ref_xyz)} tie points ({what}); try {match_hints(p)}", sim,
                            p.similarity, tuple(pairs), metrics, t0)
-    return MatchResult(True, "", metrics, sim, p.similarity, tuple(pairs), ref_xyz, tgt_xyz,
-                       np.concatenate(tie_pair), np.concatenate(tie_match), time.perf_counter() - t0)
+    return MatchResult(ok=True, message="", metrics=metrics, similarity=sim, measure=p.similarity, pairs=tuple(pairs),
+                       ref_xyz=ref_xyz, tgt_xyz=tgt_xyz, tie_pair=np.concatenate(tie_pair),
+                       tie_match=np.concatenate(tie_match), seconds=time.perf_counter() - t0)
 
 
 def match_hints(p: MatchingParams) -> str:
-    """What a user can change when there are too few tie points, given the current settings."""
+    """What a user can change when there are too few tie points, given the current settings: each
+    names its parameter and the `--set` that changes it."""
     hints = []
     if p.n_pairs < 15:
-        hints.append(f"more image pairs (n_pairs {p.n_pairs} -> 15)")
+        hints.append(f"more image pairs (matching.n_pairs {p.n_pairs} -> 15: {set_flag('matching.n_pairs', 15)})")
     if p.matches_per_pair < 60:
-        hints.append(f"more matches per pair ({p.matches_per_pair} -> 60)")
+        hints.append(f"more matches per pair (matching.matches_per_pair {p.matches_per_pair} -> 60: "
+                     f"{set_flag('matching.matches_per_pair', 60)})")
     if p.image_mode == "binary":
-        hints.append("image_mode = ramp")
+        hints.append(f"ramp images ({set_flag('matching.image_mode', 'ramp')})")
     if p.beta_check:
-        hints.append("beta_check off")
-    hints.append("a smaller theta (e.g. 5 deg)")
+        hints.append(f"the beta check off ({set_flag('matching.beta_check', False)})")
+    hints.append(f"a smaller projection.theta_deg (e.g. {set_flag('projection.theta_deg', 5.0)})")
     return ", ".join(hints)
 
 
 def _with_kept(pm: PairMatches, kept: np.ndarray) -> PairMatches:
-    values = {f.name: getattr(pm, f.name) for f in fields(pm)}
-    values["kept"] = kept
-    return PairMatches(**values)
+    return replace(pm, kept=kept)

@@ -38,7 +38,7 @@ def spherical_deg(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> tuple[np.ndarr
     return alpha, beta
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class ProjectionGeometry:
     """Where the pixels of one image lie in (alpha, beta).
 
@@ -65,7 +65,7 @@ class ProjectionGeometry:
         return lo, lo + self.pixel_deg[1]
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, eq=False, kw_only=True)
 class Projection:
     """One binary image with its pixel -> points index.
 
@@ -102,12 +102,6 @@ class Projection:
         np.cumsum(self.counts().ravel(), out=offsets[1:])
         return order, offsets
 
-    def pixel_sums(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Per-pixel sum of `points` (N x 3) and point count, both flat over the image."""
-        n = self.image.size
-        sums = np.stack([np.bincount(self.labels, weights=points[:, i], minlength=n) for i in range(3)], axis=1)
-        return sums, self.counts().ravel()
-
 
 def image_geometry(
     alpha_rel_deg: np.ndarray,
@@ -122,8 +116,8 @@ def image_geometry(
     r1, r2 = int(border_px[0]), int(border_px[1])
     cols = int(np.floor((a1 - a0) / pixel_deg[0])) + 1 + 2 * r1
     rows = int(np.floor((b1 - b0) / pixel_deg[1])) + 1 + 2 * r2
-    return ProjectionGeometry(a0, b0, (float(pixel_deg[0]), float(pixel_deg[1])), (r1, r2), (rows, cols),
-                              float(azimuth_ref_deg))
+    return ProjectionGeometry(alpha_min_deg=a0, beta_min_deg=b0, pixel_deg=(float(pixel_deg[0]), float(pixel_deg[1])),
+                              border_px=(r1, r2), shape=(rows, cols), azimuth_ref_deg=float(azimuth_ref_deg))
 
 
 #: Steps differing by more than this factor get square pixels (with `square`).

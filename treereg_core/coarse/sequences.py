@@ -15,7 +15,7 @@ from ..limits import check_raster
 from ..params import ProjectionParams
 from .projection import Projection, gap_fill_px, limit_pixel_size, pixel_size_deg, project
 from ..prepare.image_check import fill_rate, image_warning, stripe_fraction
-from ..geometry.rigid import rotation_z
+from ..geometry.rigid import make_transform, rotation_z
 from ..results import Metric
 from ..scan import Scan
 
@@ -23,7 +23,7 @@ from ..scan import Scan
 _SIZING_SAMPLE = 4000
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, eq=False, kw_only=True)
 class ImageSequence:
     """The projection images of one scan rotated about its centre.
 
@@ -53,6 +53,13 @@ class ImageSequence:
 
     def __len__(self) -> int:
         return len(self.angles_deg)
+
+    def rotation(self, k: int) -> np.ndarray:
+        """The 4x4 rigid motion of image k's points: about +z through (x_mean, y_mean, 0) by
+        `angles_deg[k]` (what the app poses the rotated cloud by)."""
+        R = rotation_z(self.angles_deg[k])
+        c = np.array([self.centre_xy[0], self.centre_xy[1], 0.0])
+        return make_transform(R, c - R @ c)
 
     @property
     def ok(self) -> bool:
@@ -150,8 +157,8 @@ def build_sequence(scan: Scan, *, projection: ProjectionParams, n_scans: int) ->
     # The sequence keeps every image: refuse sizes that cannot fit before allocating any.
     check_raster(f"{scan.label}: the projection images",
                  spans[1] / pixel[1] + 1 + 2 * p.border_px[1], spans[0] / pixel[0] + 1 + 2 * p.border_px[0], 1.0,
-                 "cap the image size (projection.max_image_px, e.g. 700), or use a larger pixel factor, "
-                 "fewer rotations (projection.theta_deg) or a coarser angular step", count=len(angles))
+                 "cap the image size (projection.max_image_px, e.g. 700), or use a larger pixel factor "
+                 "(projection.pixel_factor), fewer rotations (a larger projection.theta_deg) or a coarser angular step", count=len(angles))
     fill = gap_fill_px(scan.angular_step_deg, pixel)
     projections = []
     for a in angles:

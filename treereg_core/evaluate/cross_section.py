@@ -65,10 +65,6 @@ class ScanCut:
     def n_arcs(self) -> int:
         return len(self.sections)
 
-    def centre_uv(self, k: int, origin: np.ndarray, e1: np.ndarray, e2: np.ndarray) -> np.ndarray:
-        d = self.sections[k].centre_m - origin
-        return np.array([d @ e1, d @ e2])
-
 
 @dataclass(frozen=True)
 class Layer:

@@ -22,7 +22,7 @@ _STOP_RAD = 1e-6
 _STOP_M = 1e-5
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class IcpResult:
     """ICP outcome.
 
@@ -57,8 +57,9 @@ class IcpResult:
 
 def icp_off(T_init: np.ndarray) -> IcpResult:
     """The result when the ICP baseline is switched off: nothing ran, the start stands."""
-    return IcpResult(True, "the ICP baseline is off (icp.enabled)", (), np.asarray(T_init, dtype=float).copy(),
-                     float("nan"), 0.0, 0, False, ran=False)
+    return IcpResult(ok=True, message="the ICP baseline is off (icp.enabled)", metrics=(),
+                     T_ref_target=np.asarray(T_init, dtype=float).copy(), rmse_m=float("nan"), fitness=0.0,
+                     iterations=0, converged=False, ran=False)
 
 
 def point_to_plane_step(src: np.ndarray, dst: np.ndarray, normals: np.ndarray,
@@ -107,9 +108,10 @@ def align_icp(ref_points: np.ndarray, tgt_points: np.ndarray, T_init: np.ndarray
         d, j = tree.query(moved, distance_upper_bound=p.max_distance_m)
         valid = np.isfinite(d)
         if valid.sum() < 6:
-            return IcpResult(False, "ICP found fewer than 6 correspondences within icp.max_distance_m; "
-                             "the start transform is too far off", (Metric("ICP iterations", "", it),),
-                             np.asarray(T_init, dtype=float).copy(), np.nan, 0.0, it, False)
+            return IcpResult(ok=False, message="ICP found fewer than 6 correspondences within icp.max_distance_m; "
+                             "the start transform is too far off", metrics=(Metric("ICP iterations", "", it),),
+                             T_ref_target=np.asarray(T_init, dtype=float).copy(), rmse_m=np.nan, fitness=0.0,
+                             iterations=it, converged=False)
         idx = np.flatnonzero(valid)
         # Trim by the residual the metric minimises: for point-to-plane that is the distance along
         # the normal (trimming by point distance would keep a sliding, biased subset).
@@ -136,4 +138,5 @@ def align_icp(ref_points: np.ndarray, tgt_points: np.ndarray, T_init: np.ndarray
         Metric("ICP RMSE", "m", rmse),
         Metric("ICP fitness", "", fit),
     )
-    return IcpResult(True, "", metrics, T, rmse, fit, it, converged)
+    return IcpResult(ok=True, message="", metrics=metrics, T_ref_target=T, rmse_m=rmse, fitness=fit, iterations=it,
+                     converged=converged)

@@ -15,7 +15,7 @@ from .branches import EvaluationResult, evaluate_pair, find_branches, reference_
 from .icp import IcpResult
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class PairReport:
     """Evaluation of one target: its coarse, fine and (when it ran) ICP transforms.
 
@@ -74,4 +74,4 @@ def evaluate_registration(ref: Scan, tgt: Scan, T_coarse: np.ndarray, T_fine: np
     for label, ev in (("coarse", ev_c), ("fine", ev_f), ("ICP", ev_i)):
         if ev is not None:
             rows += [Metric(f"{label}: {m.description}", m.unit, m.value) for m in ev.metrics]
-    return PairReport(True, "", tuple(rows), tgt.name, ev_c, ev_f, ev_i)
+    return PairReport(ok=True, message="", metrics=tuple(rows), target=tgt.name, coarse=ev_c, fine=ev_f, icp=ev_i)

@@ -30,7 +30,7 @@ from ..scan import Scan
 _RASTER_CELL_BYTES = 6
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class ArcResult:
     """Arcs of one slice of one scan.
 
@@ -164,8 +164,8 @@ def separate_arcs(scan: Scan, indices: np.ndarray, p: ArcParams) -> ArcResult:
     """
     idx = np.asarray(indices, dtype=np.int64)
     if len(idx) == 0:
-        return ArcResult(False, "the slice holds no points of this scan", (Metric("arcs", "", 0),),
-                         idx, np.empty(0, dtype=np.int64), 0)
+        return ArcResult(ok=False, message="the slice holds no points of this scan", metrics=(Metric("arcs", "", 0),),
+                         indices=idx, labels=np.empty(0, dtype=np.int64), n_arcs=0)
     col, row = angular_cells(scan, idx)
     raw = _label_raster(col, row, p.connectivity, f"{scan.label}: the arcs' slice raster")
     if p.max_range_jump_m is not None:
@@ -183,10 +183,10 @@ def separate_arcs(scan: Scan, indices: np.ndarray, p: ArcParams) -> ArcResult:
         Metric("points in arcs too small", "", int((labels < 0).sum())),
     )
     msg = "" if n else f"no arc of at least {p.min_points} points (arcs.min_points) in this slice"
-    return ArcResult(n > 0, msg, metrics, idx, labels, n)
+    return ArcResult(ok=n > 0, message=msg, metrics=metrics, indices=idx, labels=labels, n_arcs=n)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class SliceArcs:
     """The arcs stage's result for one pair: every slice of both scans separated into arcs.
 
@@ -225,4 +225,4 @@ def separate_slices(ref: Scan, tgt: Scan, ref_indices: tuple[np.ndarray, ...], t
         Metric("arcs, target", "", int(sum(a.n_arcs for a in ta))),
         Metric("slices with arcs in both scans", "", int(sum(a.n_arcs > 0 and b.n_arcs > 0 for a, b in zip(ra, ta)))),
     )
-    return SliceArcs(True, "", metrics, ra, ta)
+    return SliceArcs(ok=True, message="", metrics=metrics, ref=ra, tgt=ta)

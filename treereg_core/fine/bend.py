@@ -61,10 +61,6 @@ class Bend:
     def sway_std_m(self) -> float:
         return float(np.hypot(*self.std_m))
 
-    def at_height_m(self, z_m: np.ndarray) -> np.ndarray:
-        """How far the target's stem had moved at heights `z_m` (metres; 0 at the base)."""
-        return self.shape(z_m) * self.sway_m
-
     def unbend(self, points_ref: np.ndarray) -> np.ndarray:
         """Target points already in the reference frame, moved to where the reference's tree stood."""
         out = np.array(points_ref, dtype=float, copy=True)

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from ..geometry.losses import robust_cost, robust_weight
 from ..geometry.rigid import make_transform, rotation_from_vector, rotation_vector
+from ..params import JointParams
 
 
 def _basis_rows(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -132,11 +133,41 @@ class JointFit:
         return int(self.held_basis.shape[1])
 
 
-def adjust_joint(points: np.ndarray, section: np.ndarray, moving: np.ndarray, c0: np.ndarray, a0: np.ndarray,
-                 r0: np.ndarray, loss_scale_m: float, prior_m: float, prior_deg: float,
-                 loss: str = "soft_l1", max_sigma_m: float | None = None, prior_offset: np.ndarray | None = None,
-                 max_iterations: int = 30, bend_shape: np.ndarray | None = None,
-                 prior_bend_m: float = 1.0, section_weight: np.ndarray | None = None) -> JointFit:
+@dataclass(frozen=True, kw_only=True)
+class JointProblem:
+    """What the joint adjustment fits: the points of every section pair and where its cylinders start.
+
+    Attributes
+    ----------
+    points
+        N x 3 points in the reference frame, grouped by section (`section` non-decreasing).
+    section
+        Section number 0..K-1 of each point; every section must have points.
+    moving
+        N bools: True for target points (they move with the update).
+    centres_m, axes, radii_m
+        K x 3 axis points, K x 3 unit axes, K radii to start from.
+    bend_shape
+        Per point, the share of the top's sway by which a moving point is shifted (its height on the
+        cantilever; ignored for fixed points): the two horizontal components of the top's shift are
+        then unknowns too. None = rigid.
+    section_weight
+        Per section, a weight of all its points (a section that moved on its own in the wind counts
+        less); None = all 1.
+    """
+
+    points: np.ndarray
+    section: np.ndarray
+    moving: np.ndarray
+    centres_m: np.ndarray
+    axes: np.ndarray
+    radii_m: np.ndarray
+    bend_shape: np.ndarray | None = None
+    section_weight: np.ndarray | None = None
+
+
+def adjust_joint(problem: JointProblem, *, joint: JointParams, loss: str = "soft_l1",
+                 prior_offset: np.ndarray | None = None, prior_bend_m: float = 1.0) -> JointFit:
     """Fit one cylinder per section to all its points while the `moving` points follow a rigid update.
 
     A Gauss-Newton (IRLS, soft-L1 or Cauchy loss) bundle adjustment with an analytic Jacobian. The section
@@ -147,37 +178,31 @@ def adjust_joint(points: np.ndarray, section: np.ndarray, moving: np.ndarray, c0
 
     Parameters
     ----------
-    points
-        N x 3 points in the reference frame, grouped by section (`section` non-decreasing).
-    section
-        Section number 0..K-1 of each point; every section must have points.
-    moving
-        N bools: True for target points (they move with the update).
-    c0, a0, r0
-        K x 3 axis points, K x 3 unit axes, K radii to start from.
-    loss_scale_m, prior_m, prior_deg
-        Loss scale; prior standard deviations of the translation and rotation away from the prior pose.
+    problem
+        The points, their sections, which of them move, the cylinders to start from and any bend.
+    joint
+        `loss_scale_m`; `prior_m`, `prior_deg` (prior standard deviations of the translation and
+        rotation away from the prior pose); `max_direction_sigma_m` (pose directions determined
+        worse than this are held, see `solve_well_determined`); `max_solver_iterations`.
     loss
         "soft_l1" (convex beyond the scale: safe far from the solution) or "cauchy" (redescending:
         a wrong pair's points lose their pull once the right pose is near).
-    max_sigma_m
-        Pose directions determined worse than this are held (see `solve_well_determined`).
     prior_offset
         4x4 taking the prior pose of the moving points to the pose they are given in (the fine
         updates so far); None = they are given at the prior pose.
-    bend_shape, prior_bend_m
-        Per point, the share of the top's sway by which a moving point is shifted (its height on the
-        cantilever; ignored for fixed points): the two horizontal components of the top's shift are
-        then unknowns too, with a prior of std `prior_bend_m` about zero. None = rigid.
-    section_weight
-        Per section, a weight of all its points (a section that moved on its own in the wind counts
-        less); None = all 1.
+    prior_bend_m
+        With `problem.bend_shape`: the prior std of the top's sway about zero.
 
     Returns
     -------
     JointFit
         `U` maps the moving points (as given) to their adjusted position.
     """
+    points, section, moving = problem.points, problem.section, problem.moving
+    c0, a0, r0 = problem.centres_m, problem.axes, problem.radii_m
+    bend_shape, section_weight = problem.bend_shape, problem.section_weight
+    loss_scale_m, prior_m, prior_deg = joint.loss_scale_m, joint.prior_m, joint.prior_deg
+    max_sigma_m, max_iterations = joint.max_direction_sigma_m, joint.max_solver_iterations
     starts = np.flatnonzero(np.r_[True, section[1:] != section[:-1]])
     centre = points.mean(axis=0)
     lever = float(np.sqrt(np.mean(np.sum((points - centre) ** 2, axis=1))))

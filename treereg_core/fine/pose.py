@@ -48,7 +48,7 @@ from __future__ import annotations
 import threading
 import weakref
 from collections import OrderedDict
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, fields, replace
 from typing import Any, Callable
 
 import numpy as np
@@ -56,13 +56,13 @@ import numpy as np
 from ..geometry import robust
 from ..geometry.rigid import apply_transform, invert, kabsch, rotation_vector
 from ..params import (
-    AcceptanceParams, ArcParams, FineParams, FitParams, JointParams, SlicingParams, SurfaceParams, WindParams,
+    AcceptanceParams, ArcParams, FineParams, FitParams, JointParams, Params, SlicingParams, SurfaceParams, WindParams,
 )
 from ..results import Metric, Progress, no_progress
 from ..scan import Scan
 from .arcs import SliceArcs, separate_scan_slices, separate_slices
 from .correspondence import Correspondences
-from .joint import JointFit, adjust_joint, section_offsets
+from .joint import JointFit, JointProblem, adjust_joint, section_offsets
 from .sections import ScanSections, SectionsResult, fit_sections, match_scan_sections, sections_at, tie_points
 from .bend import Bend
 from .stem import StemProfile, StemTrace, correction, stem_profile, trace_stem
@@ -72,8 +72,6 @@ from .surface import (
     Surface, align_narrowing, mean_move, pose_update, refine_along, surface_fitness, surface_of, trimmed_residuals,
 )
 
-#: The parameter sections `register_fine` reads (the pipeline passes exactly these).
-FINE_SECTIONS: tuple[str, ...] = ("fine", "joint", "surface", "acceptance", "slicing", "arcs", "fitting", "wind")
 #: Points of the target used to measure how far an update moves it (and for the acceptance measure).
 _SAMPLE = 20_000
 #: Joint adjustment: a section pair whose RMS exceeds this multiple of the median RMS is dropped.
@@ -100,9 +98,35 @@ DECIDE_TOLERANCE_M = 0.005
 TILT_SIGN_DEG = 0.05
 #: Wind: rounds of weighing each section by its own offset (see `_estimate_joint`).
 _FLUTTER_ROUNDS = 4
+#: Wind: a section's own offset at which its weight halves (Cauchy; see `_estimate_joint`).
+_FLUTTER_M = 0.005
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
+class FineSections:
+    """The parameter sections `register_fine` reads: the fine pose's own (`fine`, `joint`,
+    `surface`, `acceptance`, `wind`) and how later iterations slice, separate and fit (`slicing`,
+    `arcs`, `fitting`). `FineSections.of(params)` takes them from a `Params`."""
+
+    fine: FineParams
+    joint: JointParams
+    surface: SurfaceParams
+    acceptance: AcceptanceParams
+    slicing: SlicingParams
+    arcs: ArcParams
+    fitting: FitParams
+    wind: WindParams = field(default_factory=lambda: WindParams(enabled=False))
+
+    @classmethod
+    def of(cls, params: Params) -> "FineSections":
+        return cls(**params.pick(*FINE_SECTIONS))
+
+
+#: The parameter sections `register_fine` reads (the pipeline passes exactly these).
+FINE_SECTIONS: tuple[str, ...] = tuple(f.name for f in fields(FineSections))
+
+
+@dataclass(frozen=True, kw_only=True)
 class StemSeeds:
     """Where each scan's own stem stands (x, y in its own frame) when the prepare stage chose it (the
     target's, in a plot): the stem profile traces from there. None: the densest cell of the scan's
@@ -115,7 +139,7 @@ class StemSeeds:
 NO_SEEDS = StemSeeds()
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class FineStart:
     """The first iteration, as the slices, arcs and sections stages made it at the coarse pose.
 
@@ -127,7 +151,7 @@ class FineStart:
     sections: SectionsResult | None
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class FineResult:
     """The fine stage's result for one pair.
 
@@ -170,6 +194,10 @@ class FineResult:
         With a bend: the sections left the turn about the vertical undetermined (a bare stem once
         the fluttering twigs are set aside), so the heading is the start's (the hypotheses stage's):
         the verification must then show the evidence pins it.
+    iteration_limit
+        The iterations the sections were allowed (`iteration_limit`: more when the stem's bend is fitted).
+    stopped_at_limit
+        The iterations ran out with the last update still above `fine.tolerance_m` (not converged).
     """
 
     ok: bool
@@ -191,9 +219,11 @@ class FineResult:
     bend: Bend | None = None
     profile: StemProfile | None = None
     turn_held: bool = False
+    iteration_limit: int = 0
+    stopped_at_limit: bool = False
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class _Fitted:
     """Slices, arcs and sections of one iteration, at the pose `sections.T_ref_target`."""
 
@@ -202,7 +232,7 @@ class _Fitted:
     sections: SectionsResult
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class _Iterations:
     """What iterating the sections gave: the pose, each update's size, the last adjustment."""
 
@@ -214,25 +244,52 @@ class _Iterations:
     bend: Bend | None = None
 
 
+@dataclass(frozen=True, kw_only=True)
+class _Run:
+    """One pair's fine registration: the scans, the target's points that measure how far an update
+    moves it, the parameter sections and where the stems stand."""
+
+    ref: Scan
+    tgt: Scan
+    sample: np.ndarray
+    params: FineSections
+    seeds: StemSeeds = NO_SEEDS
+
+
+@dataclass(frozen=True, kw_only=True)
+class _SectionPairs:
+    """Corresponding sections to adjust jointly, with the scans whose points they index (`tgt_scan`
+    the target as sliced: unbent, with wind)."""
+
+    ref_scan: Scan
+    tgt_scan: Scan
+    ref: ScanSections
+    tgt: ScanSections
+    corr: Correspondences
+
+
 def first_iteration(ref: Scan, tgt: Scan, T_coarse: np.ndarray, *, slicing: SlicingParams, arcs: ArcParams,
                     fitting: FitParams) -> FineStart:
     """The slices, arcs and sections stages in one call (for a caller without the pipeline)."""
     sl = slice_scans(ref, tgt, T_coarse, slicing=slicing)
     if not sl.ok:
-        return FineStart(sl, None, None)
+        return FineStart(slices=sl, arcs=None, sections=None)
     ar = separate_slices(ref, tgt, sl.ref_indices, sl.tgt_indices, arcs=arcs)
-    return FineStart(sl, ar, fit_sections(ref, tgt, ar.ref, ar.tgt, sl.heights_m, T_coarse, fitting=fitting))
+    return FineStart(slices=sl, arcs=ar,
+                     sections=fit_sections(ref, tgt, ar.ref, ar.tgt, sl.heights_m, T_coarse, fitting=fitting))
 
 
-def _refit(ref: Scan, tgt: Scan, T: np.ndarray, ref_fitted: _Fitted, slicing: SlicingParams, arcs: ArcParams,
-           fitting: FitParams, seen: Scan | None = None) -> _Fitted:
+def _refit(run: _Run, T: np.ndarray, ref_fitted: _Fitted, seen: Scan | None = None) -> _Fitted:
     """Slices, target arcs and target sections again at the pose `T` (the reference's never move).
-    `seen`: the target unbent (`Bend.warp`), sliced and fitted instead of `tgt` (its arcs stay those
-    of its own grid)."""
+    `seen`: the target unbent (`Bend.warp`), sliced and fitted instead of `run.tgt` (its arcs stay
+    those of its own grid)."""
+    ref, tgt, ps = run.ref, run.tgt, run.params
     seen = tgt if seen is None else seen
-    sl = slice_scans(ref, seen, T, slicing=slicing)
-    ar = SliceArcs(True, "", (), ref_fitted.arcs.ref, separate_scan_slices(tgt, sl.tgt_indices, arcs))
-    return _Fitted(sl, ar, sections_at(ref, seen, ref_fitted.sections.ref, ar.tgt, sl.heights_m, T, fitting))
+    sl = slice_scans(ref, seen, T, slicing=ps.slicing)
+    ar = SliceArcs(ok=True, message="", metrics=(), ref=ref_fitted.arcs.ref,
+                   tgt=separate_scan_slices(tgt, sl.tgt_indices, ps.arcs))
+    return _Fitted(slices=sl, arcs=ar,
+                   sections=sections_at(ref, seen, ref_fitted.sections.ref, ar.tgt, sl.heights_m, T, ps.fitting))
 
 
 def _estimate_ties(ref: ScanSections, tgt: ScanSections, corr: Correspondences, fp: FineParams) -> tuple[np.ndarray | None, str]:
@@ -242,7 +299,7 @@ def _estimate_ties(ref: ScanSections, tgt: ScanSections, corr: Correspondences, 
         return None, f"only {len(a)} tie points, or all on one line; at least 3 spread points are needed"
     if fp.estimator == "svd":
         return kabsch(b, a), ""
-    fit = robust.ransac(b, a, dof=6, inlier_m=fp.inlier_m, iterations=500, seed=0)
+    fit = robust.ransac(b, a, robust.RansacSettings(dof=6, inlier_m=fp.inlier_m, iterations=500, seed=0))
     if fit is None or fit.n_inliers < 3:
         return None, f"RANSAC found fewer than 3 tie points agreeing within {fp.inlier_m} m"
     return fit.T, ""
@@ -252,16 +309,16 @@ def _subsample(idx: np.ndarray, n: int) -> np.ndarray:
     return idx if len(idx) <= n else idx[np.linspace(0, len(idx) - 1, n).astype(np.int64)]
 
 
-def _estimate_joint(ref_scan: Scan, tgt_scan: Scan, T: np.ndarray, ref: ScanSections, tgt: ScanSections,
-                    corr: Correspondences, jp: JointParams, min_pairs: int, loss: str,
-                    T_prior: np.ndarray, bend: Bend | None = None, flutter_m: float = 0.005,
+def _estimate_joint(sp: _SectionPairs, T: np.ndarray, jp: JointParams, *, min_pairs: int, loss: str,
+                    T_prior: np.ndarray, bend: Bend | None = None,
                     flutter_rounds: int = _FLUTTER_ROUNDS) -> tuple[JointFit | None, str]:
     """Rigid update from one cylinder per section pair fitted to both scans' points at once (with a
-    `bend`, the target's further bend too: `JointFit.bend_m`; `tgt_scan` is then already unbent).
+    `bend`, the target's further bend too: `JointFit.bend_m`; `sp.tgt_scan` is then already unbent).
 
     Pairs whose cylinder fits badly (RMS above `_TRIM_FACTOR` times the median and above the loss
     scale: a wrong pairing or a mis-separated arc) are dropped and the adjustment is repeated.
     """
+    ref_scan, tgt_scan, ref, tgt, corr = sp.ref_scan, sp.tgt_scan, sp.ref, sp.tgt, sp.corr
     K = len(corr.pairs)
     pts, sec, mov = [], [], []
     c0 = np.empty((K, 3))
@@ -285,10 +342,10 @@ def _estimate_joint(ref_scan: Scan, tgt_scan: Scan, T: np.ndarray, ref: ScanSect
     for rnd in range(rounds):
         idx = np.flatnonzero(keep[S])
         remap = np.cumsum(keep) - 1
-        fit = adjust_joint(P[idx], remap[S[idx]], M[idx], c0[keep], a0[keep], r0[keep], jp.loss_scale_m,
-                           jp.prior_m, jp.prior_deg, loss, jp.max_direction_sigma_m, T @ invert(T_prior),
-                           jp.max_solver_iterations, None if shape is None else shape[idx],
-                           section_weight=None if bend is None else weight[keep])
+        problem = JointProblem(points=P[idx], section=remap[S[idx]], moving=M[idx], centres_m=c0[keep],
+                               axes=a0[keep], radii_m=r0[keep], bend_shape=None if shape is None else shape[idx],
+                               section_weight=None if bend is None else weight[keep])
+        fit = adjust_joint(problem, joint=jp, loss=loss, prior_offset=T @ invert(T_prior))
         bad = fit.rms_m > max(_TRIM_FACTOR * float(np.median(fit.rms_m)), jp.loss_scale_m)
         if jp.influence_factor is not None and len(fit.influence_m) > 2:
             # One wrong pair can bend a direction only a few branches fix while fitting well
@@ -312,7 +369,7 @@ def _estimate_joint(ref_scan: Scan, tgt_scan: Scan, T: np.ndarray, ref: ScanSect
         off, _ = section_offsets(moved, remap[S[idx]], mv, fit.points_m, fit.axes, fit.radii_m, jp.loss_scale_m)
         off_m = np.linalg.norm(off, axis=1)
         fit = replace(fit, section_offsets_m=off_m)
-        new = 1.0 / (1.0 + (off_m / flutter_m) ** 2)
+        new = 1.0 / (1.0 + (off_m / _FLUTTER_M) ** 2)
         settled = np.abs(new - weight[keep]).max() < 0.05
         weight[keep] = new
         if settled:
@@ -322,10 +379,8 @@ def _estimate_joint(ref_scan: Scan, tgt_scan: Scan, T: np.ndarray, ref: ScanSect
     return fit, ""
 
 
-def _iterate(ref: Scan, tgt: Scan, T0: np.ndarray, start: FineStart, sample: np.ndarray, fine: FineParams,
-             joint: JointParams, slicing: SlicingParams, arcs: ArcParams, fitting: FitParams,
-             progress: Progress, bend: Bend | None = None, max_iterations: int | None = None,
-             T_prior: np.ndarray | None = None) -> _Iterations:
+def _iterate(run: _Run, T0: np.ndarray, start: FineStart, progress: Progress, *, bend: Bend | None = None,
+             max_iterations: int | None = None, T_prior: np.ndarray | None = None) -> _Iterations:
     """Estimate an update from the corresponding sections, re-slice at the new pose, repeat.
 
     Stops after `fine.max_iterations`, once an update moves the target by less than
@@ -334,10 +389,12 @@ def _iterate(ref: Scan, tgt: Scan, T0: np.ndarray, start: FineStart, sample: np.
     the next one slices and fits the target unbent by all of it (`_Iterations.bend`); `start` is then
     the target unbent by `bend` at `T0`. The adjustment's prior is centred on `T_prior` (default `T0`).
     """
-    fp = fine
+    ref, tgt, sample = run.ref, run.tgt, run.sample
+    fp, joint, fitting = run.params.fine, run.params.joint, run.params.fitting
     if start.arcs is None or start.sections is None:
-        return _Iterations(T0.copy(), (), None, start.slices.message or "the sections could not be fitted", None, bend)
-    cur = _Fitted(start.slices, start.arcs, start.sections)
+        return _Iterations(T=T0.copy(), updates_m=(), joint=None,
+                           note=start.slices.message or "the sections could not be fitted", last=None, bend=bend)
+    cur = _Fitted(slices=start.slices, arcs=start.arcs, sections=start.sections)
     T = T0.copy()
     updates: list[float] = []
     fit: JointFit | None = None
@@ -351,7 +408,7 @@ def _iterate(ref: Scan, tgt: Scan, T0: np.ndarray, start: FineStart, sample: np.
         progress((it - 1) / (fp.max_iterations + 1), f"iteration {it}: slicing and fitting")
         if it > 1:
             seen = tgt if bend is None or bend.sway_m == 0 else bend.warp(tgt, T)
-            cur = _refit(ref, tgt, T, cur, slicing, arcs, fitting, seen)
+            cur = _refit(run, T, cur, seen)
         last = cur
         ref_s, tgt_s, corr = cur.sections.ref, cur.sections.tgt, cur.sections.correspondences
         if it > 1 and corr.ok and fp.gate_factor is not None:
@@ -366,8 +423,9 @@ def _iterate(ref: Scan, tgt: Scan, T0: np.ndarray, start: FineStart, sample: np.
         if fp.method == "ties":
             U, note = _estimate_ties(ref_s, tgt_s, corr, fp)
         else:
-            fit, note = _estimate_joint(ref, seen, T, ref_s, tgt_s, corr, joint, fp.min_pairs,
-                                        "soft_l1" if it == 1 else joint.refine_loss, T_prior, bend)
+            pairs = _SectionPairs(ref_scan=ref, tgt_scan=seen, ref=ref_s, tgt=tgt_s, corr=corr)
+            fit, note = _estimate_joint(pairs, T, joint, min_pairs=fp.min_pairs,
+                                        loss="soft_l1" if it == 1 else joint.refine_loss, T_prior=T_prior, bend=bend)
             U = None if fit is None else fit.U
         if U is None:
             break
@@ -401,7 +459,7 @@ def _iterate(ref: Scan, tgt: Scan, T0: np.ndarray, start: FineStart, sample: np.
         # fluttering twigs are set aside) go back to where the iterations started: earlier
         # iterations may have moved them on sections since dropped.
         T = _held_to_prior(T, T_prior, fit)
-    return _Iterations(T, tuple(updates), fit, note, last, bend)
+    return _Iterations(T=T, updates_m=tuple(updates), joint=fit, note=note, last=last, bend=bend)
 
 
 def _half(U: np.ndarray, centre: np.ndarray) -> np.ndarray:
@@ -467,8 +525,7 @@ def _polish(ref_surf: Surface, tgt_surf: Surface, T: np.ndarray, sp: SurfacePara
     return pose_update(y, c) @ T
 
 
-def _select(ref_surf: Surface, tgt_surf: Surface, T0: np.ndarray, T: np.ndarray, label: str, sp: SurfaceParams,
-            ap: AcceptanceParams, loss_scale_m: float,
+def _select(ref_surf: Surface, tgt_surf: Surface, T0: np.ndarray, T: np.ndarray, label: str, ps: FineSections,
             stems: Callable[[np.ndarray], bool | None] | None = None) -> tuple[np.ndarray, str, np.ndarray]:
     """The final pose: of the coarse one, `T` and (for a sections' result) `T` polished by the
     surfaces in all six directions, the one with the lowest trimmed point-to-plane residual.
@@ -482,6 +539,7 @@ def _select(ref_surf: Surface, tgt_surf: Surface, T0: np.ndarray, T: np.ndarray,
     partly overlap can rank a pose centimetres off the stem first. Returns (pose, its label, the
     residuals of coarse, `T`, `T` polished and coarse polished: NaN where not computed, inf where far off).
     """
+    sp, ap, loss_scale_m = ps.surface, ps.acceptance, ps.joint.loss_scale_m
     poses, labels = [T0, T], ["coarse", label]
     if label == "sections":
         poses.append(_polish(ref_surf, tgt_surf, T, sp, ap, loss_scale_m))
@@ -502,11 +560,13 @@ def _select(ref_surf: Surface, tgt_surf: Surface, T0: np.ndarray, T: np.ndarray,
     return poses[k], labels[k], r4
 
 
-def _verdict(n_updates: int, chosen: str, fallback: bool, note: str, residuals: np.ndarray, m0: float, m1: float,
-             ap: AcceptanceParams, stems_vouch: bool = False) -> tuple[bool, str]:
+def _verdict(n_updates: int, chosen: str, fallback: bool, note: str, residuals: np.ndarray,
+             agreement: tuple[float, float], ap: AcceptanceParams, stems_vouch: bool = False) -> tuple[bool, str]:
     """Whether the fine pose is kept, and the sentence that says why not (or what happened).
-    `stems_vouch`: the stems line up at the fine pose and not at the coarse one, which the surface
-    agreement (of two views that may barely overlap) does not overrule."""
+    `agreement`: the acceptance measure at the coarse and at the fine pose. `stems_vouch`: the stems
+    line up at the fine pose and not at the coarse one, which the surface agreement (of two views
+    that may barely overlap) does not overrule."""
+    m0, m1 = agreement
     if not n_updates:
         return False, f"fine registration found nothing to improve ({note}); kept the coarse transform"
     if chosen == "coarse":
@@ -524,9 +584,7 @@ def _verdict(n_updates: int, chosen: str, fallback: bool, note: str, residuals: 
     return True, message
 
 
-def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, *, fine: FineParams, joint: JointParams,
-                  surface: SurfaceParams, acceptance: AcceptanceParams, slicing: SlicingParams, arcs: ArcParams,
-                  fitting: FitParams, wind: WindParams | None = None, start: FineStart | None = None,
+def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, *, params: FineSections, start: FineStart | None = None,
                   seeds: StemSeeds = NO_SEEDS, progress: Progress | None = None) -> FineResult:
     """Refine the coarse transform of `tgt` onto `ref` from stem and branch sections.
 
@@ -536,10 +594,9 @@ def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, *, fine: FineParam
         Reference and target scans (each in its scanner frame).
     T_coarse
         The coarse 4x4 T_ref_target.
-    fine, joint, surface, acceptance
-        The fine pose's own parameters.
-    slicing, arcs, fitting
-        How later iterations slice, separate and fit at the new pose.
+    params
+        The parameter sections it reads (`FineSections.of(params)`): the fine pose's own, and how
+        later iterations slice, separate and fit at the new pose.
     start
         The first iteration as the slices, arcs and sections stages made it; computed when None.
     seeds
@@ -552,17 +609,18 @@ def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, *, fine: FineParam
     FineResult
     """
     progress = progress or no_progress
-    wind = wind or WindParams(enabled=False)
+    fine, joint, surface, acceptance, wind = params.fine, params.joint, params.surface, params.acceptance, params.wind
     T0 = np.asarray(T_coarse, dtype=float)
     if T0.shape != (4, 4) or not np.isfinite(T0).all():
         return failed_fine(T0, "the coarse transform is missing or not finite; run coarse registration first")
     if start is None:
-        start = first_iteration(ref, tgt, T0, slicing=slicing, arcs=arcs, fitting=fitting)
+        start = first_iteration(ref, tgt, T0, slicing=params.slicing, arcs=params.arcs, fitting=params.fitting)
     rng = np.random.default_rng(0)
     sample = tgt.points if tgt.n_points <= _SAMPLE else tgt.points[rng.choice(tgt.n_points, _SAMPLE, replace=False)]
-    its = _iterate(ref, tgt, T0, start, sample, fine, joint, slicing, arcs, fitting, progress)
+    run = _Run(ref=ref, tgt=tgt, sample=sample, params=params, seeds=seeds)
+    its = _iterate(run, T0, start, progress)
     if wind.enabled and fine.method == "joint":
-        bent = _with_bend(ref, tgt, T0, its, start, sample, fine, joint, slicing, arcs, fitting, wind, progress, seeds)
+        bent = _with_bend(run, T0, its, start, progress)
         if bent is not None:
             its = bent
     bend = its.bend
@@ -593,21 +651,21 @@ def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, *, fine: FineParam
                 acceptance.stem_tilt_deg, acceptance.stem_shift_m) if start.slices.ok else None
         return lined[key]
     if updates and fine.method == "joint" and acceptance.select and bend is None:
-        T, chosen, residuals = _select(ref_surf, tgt_surf, T0, T, chosen, surface, acceptance, joint.loss_scale_m,
-                                       stems)
+        T, chosen, residuals = _select(ref_surf, tgt_surf, T0, T, chosen, params, stems)
         from_surface = 6 if chosen.endswith("by the surfaces") else from_surface
     m0 = surface_fitness(ref_surf, tgt_surf, T0, acceptance.gate_m, acceptance.tolerance_m)
     m1 = surface_fitness(ref_surf, tgt_surf, T, acceptance.gate_m, acceptance.tolerance_m) if updates else m0
     vouch = bool(updates) and m1 < m0 - acceptance.margin and stems(T) is True and stems(T0) is False
-    accepted, message = _verdict(len(updates), chosen, fallback, its.note, residuals, m0, m1, acceptance, vouch)
+    accepted, message = _verdict(len(updates), chosen, fallback, its.note, residuals, (m0, m1), acceptance, vouch)
     if not accepted:
         T = T0.copy()
     if accepted and bend is not None:
         chosen = "sections, with the stem's bend"
-    drawn = _drawn_at(ref, tgt, T, start, its.last, sample, fine, slicing, arcs, fitting, bend)
+    drawn = _drawn_at(run, T, its.last, bend)
     n_iter = len(its.updates_m)
     profile = profile_at(ref, tgt, T, start.slices.z_extent_m, joint.loss_scale_m, seeds) if start.slices.ok else None
     bend = bend if accepted else None
+    limit = iteration_limit(fine, bend)
     metrics = (
         Metric("fine accepted", "", "yes" if accepted else "no"),
         Metric("fine iterations", "", n_iter),
@@ -633,27 +691,26 @@ def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, *, fine: FineParam
         measure_fine=m1, slices=drawn.slices if drawn else start.slices, arcs=drawn.arcs if drawn else None,
         sections=drawn.sections if drawn else None, bend=bend, profile=profile,
         turn_held=bend is not None and its.joint is not None and _turn_held(its.joint),
+        iteration_limit=limit, stopped_at_limit=n_iter >= limit and bool(updates) and updates[-1] > fine.tolerance_m,
     )
 
 
-def _drawn_at(ref: Scan, tgt: Scan, T: np.ndarray, start: FineStart, last: _Fitted | None, sample: np.ndarray,
-              fine: FineParams, slicing: SlicingParams, arcs: ArcParams, fitting: FitParams,
-              bend: Bend | None = None) -> _Fitted | None:
+def _drawn_at(run: _Run, T: np.ndarray, last: _Fitted | None, bend: Bend | None = None) -> _Fitted | None:
     """What the app draws for the fine stage: slices, arcs and fits at the pose finally returned
     (the last iteration's, unless the pose has moved since by more than the tolerance)."""
     if last is None:
         return None
     T_last = last.sections.T_ref_target
-    if mean_move(T @ invert(T_last), apply_transform(T_last, sample)) > max(fine.tolerance_m, _REDRAW_M):
-        return _refit(ref, tgt, T, last, slicing, arcs, fitting, None if bend is None else bend.warp(tgt, T))
+    if mean_move(T @ invert(T_last), apply_transform(T_last, run.sample)) > max(run.params.fine.tolerance_m, _REDRAW_M):
+        return _refit(run, T, last, None if bend is None else bend.warp(run.tgt, T))
     return last
 
 
-def _bend_probe(ref: Scan, tgt: Scan, T0: np.ndarray, its: _Iterations, fine: FineParams, joint: JointParams,
-                wind: WindParams) -> tuple[np.ndarray, Bend] | None:
+def _bend_probe(run: _Run, T0: np.ndarray, its: _Iterations) -> tuple[np.ndarray, Bend] | None:
     """How bent the target's stem is against the reference's at the rigid result: one adjustment of
     its last sections with the bend free; the pose and the bend it gives. None when wind is not
     modelled or there is nothing to fit."""
+    fine, joint, wind = run.params.fine, run.params.joint, run.params.wind
     if not wind.enabled or fine.method != "joint" or its.last is None or not its.updates_m:
         return None
     cur = its.last
@@ -665,16 +722,15 @@ def _bend_probe(ref: Scan, tgt: Scan, T0: np.ndarray, its: _Iterations, fine: Fi
     # A sign, not the estimate: few solver steps and no rounds of weighing fluttering twigs (the
     # iterations do that).
     quick = replace(joint, max_solver_iterations=min(joint.max_solver_iterations, PROBE_ITERATIONS))
-    fit, _ = _estimate_joint(ref, tgt, its.T, cur.sections.ref, cur.sections.tgt, corr, quick, fine.min_pairs,
-                             joint.refine_loss, T0, stem, flutter_rounds=0)
+    pairs = _SectionPairs(ref_scan=run.ref, tgt_scan=run.tgt, ref=cur.sections.ref, tgt=cur.sections.tgt, corr=corr)
+    fit, _ = _estimate_joint(pairs, its.T, quick, min_pairs=fine.min_pairs, loss=joint.refine_loss, T_prior=T0,
+                             bend=stem, flutter_rounds=0)
     if fit is None or fit.bend_m is None:
         return None
     return fit.U @ its.T, stem.plus(fit.bend_m, fit.bend_std_m)
 
 
-def _with_bend(ref: Scan, tgt: Scan, T0: np.ndarray, rigid: _Iterations, start: FineStart, sample: np.ndarray,
-               fine: FineParams, joint: JointParams, slicing: SlicingParams, arcs: ArcParams, fitting: FitParams,
-               wind: WindParams, progress: Progress, seeds: StemSeeds = NO_SEEDS) -> _Iterations | None:
+def _with_bend(run: _Run, T0: np.ndarray, rigid: _Iterations, start: FineStart, progress: Progress) -> _Iterations | None:
     """The sections iterated with the stem's bend, when there is a sign the crown moved (None when
     there is none, or when the bend fitted turns out not to be worth modelling: the rigid result
     then stands, unchanged).
@@ -685,12 +741,13 @@ def _with_bend(ref: Scan, tgt: Scan, T0: np.ndarray, rigid: _Iterations, start: 
     result's sections with the bend free finds one. The iteration starts from the stem profile's
     pose and bend when the profile saw a bend, else from the adjustment's.
     """
+    ref, tgt, seeds, joint, wind = run.ref, run.tgt, run.seeds, run.params.joint, run.params.wind
     loose = replace(wind, significance=wind.significance / 1.5)
     prof = profile_at(ref, tgt, T0, start.slices.z_extent_m, joint.loss_scale_m, seeds)
     seen_start = prof.model is not None and _significant(_profile_bend(prof), loose)
     after = profile_at(ref, tgt, rigid.T, start.slices.z_extent_m, joint.loss_scale_m, seeds) if rigid.updates_m else None
     tilted = after is not None and after.model is not None and _tilted(after.model, wind)
-    probe = _bend_probe(ref, tgt, T0, rigid, fine, joint, wind)
+    probe = _bend_probe(run, T0, rigid)
     probed = probe is not None and probe[1].significant(wind.min_sway_m / 2.0, wind.significance)
     if not (seen_start or tilted or probed):
         return None
@@ -701,7 +758,7 @@ def _with_bend(ref: Scan, tgt: Scan, T0: np.ndarray, rigid: _Iterations, start: 
         T1, bend1 = probe
     else:
         T1, bend1 = correction(after.model, after.base_xy_m) @ rigid.T, _profile_bend(after)
-    bent = _bent(ref, tgt, T1, T0, bend1, start, sample, fine, joint, slicing, arcs, fitting, wind)
+    bent = _bent(run, T1, bend1, start)
     if bent is None:
         return None
     # The bend must explain the reference's surface better than the rigid pose does (more of the
@@ -723,18 +780,15 @@ def _tilted(model: Any, wind: WindParams) -> bool:
     return tilt >= max(TILT_SIGN_DEG, wind.significance * std)
 
 
-def _bent(ref: Scan, tgt: Scan, T1: np.ndarray, T0: np.ndarray, bend1: Bend, start: FineStart, sample: np.ndarray,
-          fine: FineParams, joint: JointParams, slicing: SlicingParams, arcs: ArcParams, fitting: FitParams,
-          wind: WindParams) -> _Iterations | None:
+def _bent(run: _Run, T1: np.ndarray, bend1: Bend, start: FineStart) -> _Iterations | None:
     """The sections iterated with the stem's bend, from the pose `T1` and the bend `bend1` (the
     target sliced and fitted unbent from the first iteration on); None when that finds no bend
     worth modelling after all, or nothing to estimate."""
-    first = _refit(ref, tgt, T1, _Fitted(start.slices, start.arcs, start.sections), slicing, arcs, fitting,
-                   bend1.warp(tgt, T1))
-    bent = _iterate(ref, tgt, T1, FineStart(first.slices, first.arcs, first.sections), sample, fine, joint,
-                    slicing, arcs, fitting, no_progress, bend=bend1, max_iterations=iteration_limit(fine, bend1),
-                    T_prior=T1)
-    if bent.updates_m and bent.bend is not None and _significant(bent.bend, wind):
+    first = _refit(run, T1, _Fitted(slices=start.slices, arcs=start.arcs, sections=start.sections),
+                   bend1.warp(run.tgt, T1))
+    bent = _iterate(run, T1, FineStart(slices=first.slices, arcs=first.arcs, sections=first.sections), no_progress,
+                    bend=bend1, max_iterations=iteration_limit(run.params.fine, bend1), T_prior=T1)
+    if bent.updates_m and bent.bend is not None and _significant(bent.bend, run.params.wind):
         return bent
     return None
 
@@ -829,6 +883,7 @@ def profile_bend(ref: Scan, tgt: Scan, T: np.ndarray, wind: WindParams, loss_sca
 
 def failed_fine(T0: np.ndarray, message: str) -> FineResult:
     """The FineResult of a pair the fine stage cannot run on (`ok` False, the start transform kept)."""
-    nan4 = (float("nan"),) * 4
-    return FineResult(False, message, (Metric("fine accepted", "", "no"),), T0, T0, False, 0, (), "coarse", nan4, 0,
-                      float("nan"), float("nan"), None, None, None)
+    nan = float("nan")
+    return FineResult(ok=False, message=message, metrics=(Metric("fine accepted", "", "no"),), T_ref_target=T0,
+                      T_coarse=T0, accepted=False, iterations=0, updates_m=(), chosen="coarse", residuals_m=(nan,) * 4,
+                      from_surface=0, measure_coarse=nan, measure_fine=nan, slices=None, arcs=None, sections=None)

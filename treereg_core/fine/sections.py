@@ -24,7 +24,7 @@ from .correspondence import Correspondences, match_sections
 from .fitting import Section, check_taper, fit_section, unfitted_section
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class ScanSections:
     """Fitted sections of one scan (in the reference frame), and each section's point indices."""
 
@@ -36,7 +36,7 @@ class ScanSections:
         return int(sum(s.plausible for s in self.sections))
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class SectionsResult:
     """The sections stage's result for one pair (or the fine stage's, at its final pose).
 
@@ -101,7 +101,7 @@ def fit_scan_sections(scan: Scan, arcs: Sequence[ArcResult], heights: np.ndarray
             sections.append(fit_section(pts, k, j, float(h), circle, p))
     if p.taper_check:
         sections = check_taper(sections, p.taper_tolerance, p.gate_m)
-    return ScanSections(tuple(sections), tuple(members))
+    return ScanSections(sections=tuple(sections), members=tuple(members))
 
 
 def match_scan_sections(ref: ScanSections, tgt: ScanSections, p: FitParams, gate_m: float | None = None) -> Correspondences:
@@ -156,7 +156,8 @@ def sections_at(ref_scan: Scan, tgt_scan: Scan, ref: ScanSections, tgt_arcs: Seq
     )
     message = "" if corr.ok else (f"no corresponding sections ({corr.message}): the fine stage will align the "
                                   "surfaces instead")
-    return SectionsResult(True, message, metrics, T, ref, tgt, corr, ties_r, ties_t)
+    return SectionsResult(ok=True, message=message, metrics=metrics, T_ref_target=T, ref=ref, tgt=tgt, correspondences=corr,
+                          tie_points_ref=ties_r, tie_points_tgt=ties_t)
 
 
 def fit_sections(ref_scan: Scan, tgt_scan: Scan, ref_arcs: Sequence[ArcResult], tgt_arcs: Sequence[ArcResult],

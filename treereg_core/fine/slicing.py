@@ -22,7 +22,7 @@ from ..scan import Scan
 _EXTENT_TRIM = 0.001
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class SliceResult:
     """Slices of both scans at the same heights of the reference frame.
 
@@ -118,4 +118,5 @@ def slice_scans(ref: Scan, tgt: Scan, T_ref_target: np.ndarray, *, slicing: Slic
         Metric("sliced points, reference", "", int(sum(len(a) for a in ref_idx))),
         Metric("sliced points, target", "", int(sum(len(b) for b in tgt_idx))),
     )
-    return SliceResult(ok, msg, metrics, heights, float(p.thickness_m), extent, ref_idx, tgt_idx)
+    return SliceResult(ok=ok, message=msg, metrics=metrics, heights_m=heights, thickness_m=float(p.thickness_m),
+                       z_extent_m=extent, ref_indices=ref_idx, tgt_indices=tgt_idx)

@@ -9,7 +9,7 @@ All hypotheses are scored at once with numpy, in chunks.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -111,20 +111,11 @@ def _samples(n: int, k: int, count: int, rng: np.random.Generator) -> np.ndarray
     return idx[ok]
 
 
-def ransac(
-    src: np.ndarray,
-    dst: np.ndarray,
-    dof: int = 4,
-    inlier_m: float = 0.4,
-    iterations: int = 2000,
-    seed: int = 0,
-    refine_steps: int = 5,
-    final_inlier_m: float | None = None,
-    min_inliers: int = 6,
-) -> RobustFit | None:
-    """RANSAC (MSAC scoring) of a rigid transform mapping `src` onto `dst` (both N x 3).
+@dataclass(frozen=True, kw_only=True)
+class RansacSettings:
+    """How RANSAC searches (the coarse stage builds one from `CoarseParams`).
 
-    Parameters
+    Attributes
     ----------
     dof : 4 = yaw about z + 3-D translation (levelled scanners), 6 = full rigid.
     inlier_m : a pair is an inlier when |T src - dst| < inlier_m.
@@ -135,29 +126,31 @@ def ransac(
         this distance, refitting on the inliers each time: the wide threshold finds the transform,
         the narrow one drops the roughly-right ties that bias it. Stops early when fewer than
         `min_inliers` remain. The returned inliers are those of the last threshold used.
+    min_inliers : see `final_inlier_m`.
+    """
+
+    dof: int = 4
+    inlier_m: float = 0.4
+    iterations: int = 2000
+    seed: int = 0
+    refine_steps: int = 5
+    final_inlier_m: float | None = None
+    min_inliers: int = 6
+
+
+def ransac(src: np.ndarray, dst: np.ndarray, settings: RansacSettings = RansacSettings()) -> RobustFit | None:
+    """RANSAC (MSAC scoring) of a rigid transform mapping `src` onto `dst` (both N x 3).
 
     Returns
     -------
     RobustFit, or None when there are too few pairs or no non-degenerate sample.
     """
-    modes = ransac_modes(src, dst, dof, inlier_m, iterations, seed, refine_steps, final_inlier_m, min_inliers, 1)
+    modes = ransac_modes(src, dst, settings, max_modes=1)
     return modes[0] if modes else None
 
 
-def ransac_modes(
-    src: np.ndarray,
-    dst: np.ndarray,
-    dof: int = 4,
-    inlier_m: float = 0.4,
-    iterations: int = 2000,
-    seed: int = 0,
-    refine_steps: int = 5,
-    final_inlier_m: float | None = None,
-    min_inliers: int = 6,
-    max_modes: int = 4,
-    distinct_deg: float = 15.0,
-    distinct_m: float = 1.0,
-) -> list[RobustFit]:
+def ransac_modes(src: np.ndarray, dst: np.ndarray, settings: RansacSettings = RansacSettings(), *,
+                 max_modes: int = 4, distinct_deg: float = 15.0, distinct_m: float = 1.0) -> list[RobustFit]:
     """The best RANSAC transform and up to `max_modes - 1` distinct runners-up, best first.
 
     A tree can look alike from two headings (a nearly round crown): the ties then split between two
@@ -166,14 +159,16 @@ def ransac_modes(
     centroid lands) of a mode already taken. Each mode is refined like the best one. The first mode
     is exactly what `ransac` returns.
     """
+    dof, inlier_m, final_inlier_m = settings.dof, settings.inlier_m, settings.final_inlier_m
+    refine_steps, min_inliers = settings.refine_steps, settings.min_inliers
     src = np.asarray(src, dtype=float)
     dst = np.asarray(dst, dtype=float)
     k = 2 if dof == 4 else 3
     n = len(src)
     if n < k:
         return []
-    rng = np.random.default_rng(seed)
-    idx = _samples(n, k, int(iterations), rng)
+    rng = np.random.default_rng(settings.seed)
+    idx = _samples(n, k, int(settings.iterations), rng)
     # A rigid motion keeps distances: a sample whose pair distances disagree by more than twice the
     # inlier distance cannot be all inliers; so can't a sample too small to fix the rotation.
     ds = np.linalg.norm(src[idx[:, 1]] - src[idx[:, 0]], axis=1)
@@ -233,15 +228,14 @@ def ransac_modes(
     return modes
 
 
-def chance_inliers(src: np.ndarray, dst: np.ndarray, dof: int, inlier_m: float, iterations: int,
-                   final_inlier_m: float | None, shuffles: int = 3, seed: int = 0) -> int:
+def chance_inliers(src: np.ndarray, dst: np.ndarray, settings: RansacSettings, shuffles: int = 3) -> int:
     """How many ties RANSAC makes agree when the pairing carries no information: the most inliers
-    found over `shuffles` random re-pairings of the same ties (the level chance reaches on this data)."""
-    rng = np.random.default_rng(seed + 1)
+    found over `shuffles` random re-pairings of the same ties (the level chance reaches on this data).
+    Shuffle `s` runs with seed `settings.seed + s`."""
+    rng = np.random.default_rng(settings.seed + 1)
     best = 0
     for s in range(shuffles):
-        fit = ransac(src, dst[rng.permutation(len(dst))], dof, inlier_m, iterations, seed + s,
-                     final_inlier_m=final_inlier_m)
+        fit = ransac(src, dst[rng.permutation(len(dst))], replace(settings, seed=settings.seed + s))
         best = max(best, fit.n_inliers if fit is not None else 0)
     return best
 

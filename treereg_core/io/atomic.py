@@ -130,11 +130,6 @@ def _identity(path: str | Path) -> tuple:
     return ("inode", st.st_dev, st.st_ino)
 
 
-def same_file(a: str | Path, b: str | Path) -> bool:
-    """`a` and `b` are (or, written, would be) one file."""
-    return _identity(a) == _identity(b)
-
-
 def check_distinct(outputs: Sequence[tuple[str, str | Path]], inputs: Iterable[str | Path] = (),
                    advice: str = "choose another name") -> None:
     """No output is an input and no two outputs are one file; else `OutputError` naming the output.

@@ -21,18 +21,13 @@ from ..results import Metric
 from ..scan import MIN_POINTS, Scan
 from .target import Stems, TargetChoice, choose_targets, find_stems
 
-#: A ground plane may be tilted at most this much from level (terrain slope + scanner tilt).
-MAX_GROUND_SLOPE_DEG = 30.0
-#: A ground plane needs at least this many cells, and this fraction of all cells, within tolerance.
-MIN_GROUND_CELLS = 8
-MIN_GROUND_CELL_FRACTION = 0.3
-#: At most this fraction of the points may lie more than the band below an accepted plane.
-MAX_BELOW_FRACTION = 0.01
-#: Points used to find the ground plane.
+# The plane's acceptance thresholds (slope, cells, points below) are fields of `PrepareParams`
+# (ground_max_slope_deg, ground_min_cells, ground_min_cell_share, ground_max_below_share).
+#: Points used to find the ground plane (internal: ~100k lowest-point candidates are as good as all).
 GROUND_SAMPLE = 100_000
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, eq=False, kw_only=True)
 class PreparedScan:
     """A scan ready for projection.
 
@@ -70,6 +65,15 @@ class PreparedScan:
     T_stem_map: np.ndarray | None = None
     station: Scan | None = None
     mixed_points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+
+    def ground_z(self, xy: np.ndarray, default: float) -> np.ndarray:
+        """Height of the ground plane below the points `xy` (K x 2, the scan's frame); `default`
+        everywhere when no plane was found."""
+        xy = np.asarray(xy, dtype=float).reshape(-1, 2)
+        if self.plane is None:
+            return np.full(len(xy), default)
+        a, b, c, d = self.plane
+        return -(a * xy[:, 0] + b * xy[:, 1] + d) / c
 
 
 def cell_minima(points: np.ndarray, cell_m: float) -> np.ndarray:
@@ -114,8 +118,10 @@ def fit_plane_ransac(
     return np.r_[normal, d0], np.abs(pts @ normal + d0) < tol_m
 
 
-def find_ground(points: np.ndarray, cell_m: float, band_m: float) -> tuple[np.ndarray | None, str]:
-    """The ground plane (a, b, c, d) of a scan, or None with the reason it was rejected."""
+def find_ground(points: np.ndarray, prepare: PrepareParams) -> tuple[np.ndarray | None, str]:
+    """The ground plane (a, b, c, d) of a scan, or None with the reason it was rejected (the `ground_*`
+    fields of `prepare`)."""
+    cell_m, band_m = prepare.ground_cell_m, prepare.ground_band_m
     # A plane needs no more than ~100k points: lowest points of a strided subset are as good.
     sub = points[:: max(1, len(points) // GROUND_SAMPLE)]
     low = sub[cell_minima(sub, cell_m)]
@@ -125,14 +131,14 @@ def find_ground(points: np.ndarray, cell_m: float, band_m: float) -> tuple[np.nd
         return None, "too few cells for a ground plane"
     plane, inl = fitted
     slope = float(np.degrees(np.arccos(min(abs(plane[2]), 1.0))))
-    if slope > MAX_GROUND_SLOPE_DEG:
+    if slope > prepare.ground_max_slope_deg:
         return None, f"lowest points lie on a plane tilted {slope:.0f} deg: not ground"
     n_in = int(inl.sum())
-    if n_in < MIN_GROUND_CELLS or n_in < MIN_GROUND_CELL_FRACTION * len(low):
+    if n_in < prepare.ground_min_cells or n_in < prepare.ground_min_cell_share * len(low):
         return None, f"only {n_in} of {len(low)} cells have their lowest point on one plane"
     height = points @ plane[:3] + plane[3]
     below = float(np.mean(height < -band_m))
-    if below > MAX_BELOW_FRACTION:
+    if below > prepare.ground_max_below_share:
         return None, f"{below:.1%} of the points lie below the candidate plane: not ground"
     return plane, ""
 
@@ -148,7 +154,7 @@ def stem_position(points: np.ndarray, heights: np.ndarray, cell_m: float = 0.25)
     return np.median(low[key == best], axis=0)
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, eq=False, kw_only=True)
 class _Ground:
     """The first step of preparation: the points kept by the height crop and ground removal."""
 
@@ -176,7 +182,7 @@ def _remove_ground(scan: Scan, p: PrepareParams) -> _Ground:
     plane: np.ndarray | None = None
     note = "ground removal off"
     if p.remove_ground and kept.sum() >= MIN_POINTS:
-        plane, why = find_ground(pts[kept], p.ground_cell_m, p.ground_band_m)
+        plane, why = find_ground(pts[kept], p)
         if plane is not None:
             height = pts @ plane[:3] + plane[3]
             ground = kept & (height < p.ground_band_m)
@@ -184,7 +190,7 @@ def _remove_ground(scan: Scan, p: PrepareParams) -> _Ground:
             note = f"ground plane found, slope {np.degrees(np.arccos(min(abs(plane[2]), 1.0))):.1f} deg"
         else:
             note = f"no ground removed ({why})"
-    return _Ground(kept, ground, plane, note)
+    return _Ground(kept=kept, ground=ground, plane=plane, note=note)
 
 
 def prepare_scan(scan: Scan, *, prepare: PrepareParams, target: TargetParams | None = None) -> PreparedScan:
@@ -213,7 +219,7 @@ def prepare_scans(scans: list[Scan], *, prepare: PrepareParams, target: TargetPa
         stems = [Stems(np.zeros((0, 2)), np.zeros(0)) for _ in scans]
         choices = [TargetChoice(None, "") for _ in scans]
     else:
-        stems = [find_stems(s.points[g.kept], g.heights(s.points[g.kept])) for s, g in zip(scans, grounds)]
+        stems = [find_stems(s.points[g.kept], g.heights(s.points[g.kept]), target) for s, g in zip(scans, grounds)]
         choices = choose_targets(stems, target=target, ref_label=scans[0].label)
     radius = prepare.crop_radius_m if prepare.crop_radius_m is not None else target.radius_m
     return [_finish(s, g, st, ch, prepare, radius) for s, g, st, ch in zip(scans, grounds, stems, choices)]
@@ -250,7 +256,9 @@ def _finish(scan: Scan, g: _Ground, stems: Stems, choice: TargetChoice, p: Prepa
         return PreparedScan(
             ok=False,
             message=(f"{scan.label}: only {n_kept} of {n} points left after cropping and ground removal; "
-                     "widen the crop (radius, z range) or lower the ground band"),
+                     "widen the crop (target.radius_m, or prepare.crop_radius_m when set; prepare.crop_z_min_m, "
+                     "prepare.crop_z_max_m) or lower the ground band (prepare.ground_band_m, e.g. "
+                     "--set prepare.ground_band_m=0.1)"),
             scan=scan, kept_mask=np.ones(n, dtype=bool), ground_mask=np.zeros(n, dtype=bool), **common,
         )
     return PreparedScan(ok=True, message="", scan=scan.with_points(pts[kept]), kept_mask=kept, ground_mask=g.ground,

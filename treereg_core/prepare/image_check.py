@@ -46,5 +46,6 @@ def image_warning(occupied: np.ndarray) -> str:
     fill = fill_rate(occupied)
     if fill < MOSTLY_EMPTY:
         return (f"the projection is mostly empty ({fill:.1%} of its extent filled): the points are too sparse for "
-                "the pixel size; give the instrument's steps with --angular-step H V or raise the pixel factor")
+                "the pixel size; give the instrument's steps with --angular-step H V or raise the pixel factor "
+                "(projection.pixel_factor, e.g. --set projection.pixel_factor=4)")
     return ""

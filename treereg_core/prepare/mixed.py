@@ -21,17 +21,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..params import PrepareParams
 from ..results import Metric
 from ..scan import Scan
 from .angular_step import centred_azimuth_deg
 
 #: Neighbours on the grid (the 8 cells around a return).
 _OFFSETS = ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1))
-#: Tails are "many" when the returns behind a jump that nothing continues are this share of a scan
-#: (clean simulated and real stations: 0.1-0.8%; a tenth of the edge returns mixed: 2.5-5%).
-DENSE_TAILS_SHARE = 0.02
-#: The filter stands down when it would take more than this share of a scan (see `remove_mixed`).
-MAX_TAIL_SHARE = 0.4
+# When tails are "many" (`PrepareParams.mixed_dense_share`; clean simulated and real stations:
+# 0.1-0.8%, a tenth of the edge returns mixed: 2.5-5%) and when the filter stands down
+# (`PrepareParams.mixed_max_share`) are parameters.
 #: A dense grid of the cells' nearest returns is used while it has at most this many cells per return.
 _DENSE_CELLS_PER_POINT = 16
 #: Composite sort key: cell index times this plus the range (m); ranges beyond it are not expected.
@@ -53,13 +52,14 @@ class MixedPixels:
 
 def find_mixed(points: np.ndarray, azimuth_deg: np.ndarray, elevation_deg: np.ndarray,
                step_deg: tuple[float, float], tolerance_m: float, slope: float,
-               min_continuing: int | None = None) -> np.ndarray:
+               min_continuing: int | None = None,
+               dense_share: float = PrepareParams.mixed_dense_share) -> np.ndarray:
     """Mask of the mixed pixels among `points` (scanner frame) on the grid of `step_deg` cells.
 
     A neighbour one cell away continues the return's surface when their ranges differ by at most
     `tolerance_m + slope * range * step` (`slope` = tan of the steepest incidence kept). A return
     behind a jump is kept when any neighbour continues it; where tails are many (the returns
-    behind a jump that nothing continues are at least `DENSE_TAILS_SHARE` of the scan), only when
+    behind a jump that nothing continues are at least `dense_share` of the scan), only when
     a neighbour not behind a jump does, or two do (`min_continuing`: 1 or 2 to choose).
     """
     n = len(points)
@@ -115,14 +115,17 @@ def find_mixed(points: np.ndarray, azimuth_deg: np.ndarray, elevation_deg: np.nd
         continuing += hit
         solid |= hit & ~nearer[at]
     if min_continuing is None:
-        min_continuing = 2 if np.count_nonzero(continuing == 0) >= DENSE_TAILS_SHARE * n else 1
+        min_continuing = 2 if np.count_nonzero(continuing == 0) >= dense_share * n else 1
     out = np.zeros(n, dtype=bool)
     out[cand[~solid & (continuing < min_continuing)]] = True
     return out
 
 
-def remove_mixed(scan: Scan, *, enabled: bool, tolerance_m: float, slope: float) -> MixedPixels:
-    """`scan` without its mixed pixels (on its own angular grid), with what was removed counted."""
+def remove_mixed(scan: Scan, *, enabled: bool, tolerance_m: float, slope: float,
+                 dense_share: float = PrepareParams.mixed_dense_share,
+                 max_share: float = PrepareParams.mixed_max_share) -> MixedPixels:
+    """`scan` without its mixed pixels (on its own angular grid), with what was removed counted
+    (the arguments are `PrepareParams`' mixed_* fields; the defaults theirs)."""
     if not enabled:
         return MixedPixels(scan, np.zeros(scan.n_points, dtype=bool), (Metric("mixed pixels removed", "", "off"),))
     if scan.step is not None and scan.step.low:
@@ -130,9 +133,10 @@ def remove_mixed(scan: Scan, *, enabled: bool, tolerance_m: float, slope: float)
         # neighbour on the estimated grid is no neighbour on the beam's: the filter would guess.
         return MixedPixels(scan, np.zeros(scan.n_points, dtype=bool),
                            (Metric("mixed pixels removed", "", f"off: no regular angular grid ({scan.step.describe()})"),))
-    mixed = find_mixed(scan.points, scan.azimuth_deg, scan.elevation_deg, scan.angular_step_deg, tolerance_m, slope)
+    mixed = find_mixed(scan.points, scan.azimuth_deg, scan.elevation_deg, scan.angular_step_deg, tolerance_m, slope,
+                       dense_share=dense_share)
     n = int(mixed.sum())
-    if n > MAX_TAIL_SHARE * scan.n_points:
+    if n > max_share * scan.n_points:
         # Half the edge returns mixed leaves a quarter of a scan in tails; more is a surface rougher
         # than the grid (foliage sampled coarser than its leaves, a thinned cloud): removing it
         # would take the tree itself.

@@ -4,7 +4,7 @@ A real station is a whole plot: the target tree, its neighbours (some nearer to 
 the target), shrubs and ground, 360 degrees round. Fed whole to the rotating projection, the
 neighbours swamp it. So before projection each station is cut to a disc around the target stem.
 
-1. **Stems.** In a band at breast height (1.0-1.6 m above the ground plane) the points are
+1. **Stems.** In a band at breast height (`target.stem_band_m`, 1.0-1.6 m above the ground) the points are
    gridded, connected cells grouped, and a circle fitted to each group: a group is a stem when its
    circle is plausible (3-80 cm radius, small residual, enough arc, centre behind the points as
    seen from the scanner, which sees the near side of a trunk).
@@ -35,26 +35,8 @@ from ..fine.fitting import fit_circle_taubin
 from ..geometry.rigid import kabsch_yaw
 from ..params import TargetParams
 
-#: The breast-height band (m above the ground) in which stems are looked for.
-BAND_M = (1.0, 1.6)
-#: Grid cell of the stem search (m); groups are cells connected after one cell of dilation.
-CELL_M = 0.05
-#: Stems are looked for within this horizontal range of the scanner (m): a plot, not the horizon.
-MAX_RANGE_M = 60.0
-#: Plausible stem radii (m).
-STEM_RADIUS_M = (0.03, 0.8)
-#: A stem needs this many points in the band, and a fitted circle covering this much arc.
-MIN_STEM_POINTS = 15
-MIN_STEM_ARC_DEG = 40.0
-#: Two stems match when their centres are this close (m) after the stem-map transform ...
-MATCH_GATE_M = 0.35
-#: ... and their radii differ by at most this fraction (+ 2 cm): partial arcs measure radii loosely.
-RADIUS_TOLERANCE = 0.4
-#: Fewest matched stems for a stem-map transform to be trusted.
-MIN_MATCHED = 3
-#: A user's `tree_at` picks the nearest stem within this distance (m); the point itself only when the
-#: reference holds no stem at all (stems elsewhere mean the point is off the tree: refused).
-PICK_RADIUS_M = 2.0
+# The thresholds of the stem search, the stem maps and `tree_at` are fields of `TargetParams`
+# (stem_band_m, stem_cell_m, ..., pick_radius_m): a plot with undergrowth or thin stems may need them.
 
 
 @dataclass(frozen=True, eq=False)
@@ -88,14 +70,15 @@ class TargetChoice:
     matched: int = 0
 
 
-def find_stems(points: np.ndarray, heights: np.ndarray) -> Stems:
+def find_stems(points: np.ndarray, heights: np.ndarray, target: TargetParams = TargetParams()) -> Stems:
     """Stems in the breast-height band of one station (points N x 3, heights above the ground N)."""
-    sel = (heights > BAND_M[0]) & (heights < BAND_M[1]) & (np.hypot(points[:, 0], points[:, 1]) < MAX_RANGE_M)
+    band, (r_lo, r_hi), min_points = target.stem_band_m, target.stem_radius_m, target.stem_min_points
+    sel = (heights > band[0]) & (heights < band[1]) & (np.hypot(points[:, 0], points[:, 1]) < target.stem_max_range_m)
     xy = points[sel, :2]
     empty = Stems(np.zeros((0, 2)), np.zeros(0))
-    if len(xy) < MIN_STEM_POINTS:
+    if len(xy) < min_points:
         return empty
-    ij = np.floor(xy / CELL_M).astype(np.int64)
+    ij = np.floor(xy / target.stem_cell_m).astype(np.int64)
     ij -= ij.min(axis=0)
     shape = tuple(ij.max(axis=0) + 1)
     if shape[0] * shape[1] > 64_000_000:  # a station spanning kilometres: not a plot
@@ -110,15 +93,15 @@ def find_stems(points: np.ndarray, heights: np.ndarray) -> Stems:
     centres, radii = [], []
     for k in range(n):
         idx = order[bounds[k]:bounds[k + 1]]
-        if len(idx) < MIN_STEM_POINTS:
+        if len(idx) < min_points:
             continue
         g = xy[idx]
-        if np.ptp(g, axis=0).max() > 2 * STEM_RADIUS_M[1]:
+        if np.ptp(g, axis=0).max() > 2 * r_hi:
             continue  # a hedge, a wall, a fallen log: not one stem
         fit = fit_circle_taubin(g)
-        if not fit.ok or not (STEM_RADIUS_M[0] <= fit.radius_m <= STEM_RADIUS_M[1]):
+        if not fit.ok or not (r_lo <= fit.radius_m <= r_hi):
             continue
-        if fit.rms_m > max(0.01, 0.2 * fit.radius_m) or fit.arc_deg < MIN_STEM_ARC_DEG:
+        if fit.rms_m > max(0.01, 0.2 * fit.radius_m) or fit.arc_deg < target.stem_min_arc_deg:
             continue
         # The scanner sees a trunk's near side: the centre lies farther than the points.
         if np.hypot(*fit.centre_m) <= np.median(np.hypot(g[:, 0], g[:, 1])):
@@ -137,18 +120,20 @@ def _pairs(s: Stems, max_m: float = 40.0) -> tuple[np.ndarray, np.ndarray, np.nd
     return i[ok], j[ok], d[ok]
 
 
-def _radius_ok(ra: np.ndarray, rb: np.ndarray) -> np.ndarray:
-    return np.abs(ra - rb) <= RADIUS_TOLERANCE * np.maximum(ra, rb) + 0.02
+def _radius_ok(ra: np.ndarray, rb: np.ndarray, tolerance: float) -> np.ndarray:
+    return np.abs(ra - rb) <= tolerance * np.maximum(ra, rb) + 0.02
 
 
-def match_stem_maps(ref: Stems, tgt: Stems, tol_m: float = 0.2) -> tuple[np.ndarray | None, np.ndarray]:
+def match_stem_maps(ref: Stems, tgt: Stems, tol_m: float = 0.2,
+                    target: TargetParams = TargetParams()) -> tuple[np.ndarray | None, np.ndarray]:
     """The 4 x 4 (yaw + horizontal shift) mapping `tgt`'s stems onto `ref`'s, and the matched pairs
-    (M x 2 indices ref, tgt); (None, empty) when fewer than `MIN_MATCHED` stems agree.
+    (M x 2 indices ref, tgt); (None, empty) when fewer than `target.min_matched` stems agree.
 
     Hypotheses come from a pair of stems in each map equally far apart (within `tol_m`), tried both
-    ways round; each is scored by the stems landing within `MATCH_GATE_M` of a stem of similar
-    radius, the best refitted on its matches.
+    ways round; each is scored by the stems landing within `target.match_gate_m` of a stem of
+    similar radius (`target.match_radius_tolerance`), the best refitted on its matches.
     """
+    gate, tolerance = target.match_gate_m, target.match_radius_tolerance
     none = (None, np.zeros((0, 2), dtype=np.int64))
     if len(ref) < 2 or len(tgt) < 2:
         return none
@@ -170,7 +155,8 @@ def match_stem_maps(ref: Stems, tgt: Stems, tol_m: float = 0.2) -> tuple[np.ndar
     A1 = np.concatenate([aj[ha], aj[ha]])
     B0 = np.concatenate([bi[hb], bj[hb]])
     B1 = np.concatenate([bj[hb], bi[hb]])
-    keep = _radius_ok(ref.radius_m[A0], tgt.radius_m[B0]) & _radius_ok(ref.radius_m[A1], tgt.radius_m[B1])
+    keep = (_radius_ok(ref.radius_m[A0], tgt.radius_m[B0], tolerance)
+            & _radius_ok(ref.radius_m[A1], tgt.radius_m[B1], tolerance))
     A0, A1, B0, B1 = A0[keep], A1[keep], B0[keep], B1[keep]
     if len(A0) == 0:
         return none
@@ -181,7 +167,7 @@ def match_stem_maps(ref: Stems, tgt: Stems, tol_m: float = 0.2) -> tuple[np.ndar
     mid_b = 0.5 * (tgt.xy[B0] + tgt.xy[B1])
     mid_a = 0.5 * (ref.xy[A0] + ref.xy[A1])
     t = mid_a - np.stack([c * mid_b[:, 0] - s * mid_b[:, 1], s * mid_b[:, 0] + c * mid_b[:, 1]], axis=1)
-    radius_ok = _radius_ok(ref.radius_m[None, :], tgt.radius_m[:, None])  # K_t x K_r
+    radius_ok = _radius_ok(ref.radius_m[None, :], tgt.radius_m[:, None], tolerance)  # K_t x K_r
 
     def nearest_ref(k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Under hypotheses `k`: per target stem, the distance to and index of the nearest
@@ -197,12 +183,12 @@ def match_stem_maps(ref: Stems, tgt: Stems, tol_m: float = 0.2) -> tuple[np.ndar
     score = np.empty(len(yaw))
     for k0 in range(0, len(yaw), chunk):
         near, _ = nearest_ref(np.arange(k0, min(k0 + chunk, len(yaw))))
-        hit = near < MATCH_GATE_M
+        hit = near < gate
         score[k0:k0 + len(near)] = hit.sum(axis=1) - 1e-3 * np.where(hit, near, 0.0).sum(axis=1)
     h = int(np.argmax(score))
     nearest, which = (a[0] for a in nearest_ref(np.array([h])))
-    inl = np.flatnonzero(nearest < MATCH_GATE_M)
-    if len(inl) < MIN_MATCHED:
+    inl = np.flatnonzero(nearest < gate)
+    if len(inl) < target.min_matched:
         return none
     pairs = np.column_stack([which[inl], inl])
     # Refit yaw + shift on the matched stems (as 3-D points at z = 0).
@@ -219,12 +205,12 @@ def _surrounded(xy: np.ndarray, stations: np.ndarray) -> tuple[float, float]:
     return float(gaps.max()), float(np.linalg.norm(v, axis=1).max())
 
 
-def _off_the_stems(at: np.ndarray, ref: Stems, ref_label: str) -> ConfigError:
+def _off_the_stems(at: np.ndarray, ref: Stems, ref_label: str, pick_radius_m: float) -> ConfigError:
     """`tree_at` names a point with no stem near it, though the reference holds stems: say where they are."""
     order = np.argsort(np.hypot(*(ref.xy - at).T))[:5]  # the nearest few: enough to pick from
     where = "; ".join(f"{x:.2f} {y:.2f} (r {r * 100:.0f} cm)" for x, y, r in ref.as_array()[order])
     more = f" and {len(ref) - len(order)} more" if len(ref) > len(order) else ""
-    return ConfigError(f"--tree-at {at[0]:g} {at[1]:g}: no stem within {PICK_RADIUS_M:g} m of that point in {ref_label}; "
+    return ConfigError(f"--tree-at {at[0]:g} {at[1]:g}: no stem within {pick_radius_m:g} m of that point in {ref_label}; "
                        f"the stems found at breast height are at {where}{more} (x y in m); give one of those, "
                        "or leave --tree-at out to take the stem the stations surround")
 
@@ -239,17 +225,17 @@ def choose_targets(stems: list[Stems], *, target: TargetParams, ref_label: str =
     ref = stems[0]
     if target.tree_at is None and len(ref) < target.min_stems:
         return keep_all
-    maps = [match_stem_maps(ref, s) for s in stems[1:]]
+    maps = [match_stem_maps(ref, s, target=target) for s in stems[1:]]
     # Station positions in the reference's frame (origins of the matched stations).
     origins = [np.zeros(2)] + [T[:2, 3] for T, _ in maps if T is not None]
     if target.tree_at is not None:
         at = np.asarray(target.tree_at, dtype=float)
         near = np.hypot(*(ref.xy - at).T) if len(ref) else np.zeros(0)
-        if len(near) and near.min() <= PICK_RADIUS_M:
+        if len(near) and near.min() <= target.pick_radius_m:
             k_ref, t_xy = int(near.argmin()), ref.xy[int(near.argmin())]
             how = f"the stem nearest to --tree-at {at[0]:g} {at[1]:g}"
         elif len(ref):
-            raise _off_the_stems(at, ref, ref_label)
+            raise _off_the_stems(at, ref, ref_label, target.pick_radius_m)
         else:  # no stem found at all (a trunk the search missed): crop at the user's point
             k_ref, t_xy = None, at
             how = f"--tree-at {at[0]:g} {at[1]:g} (no stem found in the reference: cut at that point)"

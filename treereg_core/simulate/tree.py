@@ -105,10 +105,6 @@ class Scene:
     disks: Disks
     ground: GroundPlane | None = None
 
-    @property
-    def n_primitives(self) -> int:
-        return len(self.cylinders) + len(self.spheres) + len(self.disks) + (self.ground is not None)
-
     def transformed(self, T: np.ndarray) -> "Scene":
         """The scene mapped by the rigid 4x4 `T` (e.g. into a scanner's frame)."""
         R = T[:3, :3]

@@ -35,7 +35,8 @@ from ..fine.bend import Bend
 from ..fine.stem import StemProfile
 from ..fine.surface import Surface, noise_floor, trimmed_residuals
 from ..geometry.rigid import apply_transform, make_transform, rotation_z
-from ..params import AcceptanceParams, CoarseParams, HypothesesParams, VerifyParams
+from ..coarse.estimate import CoarseResult
+from ..params import AcceptanceParams, CoarseParams, HypothesesParams, VerifyParams, WindParams
 from ..results import Metric
 from .hypotheses import SCORE_POINTS, HypothesesResult, distinct
 from .visibility import RangeImage, Visibility, placed, violation_distances, visibility
@@ -113,25 +114,69 @@ def scanner_height_m(plane: tuple[float, float, float, float] | None) -> float |
     return None if plane is None else float(plane[3])
 
 
-def gather_evidence(ref_image: RangeImage, ref_surf: Surface, tgt_surf: Surface, tgt_points: np.ndarray,
-                    T: np.ndarray, coarse: object, hyp: HypothesesResult | None,
-                    ref_plane: tuple[float, float, float, float] | None,
-                    tgt_plane: tuple[float, float, float, float] | None, *, hypotheses: HypothesesParams,
-                    acceptance: AcceptanceParams, bend: Bend | None = None, profile: StemProfile | None = None,
-                    max_motion_m: float = 0.1, support_inlier_m: float = 0.05,
-                    stable_tolerance_m: float = 0.003, min_consistency: float = 0.95, turn_held: bool = False,
-                    axis_xy: np.ndarray | None = None, max_heading_deg: float = 0.5) -> Evidence:
-    """Measure every kind of evidence for the pose `T` of the target (prepared points, own frame).
+@dataclass(frozen=True, kw_only=True)
+class PairScene:
+    """The two scans of a pair as the verdict compares them.
 
-    With a `bend` (the crown moved between the stations; `tgt_surf` is then the target's surface
-    unbent), the target is judged unbent: the branches' own motion is the distance within which
-    points the reference saw through must lie of a surface it saw for `min_consistency` of the
-    points both see to agree (allowed up to `max_motion_m`); its support also counts the ties that
-    agree with `T` (within `support_inlier_m`), and its rivals are judged alike. `profile`: the stem
-    profile at `T` (the height the stems agree up to, and whether they lean or stand apart). With
-    `turn_held` (the fine stage could not fix the turn about the stem, at `axis_xy`), the heading
-    the free-space evidence prefers is measured against the pose's.
+    Attributes
+    ----------
+    ref_image : the reference's range image (what its laser saw and passed through).
+    ref_surface, tgt_surface : both scans' surfaces; under wind the target's unbent.
+    tgt_points : the target's prepared points, own frame.
+    ref_plane, tgt_plane : each scan's ground plane (None without ground).
+    ref_stem_xy : the reference's stem (reference frame), about which the heading is turned.
     """
+
+    ref_image: RangeImage
+    ref_surface: Surface
+    tgt_surface: Surface
+    tgt_points: np.ndarray
+    ref_plane: tuple[float, float, float, float] | None
+    tgt_plane: tuple[float, float, float, float] | None
+    ref_stem_xy: np.ndarray | None = None
+
+
+@dataclass(frozen=True, kw_only=True)
+class PairResults:
+    """What the earlier stages found for the pair: its coarse transform and competing hypotheses,
+    and the fine stage's pose with what it found about the wind.
+
+    Attributes
+    ----------
+    coarse, hypotheses : the coarse and hypotheses stages' results (hypotheses None when not run).
+    T_ref_target : the final pose.
+    bend : the target's stem bent against the reference's (None in still air).
+    profile : the stem profile at the pose.
+    turn_held : the fine stage could not fix the turn about the stem.
+    """
+
+    coarse: CoarseResult
+    hypotheses: HypothesesResult | None
+    T_ref_target: np.ndarray
+    bend: Bend | None = None
+    profile: StemProfile | None = None
+    turn_held: bool = False
+
+
+def gather_evidence(scene: PairScene, results: PairResults, *, verify: VerifyParams, hypotheses: HypothesesParams,
+                    acceptance: AcceptanceParams, wind: WindParams, support_inlier_m: float) -> Evidence:
+    """Measure every kind of evidence for the pose `results.T_ref_target` of the target.
+
+    With a `bend` (the crown moved between the stations; `tgt_surface` is then the target's surface
+    unbent), the target is judged unbent: the branches' own motion is the distance within which
+    points the reference saw through must lie of a surface it saw for `verify.min_consistency` of
+    the points both see to agree (allowed up to `verify.max_motion_m`); its support also counts the
+    ties that agree with the pose (within `support_inlier_m`), and its rivals are judged alike.
+    `profile`: the stem profile at the pose (the height the stems agree up to, within
+    `wind.stable_tolerance_m`, and whether they lean or stand apart). With `turn_held` (the fine
+    stage could not fix the turn about the stem, at `ref_stem_xy`), the heading the free-space
+    evidence prefers is measured against the pose's.
+    """
+    ref_image, ref_surf, tgt_surf, tgt_points = scene.ref_image, scene.ref_surface, scene.tgt_surface, scene.tgt_points
+    ref_plane, tgt_plane, axis_xy = scene.ref_plane, scene.tgt_plane, scene.ref_stem_xy
+    coarse, hyp, T = results.coarse, results.hypotheses, results.T_ref_target
+    bend, profile, turn_held = results.bend, results.profile, results.turn_held
+    max_motion_m, min_consistency = verify.max_motion_m, verify.min_consistency
     rng = np.random.default_rng(0)
     pts = tgt_points if len(tgt_points) <= SCORE_POINTS else tgt_points[rng.choice(len(tgt_points), SCORE_POINTS, replace=False)]
     unbend = bend.unbend if bend is not None else None
@@ -157,10 +202,10 @@ def gather_evidence(ref_image: RangeImage, ref_surf: Surface, tgt_surf: Surface,
         station = apply_transform(T, np.zeros((1, 3)))[0]
         n, d = np.asarray(ref_plane[:3]), float(ref_plane[3])
         dh = float(station @ n + d - h_tgt)
-    inliers = int(getattr(coarse, "n_inliers", 0))
+    inliers = coarse.n_inliers
     rival = hyp.runner_up if hyp is not None else ""
     margin = float(hyp.margin) if hyp is not None else float("nan")
-    match = getattr(coarse, "match", None)
+    match = coarse.match
     if match is not None and match.n_ties:
         # The ties that agree with the final pose count too (the coarse transform is RANSAC's best on
         # them alone, fitted rigidly even to a crown that moved): the target unbent under wind.
@@ -174,10 +219,10 @@ def gather_evidence(ref_image: RangeImage, ref_surf: Surface, tgt_surf: Surface,
                 stem_shift_m=float(np.hypot(*model.shift_m)), stem_shift_std_m=float(np.hypot(*model.std[0:2]))) if model else {}
     heading = float("nan")
     if bend is not None and turn_held and axis_xy is not None:
-        heading = _heading_offset(ref_image, pts, T, axis_xy, unbend, hypotheses.tolerance_m, 4.0 * max_heading_deg)
+        heading = _heading_offset(ref_image, pts, T, axis_xy, unbend, hypotheses.tolerance_m, 4.0 * verify.max_heading_deg)
     return Evidence(
-        inliers=inliers, ties=int(getattr(coarse, "n_ties", 0)),
-        chance_inliers=int(getattr(coarse, "chance_inliers", -1)), consistency=float(vis.consistency),
+        inliers=inliers, ties=coarse.n_ties,
+        chance_inliers=coarse.chance_inliers, consistency=float(vis.consistency),
         seen_by_both=vis.seen_by_both, violations=vis.violations, residual_m=residual, noise_m=noise,
         chosen=hyp.chosen if hyp is not None else "coarse", rival=rival,
         margin=margin, tilt_deg=tilt, height_difference_m=dh,
@@ -185,7 +230,7 @@ def gather_evidence(ref_image: RangeImage, ref_surf: Surface, tgt_surf: Surface,
         sway_m=bend.sway_m if bend is not None else 0.0,
         sway_direction_deg=bend.sway_direction_deg if bend is not None else float("nan"),
         sway_std_m=bend.sway_std_m if bend is not None else float("nan"),
-        stable_height_m=profile.stable_height_m(stable_tolerance_m) if profile is not None else float("nan"),
+        stable_height_m=profile.stable_height_m(wind.stable_tolerance_m) if profile is not None else float("nan"),
         motion_needed_m=needed, motion_m=motion, moved=vis.moved, heading_offset_deg=heading, **stem,
     )
 

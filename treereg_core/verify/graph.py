@@ -16,7 +16,7 @@ than chained. A scan not reachable through verified edges keeps its best guess, 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -56,7 +56,7 @@ def select_pairs(similarity: np.ndarray, extra: int) -> list[tuple[int, int]]:
     return sorted(chosen, key=lambda e: (e[0] != 0, e))
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class Edge:
     """A registered pair as the graph sees it: `T` maps scan j's points into scan i's frame."""
 
@@ -70,7 +70,7 @@ class Edge:
     weight: float = 1.0
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class Placement:
     """The graph stage's result for one scan: its transform onto the reference and its verdict.
 
@@ -181,14 +181,15 @@ def place_scans(n: int, edges: list[Edge], samples: dict[int, np.ndarray], *, gr
         good = [e for e in good if e is not subset[worst]]
     loop = {(e.i, e.j): float(r) for e, r in zip([e for e in good if e.i in poses and e.j in poses], res)}
     loop.update({(e.i, e.j): r for e, r in dropped})
-    all_edges = tuple(Edge(e.i, e.j, e.T, e.verdict, e.reasons, loop.get((e.i, e.j), float("nan")),
-                           any(e is g for g in good), e.weight) for e in edges)
+    all_edges = tuple(replace(e, loop_error_m=loop.get((e.i, e.j), float("nan")), used=any(e is g for g in good))
+                      for e in edges)
     out = []
     for k in range(n):
         mine = [e for e in all_edges if k in (e.i, e.j)]
         via = tuple(sorted({e.j if e.i == k else e.i for e in mine if e.used}))
         if k == 0:
-            out.append(Placement(True, "", (Metric("verdict", "", VERIFIED),), np.eye(4), VERIFIED, (), "", via, all_edges))
+            out.append(Placement(ok=True, message="", metrics=(Metric("verdict", "", VERIFIED),), T_ref_scan=np.eye(4),
+                                 verdict=VERIFIED, reasons=(), hint="", via=via, edges=all_edges))
             continue
         if k in poses:
             reasons: tuple[str, ...] = ()
@@ -197,7 +198,8 @@ def place_scans(n: int, edges: list[Edge], samples: dict[int, np.ndarray], *, gr
                        Metric("largest edge residual in the joint solve", "m", max((loop.get((e.i, e.j), 0.0) for e in mine if e.used), default=0.0)))
             if bad:
                 metrics += (Metric("pairs dropped by loop closure", "", len(bad)),)
-            out.append(Placement(True, "", metrics, poses[k], VERIFIED, reasons, "", via, all_edges))
+            out.append(Placement(ok=True, message="", metrics=metrics, T_ref_scan=poses[k], verdict=VERIFIED,
+                                 reasons=reasons, hint="", via=via, edges=all_edges))
             continue
         # Not reachable through verified edges: the best guess is the pair with the reference (or
         # any pair whose other scan is placed), unverified with its reasons.
@@ -217,6 +219,6 @@ def place_scans(n: int, edges: list[Edge], samples: dict[int, np.ndarray], *, gr
         reasons = tuple(dropped_here + why + failed_here) or ("no registered pair links it to the reference",)
         verdict = UNVERIFIED if guess is not None else FAILED
         hint = "add a station between it and its neighbours, or check that it shows the same tree"
-        out.append(Placement(guess is not None, "; ".join(reasons), (Metric("verdict", "", verdict),), guess, verdict,
-                             reasons, hint, (), all_edges))
+        out.append(Placement(ok=guess is not None, message="; ".join(reasons), metrics=(Metric("verdict", "", verdict),),
+                             T_ref_scan=guess, verdict=verdict, reasons=reasons, hint=hint, edges=all_edges))
     return out

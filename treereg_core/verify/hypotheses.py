@@ -33,7 +33,7 @@ SCORE_POINTS = 20_000
 POLISH_GATES_M = (0.1, 0.05)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class Candidate:
     """One pose hypothesis, polished by the surfaces, and how the reference's view judges it."""
 
@@ -49,7 +49,7 @@ class Candidate:
         return self.visibility.consistent - violation_weight * self.visibility.violations
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class HypothesesResult:
     """The hypotheses stage's result for one pair.
 
@@ -70,6 +70,8 @@ class HypothesesResult:
         Consistency of the winner minus that of the best distinct runner-up (1 when none scored).
     runner_up
         The best distinct runner-up's label ("" when none).
+    unscored_modes
+        RANSAC's further distinct modes left out for too few agreeing ties (`hypotheses.min_mode_support`).
     """
 
     ok: bool
@@ -81,6 +83,7 @@ class HypothesesResult:
     margin: float
     runner_up: str
     chosen_by_hand: bool = False
+    unscored_modes: int = 0
 
 
 def _score(v: Visibility, p: HypothesesParams) -> float:
@@ -93,6 +96,11 @@ def distinct(a: np.ndarray, b: np.ndarray, centre: np.ndarray, deg: float, m: fl
     return rotation_angle_deg(a[:3, :3] @ b[:3, :3].T) >= deg or d_pos >= m
 
 
+def _scored_mode(support: int, p: HypothesesParams) -> bool:
+    """A further RANSAC mode is a hypothesis when enough ties agree with it."""
+    return support >= p.min_mode_support
+
+
 def candidate_starts(T_best: np.ndarray, modes: list[tuple[np.ndarray, int]], tgt_points: np.ndarray,
                      p: HypothesesParams, axis_xy: np.ndarray | None = None) -> list[tuple[str, np.ndarray, int]]:
     """(label, start transform, tie support) of every hypothesis: RANSAC's best, its distinct
@@ -102,7 +110,7 @@ def candidate_starts(T_best: np.ndarray, modes: list[tuple[np.ndarray, int]], tg
     centroid of the one side a station sees it would start tens of centimetres off."""
     out = [("coarse", np.asarray(T_best, dtype=float), modes[0][1] if modes else 0)]
     for k, (T, n) in enumerate(modes[1:], start=2):
-        if n >= p.min_mode_support:
+        if _scored_mode(n, p):
             out.append((f"RANSAC mode {k}", np.asarray(T, dtype=float), n))
     c = (apply_transform(T_best, np.array([[axis_xy[0], axis_xy[1], 0.0]]))[0] if axis_xy is not None
          else apply_transform(T_best, tgt_points).mean(axis=0))
@@ -112,6 +120,9 @@ def candidate_starts(T_best: np.ndarray, modes: list[tuple[np.ndarray, int]], tg
     return out
 
 
+# Ten parameters: the six inputs every candidate is judged on (the reference's view and surface, the
+# target's surface and points, RANSAC's pose and modes) and, by keyword, the section and three
+# optional modifiers (a hand-picked label, the stem to turn about, a start adjustment for wind).
 def score_hypotheses(ref_image: RangeImage, ref_surf: Surface, tgt_surf: Surface, tgt_points: np.ndarray,
                      T_best: np.ndarray, modes: list[tuple[np.ndarray, int]], *,
                      hypotheses: HypothesesParams, choose: str | None = None,
@@ -140,7 +151,7 @@ def score_hypotheses(ref_image: RangeImage, ref_surf: Surface, tgt_surf: Surface
         v1 = visibility(ref_image, pts, T, p.tolerance_m) if np.isfinite(T).all() else v0
         if _score(v0, p) >= _score(v1, p):
             T, v1 = T0, v0
-        cands.append(Candidate(label, T0, T, n, v1, v0))
+        cands.append(Candidate(label=label, T_start=T0, T_ref_target=T, support=n, visibility=v1, start_visibility=v0))
     # The most consistent hypothesis among those that agree with the reference's view in about as many
     # points as any: a pose that puts the target where the reference saw nothing (a small overlap)
     # proves nothing. (Points in the reference's free space are no overlap: a wrong pose has many.)
@@ -177,11 +188,14 @@ def score_hypotheses(ref_image: RangeImage, ref_surf: Surface, tgt_surf: Surface
     else:
         message = "" if best.label == "coarse" else (
             f"the surfaces prefer {best.label} to RANSAC's transform (consistency {cons:.3f} against {coarse_cons:.3f})")
-    return HypothesesResult(True, message, metrics, tuple(cands), T_start, best.label, margin,
-                            runner.label if runner else "", picked is not None)
+    return HypothesesResult(ok=True, message=message, metrics=metrics, candidates=tuple(cands), T_ref_target=T_start,
+                            chosen=best.label, margin=margin, runner_up=runner.label if runner else "",
+                            chosen_by_hand=picked is not None,
+                            unscored_modes=sum(not _scored_mode(n, p) for _, n in modes[1:]))
 
 
 def pass_through(T_coarse: np.ndarray) -> HypothesesResult:
     """Hypotheses switched off (the paper): RANSAC's (or SVD's) transform goes on, no margin measured."""
-    return HypothesesResult(True, "competing hypotheses are not scored (hypotheses.enabled is off)", (),
-                            (), np.asarray(T_coarse, dtype=float), "coarse", float("nan"), "")
+    return HypothesesResult(ok=True, message="competing hypotheses are not scored (hypotheses.enabled is off)",
+                            metrics=(), candidates=(), T_ref_target=np.asarray(T_coarse, dtype=float), chosen="coarse",
+                            margin=float("nan"), runner_up="")

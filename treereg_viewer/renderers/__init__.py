@@ -11,16 +11,27 @@ transform.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Protocol
 
+import viser
+
+from ..controller import Snapshot
+from ..view_state import ViewState
 from . import coarse, fine, icp, matching, projection, result, scans, verify
+from .common import Drawing
+
+
+class RenderFn(Protocol):
+    """A stage's drawing: `(scene, root, snapshot, view) -> (scene handles, panel content)`."""
+
+    def __call__(self, scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState, /) -> Drawing: ...
 
 
 @dataclass(frozen=True)
 class Renderer:
     """How one stage is drawn, and the view choices its drawing depends on."""
 
-    draw: Callable[..., Any]
+    draw: RenderFn
     view_fields: tuple[str, ...] = ()
     needs_output: bool = True
 

@@ -13,35 +13,19 @@ import numpy as np
 import plotly.graph_objects as go
 import viser
 
+from treereg_core.coarse.estimate import CoarseResult
 from treereg_core.geometry.rigid import apply_transform
 
 from ..controller import Snapshot
 from ..palette import KEPT, REJECTED, hex_color
 from ..view_panel import PanelContent
 from ..view_state import ViewState
-from .common import item_message, metrics_table, pair_label, plural, target_index, title
+from .common import Drawing, item_message, metrics_table, pair_label, plural, target_index, title
 
 
-def inlier_threshold(c: Any, p: Any) -> float:
-    """The inlier distance that produced `c.inliers`.
-
-    RANSAC with `final_inlier_m` halves its distance from `inlier_m` down to `final_inlier_m` and
-    may stop early, so the threshold in force is one of those steps: the one that best separates
-    inliers from outliers (exactly, unless a 6-DOF refit moved the residuals a little after the
-    inliers were chosen). Drawing `inlier_m` instead would put outliers left of the line.
-    """
-    res = np.asarray(c.residuals_m, dtype=float)
-    inl = np.asarray(c.inliers, dtype=bool)
-    steps = [float(p.inlier_m)]
-    if p.estimator == "ransac" and p.final_inlier_m is not None:
-        while steps[-1] > p.final_inlier_m * 1.0001:
-            steps.append(max(steps[-1] / 2.0, float(p.final_inlier_m)))
-    mismatches = [int(np.count_nonzero((res < th) != inl)) for th in steps]
-    return steps[int(np.argmin(mismatches))]
-
-
-def residual_figure(c: Any, threshold_m: float) -> go.Figure:
-    """Histogram of tie residuals, inliers green and outliers grey, around the inlier distance.
+def residual_figure(c: CoarseResult) -> go.Figure:
+    """Histogram of tie residuals, inliers green and outliers grey, around the inlier distance
+    the inliers were chosen with (RANSAC's last, `c.inlier_m`).
 
     The x range is four times the inlier distance: the decision happens there. Farther residuals
     (wrong matches, often metres off) are gathered in the last bar, as the title says.
@@ -49,6 +33,7 @@ def residual_figure(c: Any, threshold_m: float) -> go.Figure:
     res = np.asarray(c.residuals_m, dtype=float)
     inl = np.asarray(c.inliers, dtype=bool)
     fin = np.isfinite(res)
+    threshold_m = c.inlier_m
     end = 4.0 * threshold_m
     size = end / 40.0
     shown = np.minimum(res, end - size / 2)  # beyond the range: into the last bar
@@ -66,7 +51,7 @@ def residual_figure(c: Any, threshold_m: float) -> go.Figure:
     return fig
 
 
-def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> tuple[list[Any], PanelContent]:
+def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> Drawing:
     out = snap.output("coarse")
     t = target_index(snap, "coarse", view)
     c = out.items[t]
@@ -87,10 +72,9 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
             f"{root}/ties", segs, np.repeat(colors[:, None, :], 2, axis=1), thickness=1.5, thickness_units="screen"))
         handles.append(scene.add_point_cloud(f"{root}/inlier_ties", ref[inl], KEPT, point_size=0.05,
                                              point_shape="circle", precision="float32"))
-        threshold = inlier_threshold(c, snap.params.coarse)
-        plots.append((residual_figure(c, threshold), 1.6))
+        plots.append((residual_figure(c), 1.6))
         res = np.asarray(c.residuals_m, dtype=float)
-        across = int(np.count_nonzero((res < threshold) != inl))
+        across = int(np.count_nonzero((res < c.inlier_m) != inl))
         if across:  # say why bars sit on the "wrong" side of the line, before a user has to ask
             text += (f" {plural(across, 'tie point')} {'lies' if across == 1 else 'lie'} on the other side of the inlier "
                      "distance in the histogram: RANSAC chose the inliers, then the transform was refitted on them, "

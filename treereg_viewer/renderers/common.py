@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Any, Iterable
 
 import numpy as np
+import viser
 import viser.transforms as vtf
 
 from treereg_core.results import Metric
@@ -12,7 +13,13 @@ from treereg_core.stages import stage
 
 from ..controller import Snapshot
 from ..stages import label
+from ..view_panel import PanelContent
 from ..view_state import ViewState
+
+#: The scene nodes a drawing made (the drawer removes them before the next draw).
+Handles = list[viser.SceneNodeHandle]
+#: What a stage's renderer returns: its scene nodes and the docked panel's content.
+Drawing = tuple[Handles, PanelContent]
 
 
 def display_subset(n: int, max_points: int, seed: int = 0) -> np.ndarray:
@@ -27,10 +34,6 @@ def pose_kwargs(T: np.ndarray) -> dict[str, np.ndarray]:
     """viser's (wxyz, position) of a 4x4 rigid transform."""
     T = np.asarray(T, dtype=np.float64)
     return {"wxyz": vtf.SO3.from_matrix(T[:3, :3]).wxyz, "position": T[:3, 3].copy()}
-
-
-def metrics_rows(metrics: Iterable[Metric]) -> list[tuple[str, str]]:
-    return [(m.description, m.formatted()) for m in metrics]
 
 
 def md_table(header: tuple[str, ...], rows: list[tuple[Any, ...]]) -> str:
@@ -133,10 +136,8 @@ def item_message(item: Any) -> str:
     return f"**Failed:** {getattr(item, 'message', '')}"
 
 
-def render_metrics(scene: Any, root: str, snap: Snapshot, view: ViewState) -> tuple[list[Any], Any]:
+def render_metrics(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> Drawing:
     """The drawing of a stage the app has no renderer for: its items' metrics side by side."""
-    from ..view_panel import PanelContent
-
     out = snap.output(view.stage)
     st = stage(view.stage)
     names = [s.name for s in snap.scans] if st.per == "scan" else [pair_label(snap, k) for k in range(len(out.items))]

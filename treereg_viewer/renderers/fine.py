@@ -16,7 +16,6 @@ import trimesh
 import viser
 
 from treereg_core.fine.arcs import SliceArcs
-from treereg_core.fine.pose import iteration_limit
 from treereg_core.fine.sections import SectionsResult
 from treereg_core.fine.slicing import SliceResult
 from treereg_core.geometry.rigid import apply_transform
@@ -25,7 +24,7 @@ from ..controller import Snapshot
 from ..palette import GREY, HIGHLIGHT, categorical, scan_color
 from ..view_panel import PanelContent
 from ..view_state import ViewState
-from .common import md_table, metrics_table, pair_label, pair_scans, plural, target_index, title
+from .common import Drawing, md_table, metrics_table, pair_label, pair_scans, plural, target_index, title
 from .motion import motion_sentence, profile_figure
 from .scans import target_pose
 
@@ -63,7 +62,7 @@ def _slice_text(snap: Snapshot, sl: SliceResult) -> str:
     return text
 
 
-def render_slices(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> tuple[list[Any], PanelContent]:
+def render_slices(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> Drawing:
     t = target_index(snap, "slices", view)
     sl: SliceResult = snap.output("slices").items[t]
     ref, tgt = _scans(snap, t)
@@ -107,7 +106,7 @@ def _arc_points(scene: viser.SceneApi, root: str, ar: SliceArcs, T: np.ndarray, 
     return handles, counts
 
 
-def render_arcs(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> tuple[list[Any], PanelContent]:
+def render_arcs(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> Drawing:
     t = target_index(snap, "arcs", view)
     ar: SliceArcs = snap.output("arcs").items[t]
     sl: SliceResult = snap.output("slices").items[t]
@@ -279,7 +278,7 @@ def sections_sentence(n_pairs: int, n_ties: int, pose: str) -> str:
             f"{'gives' if n_pairs == 1 else 'give'} {plural(n_ties, 'tie point')} (yellow lines join partners).")
 
 
-def render_sections(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> tuple[list[Any], PanelContent]:
+def render_sections(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> Drawing:
     t = target_index(snap, "sections", view)
     sec: SectionsResult = snap.output("sections").items[t]
     sl: SliceResult = snap.output("slices").items[t]
@@ -305,17 +304,16 @@ def fine_status(snap: Snapshot, t: int, f: Any) -> str:
     if f.message:
         text += f" {f.message[0].upper()}{f.message[1:]}."
     fp = snap.params.fine
-    last = next((m.value for m in f.metrics if m.description == "fine update (last iteration)"), None)
-    limit = iteration_limit(fp, getattr(f, "bend", None))
-    if n >= limit and isinstance(last, (int, float)) and last > fp.tolerance_m:
+    if f.stopped_at_limit:
         # Not converged: said, so that a capped run is not read as a settled one.
+        limit = f.iteration_limit
         more = f" + {limit - fp.max_iterations} with the stem's bend" if limit > fp.max_iterations else ""
         text += (f" It stopped at the iteration limit (fine.max_iterations = {fp.max_iterations}{more}) with the last "
-                 f"update still {last * 1000:.1f} mm (fine.tolerance_m = {fp.tolerance_m * 1000:g} mm).")
+                 f"update still {f.updates_m[-1] * 1000:.1f} mm (fine.tolerance_m = {fp.tolerance_m * 1000:g} mm).")
     return text
 
 
-def render_fine(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> tuple[list[Any], PanelContent]:
+def render_fine(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> Drawing:
     t = target_index(snap, "fine", view)
     f = snap.output("fine").items[t]
     text = fine_status(snap, t, f)

@@ -1,26 +1,26 @@
 """The ICP stage: IcpResult, the baseline the paper compares its fine stage with (3.3).
 
 The scan layer shows every target at its ICP pose; the panel says how ICP ended for each pair and
-how far its pose lies from the fine one (both computed: this only compares two results).
+how far its pose lies from the fine one (`rigid.rotation_error_deg`, `rigid.mean_displacement`: this only
+compares two results).
 """
 
 from __future__ import annotations
 
 from typing import Any
 
-import numpy as np
 import viser
 
-from treereg_core.geometry.rigid import apply_transform, rotation_error_deg
+from treereg_core.geometry.rigid import mean_displacement, rotation_error_deg
 
 from ..controller import Snapshot
 from ..view_panel import PanelContent
 from ..view_state import ViewState
-from .common import md_table, metrics_table, pair_label, pair_scans, target_index, title
+from .common import Drawing, md_table, metrics_table, pair_label, pair_scans, target_index, title
 from .scans import target_pose
 
 
-def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> tuple[list[Any], PanelContent]:
+def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> Drawing:
     out = snap.output("icp")
     t = target_index(snap, "icp", view)
     item = out.items[t]
@@ -38,7 +38,7 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
         if pair_scans(snap, k)[0] != 0:  # the ICP-vs-fine table is about the reference's pairs
             continue
         pts = prep.items[pair_scans(snap, k)[1]].scan.points
-        gap = float(np.linalg.norm(apply_transform(it.T_ref_target, pts) - apply_transform(fine, pts), axis=1).mean())
+        gap = mean_displacement(it.T_ref_target, fine, pts)
         rows.append((pair_label(snap, k), f"{rotation_error_deg(it.T_ref_target, fine):.3f}", f"{gap * 1000:.1f}"))
     table = md_table(("pair", "ICP vs fine: rotation (°)", "mean point distance (mm)"), rows)
     table += "\n\n" + metrics_table({pair_label(snap, k): it.metrics for k, it in enumerate(out.items)})

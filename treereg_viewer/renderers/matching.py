@@ -20,7 +20,7 @@ from ..drawing import binary_to_rgb, display_xy, draw_lines, draw_markers, fit_f
 from ..palette import HIGHLIGHT, KEPT, REJECTED, scan_color
 from ..view_panel import PanelContent
 from ..view_state import ViewState
-from .common import item_message, metrics_table, pair_label, plural, target_index, title
+from .common import Drawing, item_message, metrics_table, pair_label, plural, target_index, title
 
 
 def similarity_figure(match: Any, angles_ref: tuple[float, ...], angles_tgt: tuple[float, ...], current: int,
@@ -70,7 +70,7 @@ def matches_image(pair: Any, img_ref: np.ndarray, img_tgt: np.ndarray, color_ref
     return fit_width(canvas)
 
 
-def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> tuple[list[Any], PanelContent]:
+def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> Drawing:
     out, seqs = snap.output("matching"), snap.output("projection")
     t = target_index(snap, "matching", view)
     m = out.items[t]

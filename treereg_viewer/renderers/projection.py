@@ -1,8 +1,8 @@
 """The Projection stage: ImageSequence — every scan's binary image at one step of its rotation.
 
 The panel shows all scans' images at the chosen step, one under the other in the scans' colours.
-In 3-D, optionally, each prepared cloud rotated as it was for that image (a pose on its node: the
-rotation about the vertical axis through the sequence's `centre_xy`).
+In 3-D, optionally, each prepared cloud rotated as it was for that image (a pose on its node:
+`ImageSequence.rotation`).
 """
 
 from __future__ import annotations
@@ -12,21 +12,12 @@ from typing import Any
 import numpy as np
 import viser
 
-from treereg_core.geometry.rigid import make_transform, rotation_z
-
 from ..controller import Snapshot
 from ..drawing import binary_to_rgb, fit_factor, fit_width, hstack, upscale, vstack
 from ..palette import scan_color
 from ..view_panel import PanelContent
 from ..view_state import ViewState
-from .common import display_subset, metrics_table, pose_kwargs, title
-
-
-def sequence_pose(seq: Any, k: int) -> np.ndarray:
-    """4x4 of image k's rotation: about +z through (x_mean, y_mean, 0) by `angles_deg[k]`."""
-    R = rotation_z(seq.angles_deg[k])
-    c = np.array([seq.centre_xy[0], seq.centre_xy[1], 0.0])
-    return make_transform(R, c - R @ c)
+from .common import Drawing, display_subset, metrics_table, pose_kwargs, title
 
 
 def step_index(seq: Any, step: int) -> int:
@@ -34,7 +25,7 @@ def step_index(seq: Any, step: int) -> int:
     return int(np.clip(step, 0, len(seq.angles_deg) - 1))
 
 
-def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> tuple[list[Any], PanelContent]:
+def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> Drawing:
     seqs = snap.output("projection").items
     tiles, names = [], []
     handles: list[Any] = []
@@ -51,7 +42,7 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
             light = tuple(int(0.5 * c + 127) for c in scan_color(i))
             handles.append(scene.add_point_cloud(
                 f"{root}/rotated{i}", pts[idx], light, point_size=view.point_size,
-                point_shape="circle", precision="float32", **pose_kwargs(sequence_pose(seq, k)),
+                point_shape="circle", precision="float32", **pose_kwargs(seq.rotation(k)),
             ))
             handles.append(scene.add_frame(
                 f"{root}/axis{i}", axes_length=0.6, axes_radius=0.03,

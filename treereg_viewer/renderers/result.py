@@ -22,7 +22,7 @@ from ..controller import Snapshot
 from ..palette import HIGHLIGHT, residual_legend, scan_color
 from ..view_panel import PanelContent
 from ..view_state import ViewState
-from .common import md_table, metrics_table, pair_label, pair_scans, target_index, title
+from .common import Drawing, md_table, metrics_table, pair_label, pair_scans, target_index, title
 from .motion import motion_sentence, profile_figure
 
 #: Colours of the three registrations in plots (coarse, fine, ICP).
@@ -98,7 +98,7 @@ METHOD_OF_POSE = {"coarse": "coarse", "fine": "fine", "final": "fine", "icp": "I
 POSE_NAMES = {"coarse": "coarse", "fine": "pairwise fine", "final": "final (joint placement)", "icp": "ICP"}
 
 
-def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> tuple[list[Any], PanelContent]:
+def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> Drawing:
     out = snap.output("evaluation")
     t = target_index(snap, "evaluation", view)
     report = out.items[t]

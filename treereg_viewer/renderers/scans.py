@@ -17,7 +17,7 @@ from ..palette import GREY, MIXED, MOVED, NO_RESIDUAL, residual_colors, scan_col
 from ..stages import POSE_STAGE, registered, view_of
 from ..view_panel import PanelContent
 from ..view_state import ViewState
-from .common import display_subset, md_table, not_ready_text, pose_kwargs, title
+from .common import Drawing, display_subset, md_table, not_ready_text, pose_kwargs, title
 
 #: Points a stage removed (ground, crop) are drawn lighter than kept points.
 CROPPED = (205, 205, 205)
@@ -31,6 +31,8 @@ def scan_node(i: int) -> str:
 SEE_THROUGH_OPACITY = 0.45
 #: Height (m, above its scanner) of a scanner's name.
 STATION_LABEL_Z = 1.3
+#: Where the stem markers start without a ground plane: the scanner's foot, 1.5 m below it.
+SCANNER_FOOT_Z = -1.5
 
 
 def target_pose(snap: Snapshot, pose: str | None, k: int) -> np.ndarray | None:
@@ -195,12 +197,12 @@ def _stem_markers(scene: viser.SceneApi, root: str, snap: Snapshot) -> list[Any]
     for i, prep in enumerate(prepared.items):
         stems = getattr(prep, "stems", None)
         if stems is not None and len(stems):
-            base = _ground_z(prep, stems[:, :2])
+            base = prep.ground_z(stems[:, :2], SCANNER_FOOT_Z)
             segs = np.stack([np.column_stack([stems[:, :2], base]), np.column_stack([stems[:, :2], base + 2.0])], axis=1)
             handles.append(scene.add_line_segments(f"{root}/s{i}/stems", segs, GREY, thickness=2.0, thickness_units="screen"))
         xy = getattr(prep, "stem_xy", None)
         if xy is not None and getattr(prep, "target", ""):
-            z = float(_ground_z(prep, np.asarray([xy]))[0])
+            z = float(prep.ground_z(np.asarray([xy]), SCANNER_FOOT_Z)[0])
             seg = np.array([[[xy[0], xy[1], z], [xy[0], xy[1], z + 12.0]]])
             handles.append(scene.add_line_segments(f"{root}/s{i}/target", seg, scan_color(i), thickness=5.0,
                                                    thickness_units="screen"))
@@ -209,16 +211,7 @@ def _stem_markers(scene: viser.SceneApi, root: str, snap: Snapshot) -> list[Any]
     return handles
 
 
-def _ground_z(prep: Any, xy: np.ndarray) -> np.ndarray:
-    """Height of the ground plane below `xy` (the scanner's foot, 1.5 m down, without a plane)."""
-    plane = getattr(prep, "plane", None)
-    if plane is None:
-        return np.full(len(xy), -1.5)
-    a, b, c, d = plane
-    return -(a * xy[:, 0] + b * xy[:, 1] + d) / c
-
-
-def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> tuple[list[Any], PanelContent]:
+def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> Drawing:
     """The Scans stage's panel: a table of the scans, what preparation kept and which tree it took."""
     prepared = snap.output("prepare")
     rows = []

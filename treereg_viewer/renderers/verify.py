@@ -21,7 +21,7 @@ from ..controller import Snapshot
 from ..palette import GREY, hex_color, scan_color
 from ..view_panel import PanelContent
 from ..view_state import ViewState
-from .common import display_subset, md_table, metrics_table, pair_label, plural, target_index, title
+from .common import Drawing, display_subset, md_table, metrics_table, pair_label, plural, target_index, title
 
 #: How each verdict reads in the app.
 BADGE = {"verified": "✓ verified", "unverified": "⚠ unverified", "failed": "✗ failed"}
@@ -29,7 +29,7 @@ BADGE = {"verified": "✓ verified", "unverified": "⚠ unverified", "failed": "
 EDGE_COLOR = {"verified": "#1e8c3c", "unverified": "#e0a000", "failed": "#c83232"}
 
 
-def render_hypotheses(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> tuple[list[Any], PanelContent]:
+def render_hypotheses(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> Drawing:
     t = target_index(snap, "hypotheses", view)
     h = snap.output("hypotheses").items[t]
     tgt = snap.output("prepare").items[t + 1].scan
@@ -54,16 +54,14 @@ def render_hypotheses(scene: viser.SceneApi, root: str, snap: Snapshot, view: Vi
                 f"{h.runner_up or 'none'}, is {h.margin:.3f} less consistent. Grey: the rivals at their polished "
                 "poses. Consistency: the share of the points both stations see that lie where the reference saw a "
                 "surface, not in space its laser passed through.")
-        c = snap.output("coarse").items[t] if snap.output("coarse") is not None else None
-        weak = [n for _, n in getattr(c, "modes", ())[1:] if n < snap.params.hypotheses.min_mode_support]
-        if weak:  # the coarse stage counts every mode: say where the missing ones went
-            text += (f" Not scored: {plural(len(weak), 'further RANSAC mode')} with fewer than "
+        if h.unscored_modes:  # the coarse stage counts every mode: say where the missing ones went
+            text += (f" Not scored: {plural(h.unscored_modes, 'further RANSAC mode')} with fewer than "
                      f"{snap.params.hypotheses.min_mode_support} agreeing ties (hypotheses.min_mode_support).")
     table = md_table(("hypothesis", "tie support", "consistency", "seen by both", "in free space"), rows)
     return handles, PanelContent(title("hypotheses", snap, t), text=text, table=table)
 
 
-def render_verify(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> tuple[list[Any], PanelContent]:
+def render_verify(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> Drawing:
     out = snap.output("verify")
     t = target_index(snap, "verify", view)
     v = out.items[t]
@@ -121,7 +119,7 @@ def graph_figure(snap: Snapshot) -> go.Figure | None:
     return fig
 
 
-def render_graph(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> tuple[list[Any], PanelContent]:
+def render_graph(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> Drawing:
     graph = snap.output("graph")
     rows = []
     for i, (s, pl) in enumerate(zip(snap.scans, graph.items)):

@@ -38,7 +38,7 @@ ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-f
 #: until the stage is shown)
 CHANGES = (
     ("arcs.min_points", "7 Arcs", "min points", "arcs", "min_points", (25, 15), ("arcs",)),
-    ("fitting.min_arc_deg", "8 Fits", "min arc (deg)", "fitting", "min_arc_deg", (40.0, 45.0), ("sections",)),
+    ("sections.min_arc_deg", "8 Fits", "min arc (deg)", "sections", "min_arc_deg", (40.0, 45.0), ("sections",)),
     ("evaluation.layer_spacing_m", "13 Result", "layer spacing (m)", "evaluation", "layer_spacing_m", (0.16, 0.15),
      ("evaluation",)),
 )

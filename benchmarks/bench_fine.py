@@ -46,7 +46,7 @@ METHODS = ("coarse", "fine", "fine (paper)", "ICP")
 #: The sections of the paper's fine step (slices, arcs, fits, tie points): "fine (paper)" takes them
 #: from the paper preset and everything before from the robust default, so it starts where the
 #: robust coarse stage ended (the pipeline re-runs only the stages these sections feed).
-PAPER_FINE_SECTIONS = ("slicing", "arcs", "fitting") + FINE_SECTIONS
+PAPER_FINE_SECTIONS = ("slices", "arcs", "sections") + FINE_SECTIONS
 
 
 @dataclass
@@ -182,14 +182,14 @@ def paper_metric_summary(rows: list[dict[str, float]]) -> str:
 ABLATIONS: tuple[tuple[str, str, str, object], ...] = (
     ("tie points + RANSAC (paper estimator, robust rest)", "fine", "method", "ties"),
     ("no influence check of pairs", "joint", "influence_factor", None),
-    ("3 slices at the quartiles", "slicing", "quantiles", (0.25, 0.5, 0.75)),
+    ("3 slices at the quartiles", "slices", "quantiles", (0.25, 0.5, 0.75)),
     ("one iteration", "fine", "max_iterations", 1),
     ("no surface refinement of weak directions", "surface", "refine", False),
     ("soft-L1 loss throughout", "joint", "refine_loss", "soft_l1"),
     ("no adaptive gate", "fine", "gate_factor", None),
-    ("no radius-ratio gate", "fitting", "max_radius_ratio", None),
+    ("no radius-ratio gate", "sections", "max_radius_ratio", None),
     ("no range-jump split of arcs", "arcs", "max_range_jump_m", None),
-    ("slices 0.2 m thick", "slicing", "thickness_m", 0.2),
+    ("slices 0.2 m thick", "slices", "thickness_m", 0.2),
     ("no acceptance test", "acceptance", "test", False),
     ("surfaces polish all six directions", "surface", "polish", True),
     ("surfaces only (no sections: fallback forced)", "fine", "min_pairs", 1000),

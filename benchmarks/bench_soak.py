@@ -36,7 +36,7 @@ def main() -> int:
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         result = Path(tmp) / "soak.json"
-        env = dict(os.environ, TREEREG_SOAK_SECONDS=str(args.seconds), TREEREG_SOAK_CYCLES=str(args.cycles),
+        env = dict(os.environ, TREEREG_SOAK_TABS="5", TREEREG_SOAK_SECONDS=str(args.seconds), TREEREG_SOAK_CYCLES=str(args.cycles),
                    TREEREG_SOAK_RESULT=str(result))
         t0 = time.perf_counter()
         run = subprocess.run([sys.executable, "-m", "pytest", "-q", "-s", "-p", "no:cacheprovider", "tests/test_soak.py"],

@@ -129,8 +129,10 @@ def test_the_public_api_is_one_import():
     assert set(T.__all__) >= {"register", "Pipeline", "Params", "Scan", "read_scan"}
 
 
-#: What `mypy --strict` must pass on: the stage model, the registry and the pipeline.
-TYPED = ("treereg_core/stage.py", "treereg_core/stages.py", "treereg_core/pipeline.py")
+#: What `mypy --strict` must pass on: the stage model, the registry and its stage modules, the pipeline,
+#: and the app's registry with the types of its stages' entry points (AppStage, RenderFn, the controls).
+TYPED = ("treereg_core/stage.py", "treereg_core/stages", "treereg_core/pipeline.py",
+         "treereg_viewer/stages/__init__.py", "treereg_viewer/stages/base.py")
 
 
 def test_the_stage_model_registry_and_pipeline_pass_mypy_strict(tmp_path):
@@ -139,3 +141,41 @@ def test_the_stage_model_registry_and_pipeline_pass_mypy_strict(tmp_path):
     done = subprocess.run([sys.executable, "-m", "mypy", "--strict", "--follow-imports=silent", "--no-incremental",
                            "--cache-dir", str(tmp_path), *TYPED], cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stdout + done.stderr
+
+
+def test_every_stages_result_is_a_keyword_only_dataclass_with_ok_message_metrics():
+    import dataclasses
+
+    from treereg_core.stages import STAGES
+
+    for s in STAGES:
+        assert dataclasses.is_dataclass(s.result), s.name
+        fs = {f.name: f for f in dataclasses.fields(s.result)}
+        # ok, message and metrics: fields, or properties derived from the fields (ImageSequence's)
+        assert all(n in fs or isinstance(getattr(s.result, n, None), property) for n in ("ok", "message", "metrics")), s.name
+        assert all(f.kw_only for f in fs.values()), (s.name, [n for n, f in fs.items() if not f.kw_only])
+        assert s.result.__dataclass_params__.frozen, s.name
+        with pytest.raises(TypeError):  # built by keyword only
+            s.result(True, "", ())
+
+
+def test_a_stages_name_is_its_modules_its_sections_and_its_views():
+    """One name, one place per stage: `treereg_core/stages/<name>.py`, the parameter section <name>
+    (every stage has parameters of its own), the viewer's `treereg_viewer/stages/<name>.py` and an
+    entry keyed by <name> in the viewer's registry."""
+    import importlib
+
+    from treereg_core.params import SECTIONS
+    from treereg_core.stages import STAGE_NAMES, STAGES
+
+    core = {p.stem for p in (ROOT / "treereg_core" / "stages").glob("*.py")} - {"__init__", "common"}
+    assert core == set(STAGE_NAMES)
+    for s in STAGES:
+        assert importlib.import_module(f"treereg_core.stages.{s.name}").STAGE is s
+        assert s.name in SECTIONS and s.name in s.sections, f"{s.name}: no parameter section {s.name!r} it reads"
+    viewer = ROOT / "treereg_viewer" / "stages"
+    assert viewer.is_dir(), "the viewer's side of each stage: treereg_viewer/stages/<name>.py"
+    assert {p.stem for p in viewer.glob("*.py")} >= set(STAGE_NAMES)
+    registry = importlib.import_module("treereg_viewer.stages").STAGES  # the app's side, keyed by the core's names
+    assert tuple(registry) == STAGE_NAMES
+    assert all(app.name == name for name, app in registry.items())

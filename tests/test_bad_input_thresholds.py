@@ -162,7 +162,7 @@ def test_every_whole_number_parameter_has_a_range():
 def test_the_apps_verify_and_placement_panels_say_a_verdict_rests_on_a_loosened_threshold():
     from types import SimpleNamespace
 
-    from treereg_viewer.renderers.verify import _loosened_note
+    from treereg_viewer.stages.verify import loosened_note as _loosened_note
 
     loose = SimpleNamespace(params=P.Params().with_value("verify", "min_margin", 0.02))
     tight = SimpleNamespace(params=P.Params().with_value("verify", "min_margin", 0.05))

@@ -373,7 +373,7 @@ def test_cross_section_and_fits_views(served, browser):
         drawn += 1
     assert drawn >= 3
     table = page.evaluate("() => document.body.innerText")
-    assert "nan" not in table.split("8 Fits", 1)[-1].lower().split("parameters: fitting")[0]
+    assert "nan" not in table.split("8 Fits", 1)[-1].lower().split("parameters: sections")[0]
     context.close()
 
 

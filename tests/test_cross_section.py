@@ -37,7 +37,7 @@ def _stem_height(scans):
 def test_registered_stem_is_one_ring_and_a_misregistered_one_separate_arcs(case):
     scans, poses = case
     p = Params()
-    cs = stem_section(scans, poses, _stem_height(scans), thickness_m=0.1, below_m=0.3, arcs=p.arcs, fitting=p.fitting)
+    cs = stem_section(scans, poses, _stem_height(scans), thickness_m=0.1, below_m=0.3, arcs=p.arcs, sections=p.sections)
     assert cs.ok and cs.heights_m[1] - cs.heights_m[0] == pytest.approx(0.3)
     truth, off = cs.pose("truth"), cs.pose("off")
     # Every scan sees one side of the stem: its slab's largest arc is fitted, plausibly.
@@ -61,7 +61,7 @@ def test_registered_stem_is_one_ring_and_a_misregistered_one_separate_arcs(case)
 def test_unrolled_along_the_reference_circle_the_scans_lie_on_it_or_off_by_the_error(case):
     scans, poses = case
     p = Params()
-    cs = stem_section(scans, poses, _stem_height(scans), thickness_m=0.1, below_m=0.3, arcs=p.arcs, fitting=p.fitting)
+    cs = stem_section(scans, poses, _stem_height(scans), thickness_m=0.1, below_m=0.3, arcs=p.arcs, sections=p.sections)
     truth, off = cs.ring("truth", 1), cs.ring("off", 1)
     assert truth.radius_m == off.radius_m  # the reference's circle: the same under every registration
     for s in scans:
@@ -77,13 +77,13 @@ def test_the_taper_check_names_the_part_below_and_drops_a_wider_section(case):
     scans, poses = case
     p = Params()
     h = _stem_height(scans)
-    cs = stem_section(scans, {"truth": poses["truth"]}, h, thickness_m=0.1, below_m=0.3, arcs=p.arcs, fitting=p.fitting)
+    cs = stem_section(scans, {"truth": poses["truth"]}, h, thickness_m=0.1, below_m=0.3, arcs=p.arcs, sections=p.sections)
     ref = cs.pose("truth").layers[1].scans[0]
     below = cs.pose("truth").layers[0].scans[0]
     assert ref.below[0] >= 0 and below.sections[ref.below[0]].plausible  # the stem's part below was found
     # A taper tolerance of -50 % makes any section at least as wide as half the part below "too wide".
-    strict = replace(p.fitting, taper_tolerance=-0.5)
-    cs2 = stem_section(scans, {"truth": poses["truth"]}, h, thickness_m=0.1, below_m=0.3, arcs=p.arcs, fitting=strict)
+    strict = replace(p.sections, taper_tolerance=-0.5)
+    cs2 = stem_section(scans, {"truth": poses["truth"]}, h, thickness_m=0.1, below_m=0.3, arcs=p.arcs, sections=strict)
     s = cs2.pose("truth").layers[1].scans[0].sections[0]
     assert not s.plausible and "paper 4.2" in s.reason
 
@@ -91,7 +91,7 @@ def test_the_taper_check_names_the_part_below_and_drops_a_wider_section(case):
 def test_a_height_outside_the_tree_says_so(case):
     scans, poses = case
     p = Params()
-    cs = stem_section(scans, poses, 500.0, thickness_m=0.1, below_m=0.3, arcs=p.arcs, fitting=p.fitting)
+    cs = stem_section(scans, poses, 500.0, thickness_m=0.1, below_m=0.3, arcs=p.arcs, sections=p.sections)
     assert not cs.ok and "pick a height inside the tree" in cs.message
 
 
@@ -102,7 +102,7 @@ def test_a_branch_section_keeps_the_points_near_its_axis(case):
     centre = np.array([*np.median(scans[0].points[np.abs(scans[0].points[:, 2] - h) < 0.05, :2], axis=0), h])
     cs = branch_section(scans, {"truth": poses["truth"]}, point_m=centre, axis=np.array([0.0, 0.0, 1.0]),
                         radius_m=0.05, layer_z_m=[h - 0.1, h, h + 0.1], thickness_m=0.05, margin_m=0.02,
-                        arcs=p.arcs, fitting=p.fitting)
+                        arcs=p.arcs, sections=p.sections)
     assert len(cs.heights_m) == 3
     for layer in cs.pose("truth").layers:
         for sc in layer.scans:

@@ -132,7 +132,7 @@ def test_fine_result_holds_what_the_app_draws(cases):
     rng = np.random.default_rng(7)
     res = fine(scans[0], scans[1], coarse_like_error(T_true[1], scans[1].points, rng), Params())
     sl = res.slices
-    assert sl is not None and sl.n_slices == len(Params().slicing.quantiles)
+    assert sl is not None and sl.n_slices == len(Params().slices.quantiles)
     assert len(res.arcs.ref) == len(res.arcs.tgt) == sl.n_slices
     assert all(len(a.labels) == len(a.indices) for a in res.arcs.ref + res.arcs.tgt)
     sec = res.sections
@@ -184,12 +184,12 @@ def test_surfaces_take_over_when_there_are_too_few_sections(cases):
 
 
 def test_slices_are_taken_at_reference_heights_with_the_target_mapped(cases):
-    from treereg_core.params import SlicingParams
+    from treereg_core.params import SlicesParams
     from treereg_core.fine.slicing import slice_scans
 
     scans, T_true = cases[2]
-    p = SlicingParams(quantiles=(0.25, 0.5, 0.75), thickness_m=0.1)
-    sl = slice_scans(scans[0], scans[1], T_true[1], slicing=p)
+    p = SlicesParams(quantiles=(0.25, 0.5, 0.75), thickness_m=0.1)
+    sl = slice_scans(scans[0], scans[1], T_true[1], slices=p)
     lo, hi = sl.z_extent_m
     assert np.allclose(sl.heights_m, lo + np.array([0.25, 0.5, 0.75]) * (hi - lo))
     z_tgt = apply_transform(T_true[1], scans[1].points)[:, 2]
@@ -198,7 +198,7 @@ def test_slices_are_taken_at_reference_heights_with_the_target_mapped(cases):
         assert np.all(np.abs(z_tgt[it] - h) <= 0.05)
         assert len(it) == np.count_nonzero(np.abs(z_tgt - h) <= 0.05)
     # Lifting the target by 20 cm in the reference frame selects other target points.
-    lifted = slice_scans(scans[0], scans[1], make_transform(np.eye(3), [0, 0, 0.2]) @ T_true[1], slicing=p)
+    lifted = slice_scans(scans[0], scans[1], make_transform(np.eye(3), [0, 0, 0.2]) @ T_true[1], slices=p)
     assert not np.array_equal(lifted.tgt_indices[1], sl.tgt_indices[1])
     assert all(np.array_equal(a, b) for a, b in zip(lifted.ref_indices, sl.ref_indices))
 

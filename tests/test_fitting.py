@@ -13,7 +13,7 @@ from treereg_core.fine.fitting import (
     fit_cylinder,
     judge_fit,
 )
-from treereg_core.params import FitParams
+from treereg_core.params import SectionsParams
 
 
 def _circle(centre, r, a0, a1, n, sigma, rng):
@@ -80,7 +80,7 @@ def test_cylinder_fit_without_refinement_is_close_and_refinement_improves_it():
 
 
 def test_judge_fit_rejects_small_arcs_large_residuals_and_radii():
-    p = FitParams(min_arc_deg=45, max_rms_m=0.01, max_radius_m=0.5)
+    p = SectionsParams(min_arc_deg=45, max_rms_m=0.01, max_radius_m=0.5)
     rng = np.random.default_rng(3)
     good = judge_fit(fit_circle_taubin(_circle((0, 0), 0.2, 0, 150, 100, 0.002, rng)), p)
     assert good.plausible and good.reason == ""

@@ -19,8 +19,8 @@ PAPER_VALUES = {
     ("matching", "n_pairs"): 3,  # 2.1.3: three pairs of similar images
     ("matching", "matches_per_pair"): 5,  # 2.1.3: the five best matching pairs per image pair
     ("coarse", "estimator"): "svd",  # 2.1.4: SVD (Challis, 1995) over the tie points
-    ("slicing", "quantiles"): (0.25, 0.5, 0.75),  # 2.2.1: quartiles of tree height
-    ("slicing", "thickness_m"): 0.1,  # 2.2.1: 10 cm
+    ("slices", "quantiles"): (0.25, 0.5, 0.75),  # 2.2.1: quartiles of tree height
+    ("slices", "thickness_m"): 0.1,  # 2.2.1: 10 cm
     ("arcs", "connectivity"): 3.0,  # 2.2.2: d_alpha, d_beta compared with 3 phi, 3 varphi
     ("fine", "estimator"): "svd",  # 2.2.3: SVD over the fitted centres
     ("fine", "max_iterations"): 1,  # one fine step
@@ -36,7 +36,7 @@ ROBUST_DEPARTURES = {
     ("coarse", "estimator"),
     ("fine", "estimator"),
     ("fine", "max_iterations"),
-    ("slicing", "quantiles"),
+    ("slices", "quantiles"),
 }
 
 
@@ -86,13 +86,30 @@ def test_partial_file_keeps_the_base(tmp_path):
     assert p.fine.max_iterations == 2 and p.matching == P.PRESETS["paper"].matching
 
 
+def test_a_config_with_the_old_section_names_means_the_same(tmp_path):
+    """`slicing` and `fitting` were renamed after their stages (`slices`, `sections`): a config file,
+    transforms.json's params or `--set` written with the old names still sets the same fields."""
+    from treereg_cli.common import apply_sets
+
+    old = {"slicing": {"thickness_m": 0.2, "quantiles": [0.3, 0.6]}, "fitting": {"gate_m": 0.4, "taper_check": False}}
+    path = tmp_path / "old.json"
+    path.write_text(json.dumps(old))
+    new = P.Params().with_value("slices", "thickness_m", 0.2).with_value("slices", "quantiles", (0.3, 0.6))
+    new = new.with_value("sections", "gate_m", 0.4).with_value("sections", "taper_check", False)
+    assert P.load(path) == new != P.Params()
+    assert apply_sets(P.Params(), ["slicing.thickness_m=0.2"]).slices.thickness_m == 0.2
+    assert "slicing" not in P.SECTIONS and "fitting" not in P.SECTIONS
+    with pytest.raises(ConfigError, match="sections.no_such"):
+        P.from_dict({"fitting": {"no_such": 1}})
+
+
 def test_values_are_coerced_from_text():
     p = P.Params()
     assert p.with_value("coarse", "inlier_m", "0.25").coarse.inlier_m == 0.25
     assert p.with_value("coarse", "iterations", "300").coarse.iterations == 300
     assert p.with_value("matching", "beta_check", "yes").matching.beta_check is True
     assert p.with_value("projection", "border_px", "4, 6").projection.border_px == (4, 6)
-    assert p.with_value("slicing", "quantiles", [0.3, 0.6]).slicing.quantiles == (0.3, 0.6)
+    assert p.with_value("slices", "quantiles", [0.3, 0.6]).slices.quantiles == (0.3, 0.6)
     assert p.with_value("prepare", "crop_radius_m", None).prepare.crop_radius_m is None
 
 
@@ -156,7 +173,7 @@ def test_sections_are_frozen():
     assert [f.name for f in fields(P.Params)] == list(P.SECTIONS)
 
 
-@pytest.mark.parametrize("section, name", [("slicing", "quantiles"), ("evaluation", "quantiles")])
+@pytest.mark.parametrize("section, name", [("slices", "quantiles"), ("evaluation", "quantiles")])
 def test_quantiles_outside_zero_one_are_rejected(section, name):
     with pytest.raises(ConfigError, match=rf"{section}\.{name}: 1\.5 is outside the allowed range \(0 to 1\)"):
         P.Params().with_value(section, name, (0.25, 0.5, 1.5))

@@ -1,15 +1,15 @@
 """Soak: the server is never stuck and does not grow (issue 10).
 
-`treereg view` on two demo scans, five browser tabs stepping through the stages and pressing Run,
+`treereg view` on two demo scans, several browser tabs stepping through the stages and pressing Run,
 while one of them uploads a third scan, runs, and removes it again, over and over. Every tab must
 still answer at the end, the scans must be as they started, no error may have been shown or
 logged, and the server's resident memory must stay within 20% of what it was after the warm-up
 (every stage drawn once and one cycle: libraries, caches and first drawings are paid once).
 
-Marked `soak`; the default `pytest` runs it at a size that fits the suite's time budget (12 s of
-stepping, 3 cycles: about 1.2 minutes on a quiet 2-core machine, 3 on a busy one). The size issue 10
-asks for (60 s, 20 cycles) is `python benchmarks/bench_soak.py`, or TREEREG_SOAK_SECONDS=60
-TREEREG_SOAK_CYCLES=20 here; its result is in benchmarks/RESULTS.md. `-s` prints timings and memory.
+Marked `soak`; the default `pytest` runs it at a size that fits the suite's time budget (3 tabs,
+12 s of stepping, 2 cycles). The size issue 10 asks for (5 tabs, 60 s, 20 cycles) is `python
+benchmarks/bench_soak.py`, or TREEREG_SOAK_TABS=5 TREEREG_SOAK_SECONDS=60 TREEREG_SOAK_CYCLES=20 here;
+its result is in benchmarks/RESULTS.md. `-s` prints timings and memory.
 """
 
 from __future__ import annotations
@@ -32,9 +32,9 @@ from treereg_core.demo import DEMO_DIR
 pytestmark = [pytest.mark.soak, pytest.mark.browser]
 
 REPO = Path(__file__).resolve().parent.parent
-TABS = 5
+TABS = int(os.environ.get("TREEREG_SOAK_TABS", 3))
 STEPPING_S = float(os.environ.get("TREEREG_SOAK_SECONDS", 12.0))
-CYCLES = int(os.environ.get("TREEREG_SOAK_CYCLES", 3))
+CYCLES = int(os.environ.get("TREEREG_SOAK_CYCLES", 2))
 MEMORY_GROWTH = 0.20
 #: Parameters of a cheap run (one fine iteration, no ICP, a short evaluation).
 LIGHT = {"matching": {"n_pairs": 3}, "fine": {"max_iterations": 1}, "icp": {"enabled": False},
@@ -91,7 +91,7 @@ class Cycle:
         self.state, self.since = state, time.monotonic()
 
 
-def test_five_tabs_and_upload_cycles_leave_the_server_answering_and_flat(browser, tmp_path):
+def test_tabs_and_upload_cycles_leave_the_server_answering_and_flat(browser, tmp_path):
     from playwright.sync_api import expect
 
     for name in ("scan1.ply", "scan2.ply"):
@@ -124,7 +124,7 @@ def test_five_tabs_and_upload_cycles_leave_the_server_answering_and_flat(browser
         first.wait_for_function("() => /✓ 13 Result/.test(document.body.innerText)", timeout=240_000)
         first.get_by_role("tab", name="Scans").click()
         shown = first.get_by_label("Points shown per scan", exact=True)
-        shown.fill("3000")  # five tabs draw every change on the CPU: keep each drawing small
+        shown.fill("3000")  # every tab draws every change on the CPU: keep each drawing small
         shown.press("Enter")
         # Warm-up: every stage drawn once in every tab (each tab has its own view and scene), one
         # cycle; then the memory we hold the server to.

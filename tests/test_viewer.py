@@ -27,8 +27,11 @@ from treereg_viewer.app import TreeregApp
 from treereg_viewer.controller import Controller
 from treereg_viewer.export import export_bundle
 from treereg_viewer.palette import scan_color
-from treereg_viewer.renderers import RENDERERS
-from treereg_viewer.stages import APP_STAGES, VIEWS, label
+from treereg_viewer.labels import APP_STAGES, label
+from treereg_viewer.stages import STAGES as APP_STAGE_MODULES
+from treereg_viewer.stages.base import TargetControl
+from treereg_viewer.stages.evaluation import ResultControls
+from treereg_viewer.stages.sections import FitControls
 
 #: The fine stage's tolerance (issue 4): rotation error and mean displacement against truth.
 ROT_TOL_DEG = 0.5
@@ -114,8 +117,21 @@ def test_app_runs_every_stage_and_matches_truth(env, case):
 
 
 def test_the_apps_stages_are_the_pipelines():
+    """One module per core stage, named as the stage, and nothing else in the stages package but `base`:
+    each holds its stage's view, drawing, controls and tour steps; a stage without a module does not load."""
+    import pkgutil
+
+    import treereg_viewer.stages as app_stages
+
     assert tuple(APP_STAGES) == tuple(STAGES)
-    assert set(VIEWS) == set(STAGE_NAMES) == set(RENDERERS)  # every stage has its view and its drawing
+    modules = {m.name for m in pkgutil.iter_modules(app_stages.__path__)} - {"base"}
+    assert modules == set(STAGE_NAMES)
+    assert tuple(APP_STAGE_MODULES) == STAGE_NAMES
+    for name, stage in APP_STAGE_MODULES.items():
+        assert stage.name == name and callable(stage.draw) and stage.view.explanation
+        assert all(step.stage == name for step in stage.tour)
+    with pytest.raises(ImportError, match="'pruning' has no module treereg_viewer/stages/pruning.py"):
+        app_stages._load("pruning")
 
 
 def test_next_steps_through_every_stage_and_draws_its_layer(env, case):
@@ -225,13 +241,13 @@ def test_invalid_parameter_is_rejected_and_the_input_shows_what_is_in_force(env)
     server, app = env
     ctl = app.controller
     before = ctl.snapshot
-    text = app.stages.sections["slicing"].handles["quantiles"]
+    text = app.stages.sections["slices"].handles["quantiles"]
     shown = text.value
     text.value = "a quarter, a half"
     _idle(app)
     assert text.value == shown
     assert ctl.params == before.params
-    assert "slicing.quantiles" in app.stages.message_md.content and "⚠" in app.stages.message_md.content
+    assert "slices.quantiles" in app.stages.message_md.content and "⚠" in app.stages.message_md.content
     number = app.stages.sections["coarse"].handles["inlier_m"]
     number.value = "-1"  # below its minimum
     _idle(app)
@@ -240,7 +256,7 @@ def test_invalid_parameter_is_rejected_and_the_input_shows_what_is_in_force(env)
     assert all(ctl.snapshot.output(s) is before.output(s) for s in STAGE_NAMES)
 
 
-def test_an_arcs_parameter_reruns_arcs_and_what_follows_never_slicing(small_app):
+def test_an_arcs_parameter_reruns_arcs_and_what_follows_never_slices(small_app):
     app = small_app
     ctl = app.controller
     app.stages.run_button.value = True
@@ -385,7 +401,7 @@ def test_good_upload_adds_a_scan_in_the_next_colour(small_app, case):
     assert [cb.label for cb in app.scans._checkboxes][-1] == "4: extra.ply"
     node = app.server.scene._handle_from_node_name["/scans/s3/points"]
     assert np.all(np.asarray(node.colors).reshape(-1, 3) == scan_color(3))
-    assert "extra.ply → scan1.ply" in app.stages.view_controls["target_matching"].options
+    assert "extra.ply → scan1.ply" in app.stages.control("matching", TargetControl).dropdown.options
     # Rows with NaN are dropped by the reader: the message says so, the scan is added.
     pts = case.scans[1].points[:3000].copy()
     pts[::4, 2] = np.nan
@@ -516,7 +532,7 @@ def test_a_note_is_not_hidden_by_the_parameters_changed_line(small_app):
 
 
 def test_match_lines_join_the_matched_pixels():
-    from treereg_viewer.drawing import binary_to_rgb, display_xy, draw_lines, hstack
+    from treereg_viewer.draw.images import binary_to_rgb, display_xy, draw_lines, hstack
 
     img = np.full((20, 30), 255, np.uint8)
     img[5, 7] = 0  # row 5, column 7 (eq. 3 layout: row 0 = lowest elevation)
@@ -649,9 +665,9 @@ def test_fits_hide_rejected_ones_and_never_draw_one_larger_than_its_slice(env):
     used = sum("| yes |" in line for line in app.panel.table.splitlines())
     n_pairs = app.controller.snapshot.output("sections").items[app.view.target].n_pairs
     assert 0 < used <= 2 * n_pairs, (used, n_pairs)
-    options = app.stages.view_controls["focus_sections"].options
+    options = app.stages.control("sections", FitControls).focus.options
     assert options[0] == "(none)" and options[1].startswith("#1: ")
-    app.stages.view_controls["focus_sections"].value = options[1]
+    app.stages.control("sections", FitControls).focus.value = options[1]
     _idle(app)
     assert app.view.focus_section == 0 and "/sections/focus" in _nodes(server)
     assert app.view.section_height is not None
@@ -662,21 +678,21 @@ def test_fits_hide_rejected_ones_and_never_draw_one_larger_than_its_slice(env):
 def test_result_colours_by_residual_and_shows_the_pose_chosen(env, case):
     server, app = env
     app.select_stage("evaluation")
-    app.stages.view_controls["result_pose"].value = "ICP"  # the button group's click
+    app.stages.control("evaluation", ResultControls).pose.value = "ICP"  # the button group's click
     _idle(app)
     T = app.controller.snapshot.output("icp").items[0].T_ref_target
     assert np.allclose(app.drawer._scan_frames[1].position, T[:3, 3], atol=1e-6)
     assert any(n.startswith("/evaluation/label") for n in _nodes(server))  # the evaluated branches, named
-    app.stages.view_controls["result_colour"].value = "Distance to the other scans"
+    app.stages.control("evaluation", ResultControls).colour.value = "Distance to the other scans"
     _idle(app)
     cols = np.asarray(server.scene._handle_from_node_name["/scans/s1/points"].colors).reshape(-1, 3)
     assert len(np.unique(cols, axis=0)) > 20  # a colour map, not one scan colour
     assert app.panel.images[0].visible  # its colour bar
-    app.stages.view_controls["result_colour"].value = "Scan colours, see-through"
+    app.stages.control("evaluation", ResultControls).colour.value = "Scan colours, see-through"
     _idle(app)
     assert type(server.scene._handle_from_node_name["/scans/s1/points"]).__name__ == "GaussianSplatHandle"
-    app.stages.view_controls["result_colour"].value = "Scan colours"
-    app.stages.view_controls["result_pose"].value = "Final"  # back to the joint placement (the default)
+    app.stages.control("evaluation", ResultControls).colour.value = "Scan colours"
+    app.stages.control("evaluation", ResultControls).pose.value = "Final"  # back to the joint placement (the default)
     _idle(app)
     T = app.controller.snapshot.output("graph").items[1].T_ref_scan
     assert np.allclose(app.drawer._scan_frames[1].position, T[:3, 3], atol=1e-6)

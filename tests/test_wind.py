@@ -203,7 +203,7 @@ def test_the_scans_table_says_why_a_scan_was_not_filtered():
     import viser
 
     from treereg_viewer.controller import Snapshot
-    from treereg_viewer.renderers.scans import render
+    from treereg_viewer.stages.prepare import render
     from treereg_viewer.view_state import ViewState
 
     s = _case(mixed_pixels=0.4).scans[0]

@@ -64,7 +64,7 @@ def apply_sets(params: Params, settings: list[str]) -> Params:
         if not (eq and dot and section and name):
             raise ConfigError(f"--set {setting}: expected section.field=value (e.g. --set projection.theta_deg=5; "
                               "`treereg params --explain` lists every key)")
-        section, name = P.MOVED.get((section, name), (section, name))
+        section, name = P.moved(section, name)
         try:
             params = params.with_value(section, name, set_value(text))
         except ConfigError as e:

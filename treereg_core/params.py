@@ -171,7 +171,7 @@ class HypothesesParams:
 
 
 @dataclass(frozen=True)
-class SlicingParams:
+class SlicesParams:
     """horizontal slices of reference and target after coarse."""
 
     quantiles: tuple[float, ...] = _f(tuple(round(0.05 * k, 2) for k in range(1, 20)), "",
@@ -189,7 +189,7 @@ class ArcParams:
 
 
 @dataclass(frozen=True)
-class FitParams:
+class SectionsParams:
     """circle (Taubin) and cylinder fits, correspondence and the fine transform."""
 
     min_arc_deg: float = _f(45.0, "deg", "smallest arc (angle covered about the centre) trusted for a fit", lo=0.0, hi=360.0)
@@ -338,9 +338,9 @@ class Params:
     matching: MatchingParams = field(default_factory=MatchingParams)
     coarse: CoarseParams = field(default_factory=CoarseParams)
     hypotheses: HypothesesParams = field(default_factory=HypothesesParams)
-    slicing: SlicingParams = field(default_factory=SlicingParams)
+    slices: SlicesParams = field(default_factory=SlicesParams)
     arcs: ArcParams = field(default_factory=ArcParams)
-    fitting: FitParams = field(default_factory=FitParams)
+    sections: SectionsParams = field(default_factory=SectionsParams)
     fine: FineParams = field(default_factory=FineParams)
     joint: JointParams = field(default_factory=JointParams)
     surface: SurfaceParams = field(default_factory=SurfaceParams)
@@ -383,6 +383,16 @@ MOVED: dict[tuple[str, str], tuple[str, str]] = {
     ("fine", "measure_tolerance_m"): ("acceptance", "tolerance_m"), ("fine", "accept_margin"): ("acceptance", "margin"),
     ("evaluation", "run_icp"): ("icp", "enabled"),
 }
+#: Sections renamed after their stage (issue 19): every field of the old name is taken at the new.
+RENAMED_SECTIONS: dict[str, str] = {"slicing": "slices", "fitting": "sections"}
+MOVED.update({(old, f.name): (new, f.name) for old, new in RENAMED_SECTIONS.items()
+              for f in fields(getattr(Params(), new))})
+
+
+def moved(section: str, name: str) -> tuple[str, str]:
+    """Where `section.name` lives now (`MOVED`; an unknown field of a renamed section is looked up,
+    and reported, under the section's new name)."""
+    return MOVED.get((section, name), (RENAMED_SECTIONS.get(section, section), name))
 
 
 def _paper() -> Params:
@@ -394,9 +404,9 @@ def _paper() -> Params:
         projection=replace(p.projection, relative_azimuth=False, max_image_px=None, min_span_deg=0.0, square_pixels=False),
         matching=replace(p.matching, n_pairs=3, matches_per_pair=5, beta_check=True, image_mode="binary", snap_px=0),
         coarse=replace(p.coarse, estimator="svd", dof=6, refit_6dof=False, final_inlier_m=None),
-        slicing=replace(p.slicing, quantiles=(0.25, 0.5, 0.75), thickness_m=0.1),
+        slices=replace(p.slices, quantiles=(0.25, 0.5, 0.75), thickness_m=0.1),
         arcs=replace(p.arcs, connectivity=3.0, max_range_jump_m=None),
-        fitting=replace(p.fitting, max_radius_ratio=None, refine_cylinders=True, circle_lowest=True,
+        sections=replace(p.sections, max_radius_ratio=None, refine_cylinders=True, circle_lowest=True,
                         taper_check=True, taper_tolerance=0.0, min_arc_deg=0.0, max_rms_m=1.0),
         fine=replace(p.fine, method="ties", estimator="svd", max_iterations=1, gate_factor=None),
         acceptance=replace(p.acceptance, test=False),
@@ -503,12 +513,12 @@ def from_dict(data: dict[str, Any], base: Params | None = None, source: str = "p
         base = PRESETS[preset]
     p = base or Params()
     for s, values in data.items():
-        if s not in SECTIONS:
+        if s not in SECTIONS and s not in RENAMED_SECTIONS:
             raise ConfigError(f"{source}: unknown section {s!r}; sections are {', '.join(SECTIONS)}")
         if not isinstance(values, dict):
             raise ConfigError(f"{source}: section {s!r} must be an object")
         for k, v in values.items():
-            sec, name = MOVED.get((s, k), (s, k))
+            sec, name = moved(s, k)
             try:
                 p = p.with_value(sec, name, v)
             except ConfigError as e:

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .controller import Snapshot
-from .renderers.common import display_subset
+from .draw.common import display_subset
 from .stages import registered
 
 #: viser's vertical field of view (75 deg) and the scene's width/height between the two docked

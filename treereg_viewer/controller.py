@@ -27,7 +27,7 @@ from treereg_core.scan import Scan
 from treereg_core.stage import Event, Pair, StageFinished, StageOutput, StageProgress, StageStarted
 from treereg_core.stages import STAGE_NAMES as STAGES
 
-from .stages import label
+from .labels import label
 from .uploads import discard
 
 log = logging.getLogger(__name__)

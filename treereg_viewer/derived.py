@@ -20,7 +20,7 @@ from treereg_core.evaluate.residuals import overlap_residuals
 from treereg_core.geometry.rigid import apply_transform
 
 from .controller import Snapshot
-from .renderers.common import display_subset
+from .draw.common import display_subset
 from .stages import POSE_STAGE
 from .view_state import SECTION_POSES, ViewState
 
@@ -139,8 +139,8 @@ class Derived:
             wanted = ["coarse"]
         poses = {p: pose_transforms(snap, p) for p in wanted}
         params = snap.params
-        thickness = view.section_thickness or params.slicing.thickness_m
-        ids = (id(snap.output("prepare")), *(id(snap.output(p)) for p in wanted), params.arcs, params.fitting)
+        thickness = view.section_thickness or params.slices.thickness_m
+        ids = (id(snap.output("prepare")), *(id(snap.output(p)) for p in wanted), params.arcs, params.sections)
         if view.branch is not None:
             branches = evaluated_branches(snap, view.target)
             if not 0 <= view.branch < len(branches):
@@ -150,14 +150,14 @@ class Derived:
             key = ("branch", *ids, id(snap.output("evaluation")), view.target, view.branch, tuple(wanted))
             return self._get(key, lambda: branch_section(
                 scans, poses, point_m=b.point_m, axis=b.axis, radius_m=b.radius_m, layer_z_m=b.layer_z_m,
-                thickness_m=ev.layer_thickness_m, margin_m=ev.margin_m, arcs=params.arcs, fitting=params.fitting))
+                thickness_m=ev.layer_thickness_m, margin_m=ev.margin_m, arcs=params.arcs, sections=params.sections))
         h = view.section_height if view.section_height is not None else default_height(snap, view.target)
         if h is None:
             return None
         h = round(float(h), 3)  # millimetres: a slider's float noise must not miss the cache
         key = ("stem", *ids, h, round(thickness, 4), tuple(wanted))
         return self._get(key, lambda: stem_section(scans, poses, h, thickness_m=thickness, below_m=BELOW_M,
-                                                   arcs=params.arcs, fitting=params.fitting))
+                                                   arcs=params.arcs, sections=params.sections))
 
     # ---- residuals -----------------------------------------------------------------------------------
     def residuals(self, snap: Snapshot, pose: str, max_points: int, top_m: float = 0.02) -> list[np.ndarray] | None:

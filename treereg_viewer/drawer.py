@@ -28,27 +28,21 @@ from treereg_core.stages import stage as core_stage
 
 from .controller import Snapshot
 from .derived import Derived, default_height, evaluated_branches, height_range
-from .renderers import RENDERERS, Renderer
-from .renderers import cross_section
-from .renderers.common import item_message, not_ready_text, render_metrics, target_index, title
-from .renderers.scans import apply_poses, draw_scan_layer, residual_mode, scan_layer_key, scan_poses, scans_shown
-from .stages import STAGE_NAMES, section_available
+from .draw import cross_section
+from .draw.common import item_message, not_ready_text, target_index, title
+from .draw.scan_layer import apply_poses, draw_scan_layer, residual_mode, scan_layer_key, scan_poses, scans_shown
+from .stages import STAGE_NAMES, section_available, stage_of
 from .view_panel import PanelContent, ViewPanel
 from .view_state import ViewState
 
 log = logging.getLogger(__name__)
-
-#: Stages without a renderer of their own show their metrics.
-_GENERIC = Renderer(render_metrics, ("target",))
-#: The view choices the cross-section depends on.
-SECTION_FIELDS = ("section_height", "section_thickness", "section_poses", "branch", "target", "show_rejected")
 
 
 def render_stage(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> tuple[list[Any], PanelContent]:
     """The current stage's drawing; what every renderer would otherwise begin with is done here:
     nothing to show yet (the panel says why), or the chosen pair skipped (its message)."""
     name = view.stage
-    r = RENDERERS.get(name, _GENERIC)
+    r = stage_of(name)
     out = snap.output(name)
     if r.needs_output and (out is None or not out.items):
         return [], PanelContent(title(name), text=not_ready_text(snap, name))
@@ -194,7 +188,7 @@ class Drawer:
                     h.visible = s.name not in view.hidden_scans and scans_shown(view)
             # The current stage's layer; the others are hidden (the scans stay).
             name = view.stage
-            fields = RENDERERS.get(name, _GENERIC).view_fields
+            fields = stage_of(name).view_fields
             # Drawn anew when its output or an earlier one (its inputs, the poses it draws at) changed,
             # or a view choice it uses.
             upto = STAGE_NAMES[: STAGE_NAMES.index(name) + 1]

@@ -10,7 +10,7 @@ from typing import Any
 
 from treereg_core import params as P
 
-from .renderers.common import md_table
+from .draw.common import md_table
 
 def _about_robust(p: P.Params) -> str:
     return (
@@ -19,7 +19,7 @@ def _about_robust(p: P.Params) -> str:
         f"{'a grey distance ramp around the occupied pixels' if p.matching.image_mode == 'ramp' else 'the binary image'}, "
         f"{p.matching.n_pairs} image pairs with up to {p.matching.matches_per_pair} matches each, "
         f"{p.coarse.estimator.upper()} ({p.coarse.dof} DOF{', then a full refit' if p.coarse.refit_6dof else ''}) "
-        f"for the coarse transform, {len(p.slicing.quantiles)} slices, and a fine update"
+        f"for the coarse transform, {len(p.slices.quantiles)} slices, and a fine update"
         f"{' that is kept only when it improves the alignment' if p.acceptance.test else ''}."
     )
 
@@ -31,7 +31,7 @@ def _about_paper(p: P.Params) -> str:
         f"{p.matching.n_pairs} image pairs with the {p.matching.matches_per_pair} best ORB matches each"
         f"{', checked by β' if p.matching.beta_check else ''}, one {p.coarse.estimator.upper()} over all "
         f"{p.matching.n_pairs * p.matching.matches_per_pair} or fewer tie points ({p.coarse.dof} DOF), "
-        f"{len(p.slicing.quantiles)} slices, {p.fine.max_iterations} fine iteration(s)"
+        f"{len(p.slices.quantiles)} slices, {p.fine.max_iterations} fine iteration(s)"
         f"{'' if p.acceptance.test else ' without an acceptance test'}.\n\n"
         "**Why it often fails:** with so few tie points a few wrong matches, unavoidable on binary images "
         "(paper 4.1), pull the SVD far off; nothing rejects them, so a scan can come out rotated or even "

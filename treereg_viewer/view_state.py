@@ -40,7 +40,7 @@ class ViewState:
     focus_section: int | None = None  # Fits and Fine: the table row (0-based) picked to look at
     panel: str = "stage"  # the docked panel shows "stage" details or the "section" inspector
     section_height: float | None = None  # cross-section height (m, reference frame); None = the trunk slice
-    section_thickness: float | None = None  # slab thickness (m); None = the slicing thickness in force
+    section_thickness: float | None = None  # slab thickness (m); None = the slices stage's thickness in force
     section_poses: str = "Coarse and fine"  # a key of SECTION_POSES
     branch: int | None = None  # cross-section of an evaluated branch (its index) instead of the stem
     tour_step: int | None = None  # the guided tour's step, when the tour is on

@@ -32,8 +32,8 @@ from .controller import Controller, Snapshot
 from .derived import default_height, prepared_scans
 from .drawer import Drawer
 from .export_panel import ExportPanel
-from .renderers.common import display_subset
-from .renderers.fine import focus_rows
+from .draw.common import display_subset
+from .draw.fits import focus_rows
 from .scan_panel import ScanPanel
 from .stage_panel import StagePanel
 from .stages import STAGE_NAMES, registered, section_available
@@ -179,9 +179,7 @@ class Viewer:
         labels = [f"{s.name} → {snap.scans[0].name}" for s in snap.scans[1:]]
         if label in labels:
             self.set_view(target=labels.index(label), match_pair=0)
-            for key, h in self.stages.view_controls.items():
-                if key.startswith("target") and h.value != label:
-                    h.value = label
+            self.stages.show_target(label)
 
     def set_scan_visible(self, name: str, visible: bool) -> None:
         hidden = set(self.view.hidden_scans)

@@ -196,6 +196,8 @@ def _crashed(job: TreeJob, params: Params, until: str, why: str) -> TreeOutcome:
     return TreeOutcome(job.name, "error", FAILED, why, (), {}, fingerprint(job, params, until))
 
 
+# Nine parameters: the campaign (jobs, parameters, folder) and, by keyword, how it is run (stage,
+# workers or a Dask cluster, redo) and where it reports (progress, notices); each defaults sensibly.
 def run_batch(jobs: list[TreeJob], params: Params, out_dir: Path, *, until: str = "fine", workers: int | None = None,
               dask_address: str | None = None, redo: bool = False, progress: Progress | None = None,
               notice: Callable[[str], None] | None = None) -> tuple[list[TreeOutcome], int]:

@@ -6,7 +6,7 @@ circles (2.2.3); in a well registered tree the sections of all scans make one ri
 registered one several separate arcs (Figs. 11c/d, 12b, 19). `cross_sections` cuts such slabs at
 any heights, for every scan and every registration given (coarse, fine, ICP), separates each
 scan's slab into arcs exactly as the arcs stage does, fits a circle to each arc in the section
-plane, judges it like the sections stage (`FitParams`) and applies the paper's 4.2 taper check
+plane, judges it like the sections stage (`SectionsParams`) and applies the paper's 4.2 taper check
 against the slab below.
 
 A slab holds the points with |z - height| <= thickness / 2 in the reference frame (after the
@@ -24,7 +24,7 @@ import numpy as np
 from ..fine.arcs import angular_cells, separate_arcs
 from ..fine.fitting import Section, check_taper, fit_circle_taubin, judge_fit, parts_below
 from ..geometry.rigid import apply_transform
-from ..params import ArcParams, FitParams
+from ..params import ArcParams, SectionsParams
 from ..results import Metric
 from ..scan import Scan
 
@@ -174,11 +174,13 @@ def plane_axes(axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return e1, np.cross(a, e1)
 
 
+# Eleven parameters: private; one slab's points, their in-plane coordinates and arc labels, and the
+# slab's frame (origin, axis, e1, e2) to put each fitted centre back in 3-D.
 def _fit_arcs(pts: np.ndarray, uv: np.ndarray, labels: np.ndarray, n: int, k_level: int, height: float,
-              origin: np.ndarray, axis: np.ndarray, e1: np.ndarray, e2: np.ndarray, fitting: FitParams) -> list[Section]:
+              origin: np.ndarray, axis: np.ndarray, e1: np.ndarray, e2: np.ndarray, sections: SectionsParams) -> list[Section]:
     out = []
     for j in range(n):
-        fit = judge_fit(fit_circle_taubin(uv[labels == j]), fitting)
+        fit = judge_fit(fit_circle_taubin(uv[labels == j]), sections)
         centre = origin + fit.centre_m[0] * e1 + fit.centre_m[1] * e2 if fit.ok else np.full(3, np.nan)
         # The centre at the layer's height (the plane through origin may be tilted for a branch).
         out.append(Section(k_level, j, float(height), fit, centre, axis.copy(), float(fit.radius_m),
@@ -207,6 +209,8 @@ def _offsets(layer: list[ScanCut], centre: np.ndarray, gate_m: float) -> dict[st
     return out
 
 
+# Nine parameters: the scans, their poses and the heights, then by keyword the slab's thickness and
+# the arcs/sections sections the fits follow, as the pipeline's.
 def cross_sections(
     scans: Sequence[Scan],
     poses: Mapping[str, Sequence[np.ndarray | None]],
@@ -214,7 +218,7 @@ def cross_sections(
     *,
     thickness_m: float,
     arcs: ArcParams,
-    fitting: FitParams,
+    sections: SectionsParams,
     origin: np.ndarray | None = None,
     axis: np.ndarray | None = None,
     reach_m: float | None = None,
@@ -232,7 +236,7 @@ def cross_sections(
         Layer heights in the reference frame.
     thickness_m
         Slab thickness.
-    arcs, fitting
+    arcs, sections
         How slabs are separated into arcs (as the arcs stage) and how fits are judged (as the
         sections stage; `taper_check` and `taper_tolerance` decide the 4.2 check).
     origin, axis, reach_m
@@ -280,16 +284,16 @@ def cross_sections(
                     cells = np.c_[angular_cells(scan, idx)]
                 else:
                     labels, n, cells = np.empty(0, dtype=np.int64), 0, np.empty((0, 2), dtype=np.int64)
-                secs = _fit_arcs(p, uv, labels, n, k, float(h), axis_point(h), axis, e1, e2, fitting)
+                secs = _fit_arcs(p, uv, labels, n, k, float(h), axis_point(h), axis, e1, e2, sections)
                 levels.append((idx, uv, cells, labels, secs))
                 total += len(idx)
             per_scan_levels[i] = levels
         layers: list[list[ScanCut]] = [[] for _ in heights]
         for i, levels in per_scan_levels.items():
             flat = [s for lv in levels for s in lv[4]]
-            partners = parts_below(flat, fitting.gate_m)
-            if fitting.taper_check:
-                flat = check_taper(flat, fitting.taper_tolerance, fitting.gate_m)
+            partners = parts_below(flat, sections.gate_m)
+            if sections.taper_check:
+                flat = check_taper(flat, sections.taper_tolerance, sections.gate_m)
             pos = 0
             offsets = []
             for lv in levels:
@@ -300,7 +304,7 @@ def cross_sections(
                 below = tuple(partners.get(offsets[k] + j, -1) - (offsets[k - 1] if k else 0)
                               if partners.get(offsets[k] + j, -1) >= 0 else -1 for j in range(len(secs)))
                 layers[k].append(ScanCut(scans[i].name, i, idx, uv, cells, labels, mine, below))
-        offsets = tuple(_offsets(lay, axis_point(h), fitting.gate_m) for lay, h in zip(layers, heights))
+        offsets = tuple(_offsets(lay, axis_point(h), sections.gate_m) for lay, h in zip(layers, heights))
         out_poses.append(PoseCuts(pose_name, tuple(Layer(float(h), tuple(lay)) for h, lay in zip(heights, layers)),
                                   offsets))
     ok = total > 0
@@ -313,19 +317,21 @@ def cross_sections(
 
 
 def stem_section(scans: Sequence[Scan], poses: Mapping[str, Sequence[np.ndarray | None]], height_m: float, *,
-                 thickness_m: float, below_m: float, arcs: ArcParams, fitting: FitParams) -> CrossSection:
+                 thickness_m: float, below_m: float, arcs: ArcParams, sections: SectionsParams) -> CrossSection:
     """The horizontal cross-section at `height_m` (the top view), with the slab `below_m` lower for
     the 4.2 check (layer 0 is the part below, layer 1 the section asked for)."""
     return cross_sections(scans, poses, [height_m - below_m, height_m], thickness_m=thickness_m, arcs=arcs,
-                          fitting=fitting)
+                          sections=sections)
 
 
+# Ten parameters: the scans and poses, then by keyword the branch (point, axis, radius), its layers
+# (heights, thickness, margin) and the arcs/sections sections.
 def branch_section(scans: Sequence[Scan], poses: Mapping[str, Sequence[np.ndarray | None]], *, point_m: np.ndarray,
                    axis: np.ndarray, radius_m: float, layer_z_m: Sequence[float], thickness_m: float, margin_m: float,
-                   arcs: ArcParams, fitting: FitParams) -> CrossSection:
+                   arcs: ArcParams, sections: SectionsParams) -> CrossSection:
     """The evaluation layers of one branch (paper Fig. 12b): each slab keeps the points within the
     branch radius plus `margin_m` of its axis, seen along the axis."""
     # Branch arcs are small: a few points make an arc (as the evaluation separates them).
     arc_p = replace(arcs, min_points=min(arcs.min_points, 12))
-    return cross_sections(scans, poses, layer_z_m, thickness_m=thickness_m, arcs=arc_p, fitting=fitting,
+    return cross_sections(scans, poses, layer_z_m, thickness_m=thickness_m, arcs=arc_p, sections=sections,
                           origin=np.asarray(point_m, dtype=float), axis=axis, reach_m=radius_m + margin_m)

@@ -125,7 +125,7 @@ def _label_raster(col: np.ndarray, row: np.ndarray, c: float, what: str = "the s
         gc, gr = col[sel], row[sel]
         check_raster(what, int(gr.max() - gr.min()) + 2 * h + 1, int(gc.max() - gc.min()) + 2 * h + 1,
                      _RASTER_CELL_BYTES, "one cell per angular step: check the scan's angular step "
-                     "(--angular-step, prepare.angular_step_deg) or use thinner slices (slicing.thickness_m)")
+                     "(--angular-step, prepare.angular_step_deg) or use thinner slices (slices.thickness_m)")
         lab = _label_cells(gc, gr, h)
         _, inv = np.unique(lab, return_inverse=True)
         labels[sel] = inv + offset

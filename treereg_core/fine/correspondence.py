@@ -65,7 +65,7 @@ def match_sections(ref_centres: np.ndarray, tgt_centres: np.ndarray, gate_m: flo
     """
     a = np.asarray(ref_centres, dtype=float).reshape(-1, 3)
     b = np.asarray(tgt_centres, dtype=float).reshape(-1, 3)
-    empty = Correspondences(False, f"no pair of sections within {gate_m} m (fitting.gate_m)",
+    empty = Correspondences(False, f"no pair of sections within {gate_m} m (sections.gate_m)",
                             (Metric("corresponding sections", "", 0),), np.empty((0, 2), dtype=np.int64),
                             np.empty(0))
     if len(a) == 0 or len(b) == 0:

@@ -20,7 +20,7 @@ from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 
 from ..geometry.normals import pca_normals
-from ..params import FitParams
+from ..params import SectionsParams
 
 #: Points used per cylinder fit; more only cost time (a subsample keeps the arc's shape).
 MAX_FIT_POINTS = 400
@@ -313,7 +313,7 @@ def fit_cylinder(xyz: np.ndarray, axis_hint: np.ndarray | None = None, loss_scal
                        float(along.max() - along.min()))
 
 
-def judge_fit(fit: CircleFit | CylinderFit, p: FitParams) -> CircleFit | CylinderFit:
+def judge_fit(fit: CircleFit | CylinderFit, p: SectionsParams) -> CircleFit | CylinderFit:
     """The fit with `plausible` and `reason` set from the thresholds in `p`."""
     if not fit.ok:
         return fit
@@ -367,7 +367,7 @@ class Section:
 
 
 def fit_section(points: np.ndarray, slice_index: int, arc: int, height_m: float, circle: bool,
-                p: FitParams) -> Section:
+                p: SectionsParams) -> Section:
     """Fit one arc (points in the reference frame) by a circle or a cylinder and judge the fit.
 
     Cylinders are refined by least squares only when `p.refine_cylinders`."""

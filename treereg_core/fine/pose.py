@@ -2,7 +2,7 @@
 
 The slices, arcs and sections stages give the first iteration, at the coarse pose. Each iteration
 estimates an update of the transform from the corresponding sections; the next one re-slices
-both scans at the new pose (`slicing`), separates the arcs (`arcs`), fits them (`sections`) and
+both scans at the new pose (`slices`), separates the arcs (`arcs`), fits them (`sections`) and
 pairs them again. Two estimators (`FineParams.method`):
 
 * ``"ties"`` — the paper: circle centres, and for cylinders the axis point at the slice height
@@ -56,18 +56,18 @@ import numpy as np
 from ..geometry import robust
 from ..geometry.rigid import apply_transform, invert, kabsch, rotation_vector
 from ..params import (
-    AcceptanceParams, ArcParams, FineParams, FitParams, JointParams, Params, SlicingParams, SurfaceParams, WindParams,
+    AcceptanceParams, ArcParams, FineParams, SectionsParams, JointParams, Params, SlicesParams, SurfaceParams, WindParams,
 )
 from ..results import Metric, Progress, no_progress
 from ..scan import Scan
-from .arcs import SliceArcs, separate_scan_slices, separate_slices
+from .arcs import SliceArcs
 from .correspondence import Correspondences
 from .joint import JointFit, JointProblem, adjust_joint, section_offsets
-from .sections import ScanSections, SectionsResult, fit_sections, match_scan_sections, sections_at, tie_points
+from .sections import PoseFit, ScanSections, SectionsResult, fit_at_pose, match_scan_sections, tie_points
 from .bend import Bend
 from .stem import StemProfile, StemTrace, correction, stem_profile, trace_stem
 from ..prepare.ground import stem_position
-from .slicing import SliceResult, slice_scans, tree_extent
+from .slicing import SliceResult, tree_extent
 from .surface import (
     Surface, align_narrowing, mean_move, pose_update, refine_along, surface_fitness, surface_of, trimmed_residuals,
 )
@@ -105,16 +105,16 @@ _FLUTTER_M = 0.005
 @dataclass(frozen=True, kw_only=True)
 class FineSections:
     """The parameter sections `register_fine` reads: the fine pose's own (`fine`, `joint`,
-    `surface`, `acceptance`, `wind`) and how later iterations slice, separate and fit (`slicing`,
-    `arcs`, `fitting`). `FineSections.of(params)` takes them from a `Params`."""
+    `surface`, `acceptance`, `wind`) and how later iterations slice, separate and fit (`slices`,
+    `arcs`, `sections`). `FineSections.of(params)` takes them from a `Params`."""
 
     fine: FineParams
     joint: JointParams
     surface: SurfaceParams
     acceptance: AcceptanceParams
-    slicing: SlicingParams
+    slices: SlicesParams
     arcs: ArcParams
-    fitting: FitParams
+    sections: SectionsParams
     wind: WindParams = field(default_factory=lambda: WindParams(enabled=False))
 
     @classmethod
@@ -137,18 +137,6 @@ class StemSeeds:
 
 
 NO_SEEDS = StemSeeds()
-
-
-@dataclass(frozen=True, kw_only=True)
-class FineStart:
-    """The first iteration, as the slices, arcs and sections stages made it at the coarse pose.
-
-    `arcs` and `sections` are None when the stage before them failed (then `slices.message` says why).
-    """
-
-    slices: SliceResult
-    arcs: SliceArcs | None
-    sections: SectionsResult | None
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -224,15 +212,6 @@ class FineResult:
 
 
 @dataclass(frozen=True, kw_only=True)
-class _Fitted:
-    """Slices, arcs and sections of one iteration, at the pose `sections.T_ref_target`."""
-
-    slices: SliceResult
-    arcs: SliceArcs
-    sections: SectionsResult
-
-
-@dataclass(frozen=True, kw_only=True)
 class _Iterations:
     """What iterating the sections gave: the pose, each update's size, the last adjustment."""
 
@@ -240,7 +219,7 @@ class _Iterations:
     updates_m: tuple[float, ...]
     joint: JointFit | None
     note: str
-    last: _Fitted | None
+    last: PoseFit | None
     bend: Bend | None = None
 
 
@@ -268,28 +247,12 @@ class _SectionPairs:
     corr: Correspondences
 
 
-def first_iteration(ref: Scan, tgt: Scan, T_coarse: np.ndarray, *, slicing: SlicingParams, arcs: ArcParams,
-                    fitting: FitParams) -> FineStart:
-    """The slices, arcs and sections stages in one call (for a caller without the pipeline)."""
-    sl = slice_scans(ref, tgt, T_coarse, slicing=slicing)
-    if not sl.ok:
-        return FineStart(slices=sl, arcs=None, sections=None)
-    ar = separate_slices(ref, tgt, sl.ref_indices, sl.tgt_indices, arcs=arcs)
-    return FineStart(slices=sl, arcs=ar,
-                     sections=fit_sections(ref, tgt, ar.ref, ar.tgt, sl.heights_m, T_coarse, fitting=fitting))
-
-
-def _refit(run: _Run, T: np.ndarray, ref_fitted: _Fitted, seen: Scan | None = None) -> _Fitted:
-    """Slices, target arcs and target sections again at the pose `T` (the reference's never move).
-    `seen`: the target unbent (`Bend.warp`), sliced and fitted instead of `run.tgt` (its arcs stay
-    those of its own grid)."""
-    ref, tgt, ps = run.ref, run.tgt, run.params
-    seen = tgt if seen is None else seen
-    sl = slice_scans(ref, seen, T, slicing=ps.slicing)
-    ar = SliceArcs(ok=True, message="", metrics=(), ref=ref_fitted.arcs.ref,
-                   tgt=separate_scan_slices(tgt, sl.tgt_indices, ps.arcs))
-    return _Fitted(slices=sl, arcs=ar,
-                   sections=sections_at(ref, seen, ref_fitted.sections.ref, ar.tgt, sl.heights_m, T, ps.fitting))
+def _refit(run: _Run, T: np.ndarray, known: PoseFit, seen: Scan | None = None) -> PoseFit:
+    """Slices, target arcs and target sections again at the pose `T` (the reference's never move:
+    taken from `known`). `seen`: the target unbent (`Bend.warp`), sliced and fitted instead of
+    `run.tgt` (its arcs stay those of its own grid)."""
+    ps = run.params
+    return fit_at_pose(run.ref, run.tgt, T, slices=ps.slices, arcs=ps.arcs, sections=ps.sections, reference=known, seen=seen)
 
 
 def _estimate_ties(ref: ScanSections, tgt: ScanSections, corr: Correspondences, fp: FineParams) -> tuple[np.ndarray | None, str]:
@@ -379,7 +342,7 @@ def _estimate_joint(sp: _SectionPairs, T: np.ndarray, jp: JointParams, *, min_pa
     return fit, ""
 
 
-def _iterate(run: _Run, T0: np.ndarray, start: FineStart, progress: Progress, *, bend: Bend | None = None,
+def _iterate(run: _Run, T0: np.ndarray, start: PoseFit, progress: Progress, *, bend: Bend | None = None,
              max_iterations: int | None = None, T_prior: np.ndarray | None = None) -> _Iterations:
     """Estimate an update from the corresponding sections, re-slice at the new pose, repeat.
 
@@ -390,15 +353,15 @@ def _iterate(run: _Run, T0: np.ndarray, start: FineStart, progress: Progress, *,
     the target unbent by `bend` at `T0`. The adjustment's prior is centred on `T_prior` (default `T0`).
     """
     ref, tgt, sample = run.ref, run.tgt, run.sample
-    fp, joint, fitting = run.params.fine, run.params.joint, run.params.fitting
+    fp, joint, fit_p = run.params.fine, run.params.joint, run.params.sections
     if start.arcs is None or start.sections is None:
         return _Iterations(T=T0.copy(), updates_m=(), joint=None,
                            note=start.slices.message or "the sections could not be fitted", last=None, bend=bend)
-    cur = _Fitted(slices=start.slices, arcs=start.arcs, sections=start.sections)
+    cur = start
     T = T0.copy()
     updates: list[float] = []
     fit: JointFit | None = None
-    last: _Fitted | None = None
+    last: PoseFit | None = None
     note = ""
     seen = tgt if bend is None or bend.sway_m == 0 else bend.warp(tgt, T0)
     T_prior = T0 if T_prior is None else T_prior
@@ -409,12 +372,15 @@ def _iterate(run: _Run, T0: np.ndarray, start: FineStart, progress: Progress, *,
         if it > 1:
             seen = tgt if bend is None or bend.sway_m == 0 else bend.warp(tgt, T)
             cur = _refit(run, T, cur, seen)
+        if cur.sections is None:  # the slices at the new pose miss the overlap (`slices.message`)
+            note = cur.slices.message
+            break
         last = cur
         ref_s, tgt_s, corr = cur.sections.ref, cur.sections.tgt, cur.sections.correspondences
         if it > 1 and corr.ok and fp.gate_factor is not None:
             # Once the pose is close, right pairs sit far closer than the coarse gate: a pair much
             # farther apart than the median (a fork mistaken for a stem) is dropped.
-            corr = match_scan_sections(ref_s, tgt_s, fitting,
+            corr = match_scan_sections(ref_s, tgt_s, fit_p,
                                        max(fp.min_gate_m, fp.gate_factor * float(np.median(corr.distances_m))))
         if not cur.slices.ok or not corr.ok or len(corr.pairs) < fp.min_pairs:
             note = (cur.slices.message if not cur.slices.ok else
@@ -584,7 +550,7 @@ def _verdict(n_updates: int, chosen: str, fallback: bool, note: str, residuals: 
     return True, message
 
 
-def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, *, params: FineSections, start: FineStart | None = None,
+def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, *, params: FineSections, start: PoseFit | None = None,
                   seeds: StemSeeds = NO_SEEDS, progress: Progress | None = None) -> FineResult:
     """Refine the coarse transform of `tgt` onto `ref` from stem and branch sections.
 
@@ -614,7 +580,7 @@ def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, *, params: FineSec
     if T0.shape != (4, 4) or not np.isfinite(T0).all():
         return failed_fine(T0, "the coarse transform is missing or not finite; run coarse registration first")
     if start is None:
-        start = first_iteration(ref, tgt, T0, slicing=params.slicing, arcs=params.arcs, fitting=params.fitting)
+        start = fit_at_pose(ref, tgt, T0, slices=params.slices, arcs=params.arcs, sections=params.sections)
     rng = np.random.default_rng(0)
     sample = tgt.points if tgt.n_points <= _SAMPLE else tgt.points[rng.choice(tgt.n_points, _SAMPLE, replace=False)]
     run = _Run(ref=ref, tgt=tgt, sample=sample, params=params, seeds=seeds)
@@ -695,7 +661,7 @@ def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, *, params: FineSec
     )
 
 
-def _drawn_at(run: _Run, T: np.ndarray, last: _Fitted | None, bend: Bend | None = None) -> _Fitted | None:
+def _drawn_at(run: _Run, T: np.ndarray, last: PoseFit | None, bend: Bend | None = None) -> PoseFit | None:
     """What the app draws for the fine stage: slices, arcs and fits at the pose finally returned
     (the last iteration's, unless the pose has moved since by more than the tolerance)."""
     if last is None:
@@ -730,7 +696,7 @@ def _bend_probe(run: _Run, T0: np.ndarray, its: _Iterations) -> tuple[np.ndarray
     return fit.U @ its.T, stem.plus(fit.bend_m, fit.bend_std_m)
 
 
-def _with_bend(run: _Run, T0: np.ndarray, rigid: _Iterations, start: FineStart, progress: Progress) -> _Iterations | None:
+def _with_bend(run: _Run, T0: np.ndarray, rigid: _Iterations, start: PoseFit, progress: Progress) -> _Iterations | None:
     """The sections iterated with the stem's bend, when there is a sign the crown moved (None when
     there is none, or when the bend fitted turns out not to be worth modelling: the rigid result
     then stands, unchanged).
@@ -780,13 +746,12 @@ def _tilted(model: Any, wind: WindParams) -> bool:
     return tilt >= max(TILT_SIGN_DEG, wind.significance * std)
 
 
-def _bent(run: _Run, T1: np.ndarray, bend1: Bend, start: FineStart) -> _Iterations | None:
+def _bent(run: _Run, T1: np.ndarray, bend1: Bend, start: PoseFit) -> _Iterations | None:
     """The sections iterated with the stem's bend, from the pose `T1` and the bend `bend1` (the
     target sliced and fitted unbent from the first iteration on); None when that finds no bend
     worth modelling after all, or nothing to estimate."""
-    first = _refit(run, T1, _Fitted(slices=start.slices, arcs=start.arcs, sections=start.sections),
-                   bend1.warp(run.tgt, T1))
-    bent = _iterate(run, T1, FineStart(slices=first.slices, arcs=first.arcs, sections=first.sections), no_progress,
+    first = _refit(run, T1, start, bend1.warp(run.tgt, T1))
+    bent = _iterate(run, T1, first, no_progress,
                     bend=bend1, max_iterations=iteration_limit(run.params.fine, bend1), T_prior=T1)
     if bent.updates_m and bent.bend is not None and _significant(bent.bend, run.params.wind):
         return bent

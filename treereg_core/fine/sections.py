@@ -11,17 +11,18 @@ centre; a cylinder's axis point at the slice height and the point one unit furth
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Literal, Sequence
 
 import numpy as np
 
 from ..geometry.rigid import apply_transform
-from ..params import FitParams
+from ..params import ArcParams, SectionsParams, SlicesParams
 from ..results import Metric
 from ..scan import Scan
-from .arcs import ArcResult
+from .arcs import ArcResult, SliceArcs, separate_slices
 from .correspondence import Correspondences, match_sections
 from .fitting import Section, check_taper, fit_section, unfitted_section
+from .slicing import SliceResult, slice_scans
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -70,7 +71,7 @@ class SectionsResult:
         return int(len(self.correspondences.pairs))
 
 
-def fit_scan_sections(scan: Scan, arcs: Sequence[ArcResult], heights: np.ndarray, T: np.ndarray, p: FitParams,
+def fit_scan_sections(scan: Scan, arcs: Sequence[ArcResult], heights: np.ndarray, T: np.ndarray, p: SectionsParams,
                       guide: ScanSections | None = None) -> ScanSections:
     """Fit every arc of every slice of `scan` (points mapped by `T` into the reference frame).
 
@@ -104,7 +105,7 @@ def fit_scan_sections(scan: Scan, arcs: Sequence[ArcResult], heights: np.ndarray
     return ScanSections(sections=tuple(sections), members=tuple(members))
 
 
-def match_scan_sections(ref: ScanSections, tgt: ScanSections, p: FitParams, gate_m: float | None = None) -> Correspondences:
+def match_scan_sections(ref: ScanSections, tgt: ScanSections, p: SectionsParams, gate_m: float | None = None) -> Correspondences:
     """Pair plausible sections of the two scans, slice by slice, nearest centres within the gate."""
     ri = np.array([i for i, s in enumerate(ref.sections) if s.plausible], dtype=np.int64)
     ti = np.array([i for i, s in enumerate(tgt.sections) if s.plausible], dtype=np.int64)
@@ -140,7 +141,7 @@ def tie_points(ref: ScanSections, tgt: ScanSections, corr: Correspondences) -> t
 
 
 def sections_at(ref_scan: Scan, tgt_scan: Scan, ref: ScanSections, tgt_arcs: Sequence[ArcResult], heights: np.ndarray,
-                T_ref_target: np.ndarray, p: FitParams) -> SectionsResult:
+                T_ref_target: np.ndarray, p: SectionsParams) -> SectionsResult:
     """The target's sections at the pose `T_ref_target`, paired with the reference's `ref`."""
     T = np.asarray(T_ref_target, dtype=float)
     tgt = fit_scan_sections(tgt_scan, tgt_arcs, heights, T, p, guide=ref)
@@ -161,12 +162,72 @@ def sections_at(ref_scan: Scan, tgt_scan: Scan, ref: ScanSections, tgt_arcs: Seq
 
 
 def fit_sections(ref_scan: Scan, tgt_scan: Scan, ref_arcs: Sequence[ArcResult], tgt_arcs: Sequence[ArcResult],
-                 heights: np.ndarray, T_ref_target: np.ndarray, *, fitting: FitParams,
+                 heights: np.ndarray, T_ref_target: np.ndarray, *, sections: SectionsParams,
                  ref_sections: ScanSections | None = None) -> SectionsResult:
     """The sections stage: fit both scans' arcs and pair the sections.
 
     `ref_sections` passes the reference's sections when already fitted (they depend on the
     reference alone, so several targets share them).
     """
-    ref = ref_sections if ref_sections is not None else fit_scan_sections(ref_scan, ref_arcs, heights, np.eye(4), fitting)
-    return sections_at(ref_scan, tgt_scan, ref, tgt_arcs, heights, T_ref_target, fitting)
+    ref = ref_sections if ref_sections is not None else fit_scan_sections(ref_scan, ref_arcs, heights, np.eye(4), sections)
+    return sections_at(ref_scan, tgt_scan, ref, tgt_arcs, heights, T_ref_target, sections)
+
+
+@dataclass(frozen=True, kw_only=True)
+class PoseFit:
+    """Slices, arcs and sections of one pair at one pose (`sections.T_ref_target`): what the slices,
+    arcs and sections stages make at the start pose, and what each fine iteration makes again.
+
+    `arcs` and `sections` are None when not made: the slicing failed (`slices.message` says why),
+    or `fit_at_pose` was asked to stop before them.
+    """
+
+    slices: SliceResult
+    arcs: SliceArcs | None = None
+    sections: SectionsResult | None = None
+
+
+# Twelve parameters, all but the pose keyword-only: the three stages' sections plus the work already
+# done (by the stage before, by an earlier iteration, or for the reference once) that it must not redo.
+def fit_at_pose(ref: Scan, tgt: Scan, T_ref_target: np.ndarray, *, slices: SlicesParams, arcs: ArcParams,
+                sections: SectionsParams, done: PoseFit | None = None, reference: PoseFit | None = None,
+                ref_arcs: tuple[ArcResult, ...] | None = None, ref_sections: ScanSections | None = None,
+                seen: Scan | None = None, until: Literal["slices", "arcs", "sections"] = "sections") -> PoseFit:
+    """Slice both scans at the pose `T_ref_target`, separate the slices into arcs and fit the arcs
+    (paper 2.2.1-2.2.3): the one place the three steps are chained, for the stages and the fine
+    stage's iterations.
+
+    Parameters
+    ----------
+    ref, tgt
+        Reference and target scans (each in its scanner frame); the target's arcs are separated on
+        its own angular grid.
+    T_ref_target
+        The pose the target is sliced and fitted at.
+    slices, arcs, sections
+        The three stages' parameter sections.
+    done
+        Steps already made (a stage's upstream results): only the rest is computed.
+    reference
+        An earlier fit of the same pair: the reference's arcs and sections are taken from it (they
+        depend on the reference alone: its slices are the same at every pose).
+    ref_arcs, ref_sections
+        The reference's arcs and sections when already known (shared by all its pairs).
+    seen
+        The target as sliced and fitted, when not `tgt` itself (the target unbent, `Bend.warp`).
+    until
+        The last step made.
+    """
+    seen = tgt if seen is None else seen
+    T = np.asarray(T_ref_target, dtype=float)
+    if reference is not None and reference.arcs is not None and reference.sections is not None:
+        ref_arcs, ref_sections = reference.arcs.ref, reference.sections.ref
+    sl = done.slices if done is not None else slice_scans(ref, seen, T, slices=slices)
+    if until == "slices" or not sl.ok:
+        return PoseFit(slices=sl)
+    ar = done.arcs if done is not None and done.arcs is not None else separate_slices(
+        ref, tgt, sl.ref_indices, sl.tgt_indices, arcs=arcs, ref_arcs=ref_arcs)
+    if until == "arcs":
+        return PoseFit(slices=sl, arcs=ar)
+    return PoseFit(slices=sl, arcs=ar, sections=fit_sections(ref, seen, ar.ref, ar.tgt, sl.heights_m, T,
+                                                             sections=sections, ref_sections=ref_sections))

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..params import SlicingParams
+from ..params import SlicesParams
 from ..results import Metric
 from ..geometry.rigid import apply_transform
 from ..scan import Scan
@@ -79,7 +79,7 @@ def _band_members(z: np.ndarray, heights: np.ndarray, half: float) -> tuple[np.n
     return tuple(np.sort(order[a:b]) for a, b in zip(lo, hi))
 
 
-def slice_scans(ref: Scan, tgt: Scan, T_ref_target: np.ndarray, *, slicing: SlicingParams) -> SliceResult:
+def slice_scans(ref: Scan, tgt: Scan, T_ref_target: np.ndarray, *, slices: SlicesParams) -> SliceResult:
     """Slice `ref` and `tgt` (mapped by `T_ref_tgt`) at quantiles of the reference tree's height.
 
     Parameters
@@ -89,7 +89,7 @@ def slice_scans(ref: Scan, tgt: Scan, T_ref_target: np.ndarray, *, slicing: Slic
     T_ref_target
         Current 4x4 estimate mapping target points into the reference frame (coarse, or the
         previous fine iteration).
-    slicing
+    slices
         Slice heights (quantiles of tree height) and thickness.
 
     Returns
@@ -97,7 +97,7 @@ def slice_scans(ref: Scan, tgt: Scan, T_ref_target: np.ndarray, *, slicing: Slic
     SliceResult
         Per slice, indices into each scan's points.
     """
-    p = slicing
+    p = slices
     z_ref = ref.points[:, 2]
     z_tgt = apply_transform(np.asarray(T_ref_target, dtype=float), tgt.points)[:, 2]
     extent = tree_extent(z_ref)
@@ -109,7 +109,7 @@ def slice_scans(ref: Scan, tgt: Scan, T_ref_target: np.ndarray, *, slicing: Slic
     ok = both > 0
     msg = "" if ok else (
         "no slice holds points of both scans: the coarse transform may be far off, or the slices "
-        "(slicing.quantiles, slicing.thickness_m) miss the overlap of the two scans"
+        "(slices.quantiles, slices.thickness_m) miss the overlap of the two scans"
     )
     metrics = (
         Metric("slices", "", len(heights)),

@@ -148,6 +148,8 @@ def trimmed_residuals(ref: Surface, tgt: Surface, poses: list[np.ndarray], gate_
     return np.array([r[:k].mean() if v else np.inf for r, v in zip(res, valid)])
 
 
+# Nine parameters: the two surfaces, the pose, the directions refined (centre, basis) and the three
+# numbers of one point-to-plane run (gate, loss scale, iterations) besides its tolerance.
 def refine_along(ref: Surface, tgt: Surface, T: np.ndarray, centre: np.ndarray, basis: np.ndarray,
                  gate_m: float, loss_scale_m: float, iterations: int, tol_m: float = 1e-5) -> np.ndarray:
     """Point-to-plane refinement of `T` along the pose directions in `basis` only.
@@ -190,6 +192,7 @@ GATES_M = (0.1, 0.05, 0.03)
 GATE_ITERATIONS = 10
 
 
+# Ten parameters: those of `refine_along` plus the narrowing schedule (gates, iterations per gate).
 def align_narrowing(ref: Surface, tgt: Surface, T: np.ndarray, centre: np.ndarray, basis: np.ndarray,
                     final_gate_m: float, final_iterations: int, loss_scale_m: float,
                     gates_m: tuple[float, ...] = GATES_M, gate_iterations: int = GATE_ITERATIONS) -> np.ndarray:

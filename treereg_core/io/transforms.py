@@ -306,6 +306,8 @@ def write_exports(out_dir: str | Path, tf: TransformFile, name: str = DEFAULT_NA
     return paths
 
 
+# Ten parameters: the scans, transforms and parameters, and by keyword every block of the file
+# (stage, metrics, verdicts, quality, sources, time); CLI, batch and app each fill a different set.
 def registration_file(scans: Sequence[Scan], transforms: dict[str, np.ndarray], params: Params, *, stage: str,
                       metrics: dict[str, Any], verdicts: dict[str, tuple[str, tuple[str, ...], str]] | None = None,
                       quality: dict[str, Any] | None = None, keep_unverified: bool = False,

@@ -198,6 +198,8 @@ def _intersect_ground(g: GroundPlane, dx: np.ndarray, dy: np.ndarray, dz: np.nda
     return np.where(ok, t, np.inf)
 
 
+# Twelve parameters: the instrument's settings (step, noise, dropout, window, returns, mixed
+# pixels, ...), each with the default of a typical TLS; a simulation names only what it varies.
 def scan_scene(
     scene: Scene,
     angular_step_deg: tuple[float, float],

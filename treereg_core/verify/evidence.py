@@ -91,7 +91,7 @@ class Evidence:
         return dict(self.__dict__)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class PairVerification:
     """The verify stage's result for one pair.
 
@@ -380,4 +380,5 @@ def verification(T: np.ndarray, e: Evidence, verdict: str, reasons: tuple[str, .
           Metric("points counted as moved", "", e.moved)) if e.sway_m > 0 else ()) + (
         (Metric("heading the evidence prefers (turn about the stem, from the pose)", "deg", e.heading_offset_deg),)
         if np.isfinite(e.heading_offset_deg) else ())
-    return PairVerification(True, "; ".join(reasons), metrics, np.asarray(T, dtype=float), verdict, reasons, hint, e)
+    return PairVerification(ok=True, message="; ".join(reasons), metrics=metrics, T_ref_target=np.asarray(T, dtype=float),
+                            verdict=verdict, reasons=reasons, hint=hint, evidence=e)

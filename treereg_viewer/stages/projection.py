@@ -13,11 +13,12 @@ import numpy as np
 import viser
 
 from ..controller import Snapshot
-from ..drawing import binary_to_rgb, fit_factor, fit_width, hstack, upscale, vstack
+from ..draw.common import Drawing, display_subset, metrics_table, pose_kwargs, title
+from ..draw.images import binary_to_rgb, fit_factor, fit_width, hstack, upscale, vstack
 from ..palette import scan_color
 from ..view_panel import PanelContent
 from ..view_state import ViewState
-from .common import Drawing, display_subset, metrics_table, pose_kwargs, title
+from .base import AppStage, ControlHost, StageControls, StageView, TourStep
 
 
 def step_index(seq: Any, step: int) -> int:
@@ -71,5 +72,57 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
     return handles, PanelContent(title("projection"), text=text, images=tuple(images), table=table)
 
 
-#: The view choices this drawing depends on (it is redrawn when one of them changes).
-VIEW_FIELDS = ("projection_step", "projection_3d", "point_size", "max_points")
+class StepControls(StageControls):
+    """"Rotation step" (counted from 1, as the panel's "Step k of n" reads) and "Show rotated clouds in 3-D"."""
+
+    def __init__(self, gui: viser.GuiApi, host: ControlHost, stage: str) -> None:
+        self.host = host
+        self.slider = gui.add_slider("Rotation step", 1, 2, 1, 1,
+                                     hint="Walk the rotation sequence (the angle is shown in the panel).")
+        self.slider.on_update(lambda _: host.set_view(projection_step=int(self.slider.value) - 1))
+        self.in_3d = gui.add_checkbox("Show rotated clouds in 3-D", False)
+        self.in_3d.on_update(lambda _: host.set_view(projection_3d=bool(self.in_3d.value)))
+
+    def show_view(self, view: ViewState, snap: Snapshot) -> None:
+        step = view.projection_step + 1
+        if self.slider.value != step and step <= self.slider.max:
+            self.slider.value = step
+        self.in_3d.value = view.projection_3d
+
+    def show_snapshot(self, snap: Snapshot, view: ViewState) -> None:
+        proj = snap.output("projection")
+        if proj is None or not proj.items:
+            return
+        n = max(len(getattr(s, "angles_deg", ())) for s in proj.items)
+        if n > 1 and self.slider.max != n:
+            zero = next((k for k, a in enumerate(proj.items[0].angles_deg) if abs(a) < 1e-9), 0)
+            self.slider.max = n
+            self.slider.value = min(zero, n - 1) + 1
+            # A new sequence starts at the unrotated view: the view follows, even while the panel is quiet.
+            self.host.app.set_view(projection_step=min(zero, n - 1))
+
+
+STAGE = AppStage(
+    "projection",
+    StageView(
+        None,
+        explanation="Each scan is projected onto a sphere around its scanner: a pixel covers k·φ × k·ϕ of azimuth α and "
+            "elevation β (φ, ϕ: the instrument's angular steps; paper: k = 2) and is black when any point falls "
+            "in it (eq. 2-3). Two stations see the tree from different sides, so their images differ; the paper "
+            "therefore rotates each cloud about the vertical axis through its mean (x̄, ȳ) in steps θ = 10° from "
+            "−360°/n to +360°/n (n scans) and projects again, giving a sequence of views (2.1.2). "
+            "The slider walks the sequence.",
+    ),
+    draw=render,
+    view_fields=("projection_step", "projection_3d", "point_size", "max_points"),
+    controls=(StepControls,),
+    tour=(
+        TourStep(
+            "projection", "Rotating projection",
+            "Each scan is projected onto a sphere around its scanner into a binary image: a pixel is black when a point "
+            "falls into it (paper 2.1.1). Two stations see the tree from different sides, so the paper turns each cloud "
+            "about the vertical axis in 10° steps and projects it again (2.1.2).",
+            "Move *Rotation step* (Stage tab) and watch each scan's image change as its tree turns.",
+            view={"panel": "stage"}),
+    ),
+)

@@ -19,11 +19,13 @@ import viser
 
 from ..checks import TRUTH_DISP_M, TRUTH_ROT_DEG, truth_rows, truth_warnings
 from ..controller import Snapshot
+from ..draw.common import Drawing, md_table, metrics_table, pair_label, pair_scans, target_index, title
+from ..draw.motion import motion_sentence, profile_figure
 from ..palette import HIGHLIGHT, residual_legend, scan_color
 from ..view_panel import PanelContent
 from ..view_state import ViewState
-from .common import Drawing, md_table, metrics_table, pair_label, pair_scans, target_index, title
-from .motion import motion_sentence, profile_figure
+from .base import AppStage, ControlHost, StageControls, StageView, TargetControl, TourStep
+
 
 #: Colours of the three registrations in plots (coarse, fine, ICP).
 METHOD_COLORS = {"coarse": "#9e9e9e", "fine": "#1e8c3c", "ICP": "#3050c8"}
@@ -95,6 +97,8 @@ def branch_rings(scene: viser.SceneApi, root: str, ev: Any, color: tuple[int, in
 #: Registrations as the Result stage names them (pose key -> the evaluation's method name). The
 #: branches are evaluated per pair, so the final (joint) placement shows the pair's fine evaluation.
 METHOD_OF_POSE = {"coarse": "coarse", "fine": "fine", "final": "fine", "icp": "ICP"}
+
+
 POSE_NAMES = {"coarse": "coarse", "fine": "pairwise fine", "final": "final (joint placement)", "icp": "ICP"}
 
 
@@ -173,4 +177,54 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
                                  table=table)
 
 
-VIEW_FIELDS = ("target", "result_pose", "result_colour", "residual_max_m")
+#: The Result stage's choices, as people read them.
+RESULT_POSES = {"Final": "final", "Pairwise fine": "fine", "Coarse": "coarse", "ICP": "icp"}
+RESULT_COLOURS = {"Scan colours": "scan", "Scan colours, see-through": "seethrough",
+                  "Distance to the other scans": "residual"}
+
+
+class ResultControls(StageControls):
+    """"Targets at" (which registration), "Colour by" and "Colour map top (mm)"."""
+
+    def __init__(self, gui: viser.GuiApi, host: ControlHost, stage: str) -> None:
+        self.pose = gui.add_button_group("Targets at", tuple(RESULT_POSES))
+        self.pose.on_click(lambda e: host.set_view(result_pose=RESULT_POSES[e.target.value]))
+        self.colour = gui.add_dropdown("Colour by", tuple(RESULT_COLOURS), initial_value="Scan colours",
+                                       hint="Scan colours (opaque or see-through where scans overlap), or "
+                                       "each point's distance to the other scans' surface.")
+        self.colour.on_update(lambda _: host.set_view(result_colour=RESULT_COLOURS[self.colour.value]))
+        self.residual_max = gui.add_slider("Colour map top (mm)", 2, 100, 1, 20,
+                                           hint="Distances from here on get the top colour (red).")
+        self.residual_max.on_update(lambda _: host.set_view(residual_max_m=float(self.residual_max.value) / 1000.0))
+
+    def show_view(self, view: ViewState, snap: Snapshot) -> None:
+        self.colour.value = next(k for k, v in RESULT_COLOURS.items() if v == view.result_colour)
+        self.residual_max.value = max(2, min(100, round(view.residual_max_m * 1000)))
+
+
+STAGE = AppStage(
+    "evaluation",
+    StageView(
+        "final",
+        explanation="The final overlay. The paper judges a registration by its branches: in three layers of each "
+            "corresponding branch, cylinder axes are fitted in both scans and the distances between centre "
+            "points at equal height averaged, d̄ (eq. 8, 3.3), here for each pair's own fine transform. The targets "
+            "are drawn at their final (joint) placement unless you pick another. ICP from the coarse result is shown beside it, "
+            "as the paper compares. When a truth.json comes with the scans (the demo, simulated cases), the "
+            "errors against it are listed first; ⚠ marks a registration that failed. Colour the points by their "
+            "distance to the other scans to see where the scans agree.",
+    ),
+    draw=render,
+    view_fields=("target", "result_pose", "result_colour", "residual_max_m"),
+    controls=(TargetControl, ResultControls),
+    tour=(
+        TourStep(
+            "evaluation", "Judging the result",
+            "The paper judges a registration by its branches: three layers per branch, the distance between the scans' "
+            "fitted centres, averaged (eq. 8, Table 2). Here each point is also coloured by its distance to the other "
+            "scans' surface: blue where they agree, red where they do not, pink where they moved with the wind (they fit "
+            "once the crown's measured motion is taken out).",
+            "Switch *Targets at* between Final, Coarse and ICP and watch the colours change.",
+            view={"panel": "stage", "result_colour": "residual", "result_pose": "final"}),
+    ),
+)

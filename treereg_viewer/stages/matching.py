@@ -16,11 +16,12 @@ import plotly.graph_objects as go
 import viser
 
 from ..controller import Snapshot
-from ..drawing import binary_to_rgb, display_xy, draw_lines, draw_markers, fit_factor, fit_width, hstack, upscale
+from ..draw.common import Drawing, item_message, metrics_table, pair_label, plural, target_index, title
+from ..draw.images import binary_to_rgb, display_xy, draw_lines, draw_markers, fit_factor, fit_width, hstack, upscale
 from ..palette import HIGHLIGHT, KEPT, REJECTED, scan_color
 from ..view_panel import PanelContent
 from ..view_state import ViewState
-from .common import Drawing, item_message, metrics_table, pair_label, plural, target_index, title
+from .base import AppStage, ControlHost, StageControls, StageView, TargetControl, TourStep
 
 
 def similarity_figure(match: Any, angles_ref: tuple[float, ...], angles_tgt: tuple[float, ...], current: int,
@@ -117,4 +118,51 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
                                  plots=tuple(plots), table=table)
 
 
-VIEW_FIELDS = ("target", "match_pair")
+class MatchPairControl(StageControls):
+    """"Image pair": which chosen image pair's ORB matches are shown (counted from 1)."""
+
+    def __init__(self, gui: viser.GuiApi, host: ControlHost, stage: str) -> None:
+        self.slider = gui.add_slider("Image pair", 1, 2, 1, 1, hint="Which chosen image pair's ORB matches to show.")
+        self.slider.on_update(lambda _: host.set_view(match_pair=int(self.slider.value) - 1))
+
+    def show_view(self, view: ViewState, snap: Snapshot) -> None:
+        if view.match_pair + 1 <= self.slider.max:
+            self.slider.value = view.match_pair + 1
+
+    def show_snapshot(self, snap: Snapshot, view: ViewState) -> None:
+        match = snap.output("matching")
+        if match is None or not match.items:
+            return
+        t = min(view.target, len(match.items) - 1)
+        n = len(getattr(match.items[t], "pairs", ()) or ())
+        if n > 1 and self.slider.max != n:
+            self.slider.max = n
+        self.slider.disabled = n <= 1
+
+
+STAGE = AppStage(
+    "matching",
+    StageView(
+        None,
+        explanation="The most similar image pairs of two sequences (marked on the similarity matrix) are matched with "
+            "ORB, fast and suited to images with little texture (2.1.3; the paper: 3 pairs, the 5 best matches "
+            "of each). Each kept match gives a tie point: the centroid of the scan's points in that pixel's "
+            "(α, β) cell, rotation undone (2.1.4). The paper's β check (4.1) drops a match whose elevation "
+            "difference |β₁ − β₂| lies outside the mean ± one standard deviation of all matches: a crown point "
+            "must match a crown point; its rejected matches are drawn in grey. treereg's default leaves the β check "
+            "off (matching.beta_check) and lets RANSAC at the coarse stage reject wrong matches instead, so grey "
+            "matches appear here only with the check on (e.g. the paper preset, Files tab).",
+    ),
+    draw=render,
+    view_fields=("target", "match_pair"),
+    controls=(TargetControl, MatchPairControl),
+    tour=(
+        TourStep(
+            "matching", "Matching the most similar views",
+            "The most similar image pairs of two sequences are matched with ORB, and each match becomes a 3-D tie point: "
+            "the centroid of the points behind that pixel (2.1.3–2.1.4). Binary images carry little texture, so some "
+            "matches are wrong (4.1).",
+            "Move *Image pair* and compare the lines between the two images with the tie lines in 3-D.",
+            view={"panel": "stage"}),
+    ),
+)

@@ -17,10 +17,11 @@ from treereg_core.coarse.estimate import CoarseResult
 from treereg_core.geometry.rigid import apply_transform
 
 from ..controller import Snapshot
+from ..draw.common import Drawing, item_message, metrics_table, pair_label, plural, target_index, title
 from ..palette import KEPT, REJECTED, hex_color
 from ..view_panel import PanelContent
 from ..view_state import ViewState
-from .common import Drawing, item_message, metrics_table, pair_label, plural, target_index, title
+from .base import AppStage, StageView, TargetControl, TourStep
 
 
 def residual_figure(c: CoarseResult) -> go.Figure:
@@ -83,4 +84,26 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
     return handles, PanelContent(title("coarse", snap, t), text=text, plots=tuple(plots), table=table)
 
 
-VIEW_FIELDS = ("target",)
+STAGE = AppStage(
+    "coarse",
+    StageView(
+        "coarse",
+        explanation="The rigid transform that best maps the target's tie points onto the reference's, by SVD over all "
+            "of them in the paper (2.1.4). Wrong matches cannot be avoided on binary images (4.1), so treereg by "
+            "default lets RANSAC keep the consistent ones (green lines; outliers grey), solving yaw and "
+            "translation for levelled scanners. Projection loses detail, so trunks and branches are close but "
+            "not yet aligned (paper Fig. 9). ⚠ marks a transform that cannot be right.",
+    ),
+    draw=render,
+    view_fields=("target",),
+    controls=(TargetControl,),
+    tour=(
+        TourStep(
+            "coarse", "The coarse transform",
+            "One rigid transform maps the target's tie points onto the reference's; treereg lets RANSAC keep the "
+            "consistent ties (green) and drop the wrong ones (grey). The trees now overlap, but projection loses "
+            "detail: stems are close, not yet aligned (paper Fig. 9).",
+            "Zoom onto the trunk: each scan's skin of the stem lies a little apart from the others.",
+            view={"panel": "stage"}),
+    ),
+)

@@ -27,7 +27,7 @@ from ..palette import CATEGORICAL, GREY, hex_color, scan_color
 from ..view_panel import PanelContent
 from ..view_state import ViewState
 from .common import md_table, plural
-from .fine import within
+from .fits import within
 
 #: Registrations as people read them.
 POSE_TITLES = {"coarse": "Coarse", "fine": "Fine", "icp": "ICP"}

@@ -1,4 +1,4 @@
-"""Helpers shared by the renderers: subsampling for display, poses, metric tables, status text."""
+"""Helpers shared by the stages' drawings: subsampling for display, poses, metric tables, status text."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from treereg_core.results import Metric
 from treereg_core.stages import stage
 
 from ..controller import Snapshot
-from ..stages import label
+from ..labels import label
 from ..view_panel import PanelContent
 from ..view_state import ViewState
 
@@ -136,9 +136,20 @@ def item_message(item: Any) -> str:
     return f"**Failed:** {getattr(item, 'message', '')}"
 
 
-def render_metrics(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> Drawing:
-    """The drawing of a stage the app has no renderer for: its items' metrics side by side."""
-    out = snap.output(view.stage)
-    st = stage(view.stage)
-    names = [s.name for s in snap.scans] if st.per == "scan" else [pair_label(snap, k) for k in range(len(out.items))]
-    return [], PanelContent(title(view.stage), text=st.summary, table=metrics_table(dict(zip(names, (it.metrics for it in out.items)))))
+def target_pose(snap: Snapshot, pose: str | None, k: int) -> np.ndarray | None:
+    """Pair `k`'s transform for a view's `pose` ("coarse", "hypothesis", "fine", "icp", "final"),
+    falling back to the best earlier one that succeeded; None before registration or when none did.
+    "final" is the joint placement of scan k + 1 (the graph stage), k being its pair with the reference."""
+    if pose == "final":
+        graph = snap.output("graph")
+        item = graph.items[k + 1] if graph is not None and k + 1 < len(graph.items) else None
+        if item is not None and item.T_ref_scan is not None:
+            return np.asarray(item.T_ref_scan, dtype=np.float64)
+    order = {"coarse": ("coarse",), "hypothesis": ("hypotheses", "coarse"), "fine": ("fine", "hypotheses", "coarse"),
+             "icp": ("icp", "fine", "coarse"), "final": ("fine", "hypotheses", "coarse")}.get(pose or "", ())
+    for name in order:
+        out = snap.output(name)
+        item = out.items[k] if out is not None and k < len(out.items) else None
+        if item is not None and item.ok and getattr(item, "ran", True):
+            return np.asarray(item.T_ref_target, dtype=np.float64)
+    return None

@@ -1,4 +1,4 @@
-"""The scan layer (always shown) and the Scans stage's panel: Scan and PreparedScan.
+"""The scan layer, always shown under every stage's own drawing.
 
 Each scan hangs under its own frame node `/scans/s<i>` whose pose is the scan's transform for the
 current stage (identity before coarse, then the coarse, fine or ICP `T_ref_scan`): moving a scan is
@@ -15,9 +15,8 @@ import viser
 from ..controller import Snapshot
 from ..palette import GREY, MIXED, MOVED, NO_RESIDUAL, residual_colors, scan_color
 from ..stages import POSE_STAGE, registered, view_of
-from ..view_panel import PanelContent
 from ..view_state import ViewState
-from .common import Drawing, display_subset, md_table, not_ready_text, pose_kwargs, title
+from .common import display_subset, pose_kwargs, target_pose
 
 #: Points a stage removed (ground, crop) are drawn lighter than kept points.
 CROPPED = (205, 205, 205)
@@ -31,27 +30,6 @@ def scan_node(i: int) -> str:
 SEE_THROUGH_OPACITY = 0.45
 #: Height (m, above its scanner) of a scanner's name.
 STATION_LABEL_Z = 1.3
-#: Where the stem markers start without a ground plane: the scanner's foot, 1.5 m below it.
-SCANNER_FOOT_Z = -1.5
-
-
-def target_pose(snap: Snapshot, pose: str | None, k: int) -> np.ndarray | None:
-    """Pair `k`'s transform for a view's `pose` ("coarse", "hypothesis", "fine", "icp", "final"),
-    falling back to the best earlier one that succeeded; None before registration or when none did.
-    "final" is the joint placement of scan k + 1 (the graph stage), k being its pair with the reference."""
-    if pose == "final":
-        graph = snap.output("graph")
-        item = graph.items[k + 1] if graph is not None and k + 1 < len(graph.items) else None
-        if item is not None and item.T_ref_scan is not None:
-            return np.asarray(item.T_ref_scan, dtype=np.float64)
-    order = {"coarse": ("coarse",), "hypothesis": ("hypotheses", "coarse"), "fine": ("fine", "hypotheses", "coarse"),
-             "icp": ("icp", "fine", "coarse"), "final": ("fine", "hypotheses", "coarse")}.get(pose or "", ())
-    for name in order:
-        out = snap.output(name)
-        item = out.items[k] if out is not None and k < len(out.items) else None
-        if item is not None and item.ok and getattr(item, "ran", True):
-            return np.asarray(item.T_ref_target, dtype=np.float64)
-    return None
 
 
 def stage_pose(view: ViewState) -> str | None:
@@ -185,83 +163,3 @@ def apply_poses(handles: dict[int, Any], poses: list[np.ndarray]) -> None:
         if h is not None:
             kw = pose_kwargs(T)
             h.wxyz, h.position = kw["wxyz"], kw["position"]
-
-
-def _stem_markers(scene: viser.SceneApi, root: str, snap: Snapshot) -> list[Any]:
-    """The target tree of each scan (a tall line at its stem, in the scan's colour, labelled) and the
-    other stems found at breast height (short grey lines), in each scan's own frame."""
-    prepared = snap.output("prepare")
-    handles: list[Any] = []
-    if prepared is None:
-        return handles
-    for i, prep in enumerate(prepared.items):
-        stems = getattr(prep, "stems", None)
-        if stems is not None and len(stems):
-            base = prep.ground_z(stems[:, :2], SCANNER_FOOT_Z)
-            segs = np.stack([np.column_stack([stems[:, :2], base]), np.column_stack([stems[:, :2], base + 2.0])], axis=1)
-            handles.append(scene.add_line_segments(f"{root}/s{i}/stems", segs, GREY, thickness=2.0, thickness_units="screen"))
-        xy = getattr(prep, "stem_xy", None)
-        if xy is not None and getattr(prep, "target", ""):
-            z = float(prep.ground_z(np.asarray([xy]), SCANNER_FOOT_Z)[0])
-            seg = np.array([[[xy[0], xy[1], z], [xy[0], xy[1], z + 12.0]]])
-            handles.append(scene.add_line_segments(f"{root}/s{i}/target", seg, scan_color(i), thickness=5.0,
-                                                   thickness_units="screen"))
-            handles.append(scene.add_label(f"{root}/s{i}/target/name", f"target ({snap.scans[i].name})",
-                                           position=(xy[0], xy[1], z + 12.5 + 0.5 * i)))
-    return handles
-
-
-def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> Drawing:
-    """The Scans stage's panel: a table of the scans, what preparation kept and which tree it took."""
-    prepared = snap.output("prepare")
-    rows = []
-    stood_down: list[str] = []
-    for i, scan in enumerate(snap.scans):
-        prep = prepared.items[i] if prepared is not None and i < len(prepared.items) else None
-        # The instrument's steps in force: the parameter's when one is set (it replaces the
-        # estimate in the prepare stage), else the scan's own (read off its grid, or estimated).
-        given = snap.params.prepare.angular_step_deg
-        phi, vphi = given or scan.angular_step_deg
-        kept = ground = target = mixed = ""
-        if prep is not None:
-            removed = getattr(prep, "mixed_points", None)
-            mixed = f"{len(removed):,}" if removed is not None and snap.params.prepare.mixed_pixels else "off"
-            # The filter stood down on this scan (no regular grid, a surface rougher than it): say why.
-            why = next((m.value for m in getattr(prep, "metrics", ()) if m.description == "mixed pixels removed"
-                        and isinstance(m.value, str) and m.value != "off"), None)
-            if why is not None:
-                mixed = "not filtered"
-                stood_down.append(f"{scan.name}: mixed pixels {why}.")
-            kept = f"{prep.scan.n_points:,}" if getattr(prep, "scan", None) is not None else ""
-            if getattr(prep, "ground_mask", None) is not None:
-                ground = f"{int(np.count_nonzero(prep.ground_mask)):,}"
-            xy = getattr(prep, "stem_xy", None)
-            target = f"{xy[0]:.2f}, {xy[1]:.2f}" if xy is not None and getattr(prep, "target", "") else "all points"
-        step = scan.step
-        how = "" if given or step is None or step.source == "given" else (" (grid)" if step.source == "grid" else f" (est., {step.confidence:.2f})")
-        rows.append((
-            f"{i + 1}{' (reference)' if i == 0 else ''}", scan.name, f"{scan.n_points:,}",
-            f"{phi:.3g} / {vphi:.3g}{how}", mixed, kept, ground, target,
-        ))
-    table = md_table(("#", "scan", "points", "φ / ϕ (deg)", "mixed pixels", "kept", "ground",
-                      "target stem x, y (m)"), rows)
-    text = not_ready_text(snap, "prepare")
-    if prepared is not None:
-        bad = [f"**{snap.scans[i].name}:** {it.message}" for i, it in enumerate(prepared.items) if not it.ok]
-        notes = [f"{snap.scans[i].name}: {it.message}" for i, it in enumerate(prepared.items) if it.ok and it.message]
-        notes += stood_down
-        text = "\n\n".join(bad + notes) or "Grey points were removed as ground; light grey were cropped."
-        if snap.params.prepare.mixed_pixels:
-            text += (" Near-black: mixed pixels, returns strung out behind a stem's or branch's edge (the beam "
-                     "straddled it), removed before anything else; the free-space test is blind where they were.")
-        chosen = getattr(prepared.items[0], "target", "") if prepared.items else ""
-        if chosen and getattr(prepared.items[0], "stem_xy", None) is not None:
-            text += (f"\n\n**Target tree:** {chosen}. The tall line marks it in every scan, grey lines the other stems; "
-                     "to take another tree, type its stem's x, y (reference scan's frame) into *tree at* below.")
-    if snap.truth:
-        text += "\n\nTruth is known for this case (`truth.json`): the Result stage reports errors against it."
-    return _stem_markers(scene, root, snap), PanelContent(title("prepare"), text=text, table=table)
-
-
-#: Drawn even before the stage has run: the table of scans is the first thing a user needs.
-NEEDS_OUTPUT = False

@@ -11,8 +11,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-WHITE = np.array([255, 255, 255], dtype=np.uint8)
-
 
 def binary_to_rgb(image: np.ndarray, color: tuple[int, int, int], ramp: bool = False) -> np.ndarray:
     """H x W x 3 uint8: occupied pixels (0) in `color`, empty pixels (255) white, shown upright.

@@ -7,17 +7,15 @@ compares two results).
 
 from __future__ import annotations
 
-from typing import Any
-
 import viser
 
 from treereg_core.geometry.rigid import mean_displacement, rotation_error_deg
 
 from ..controller import Snapshot
+from ..draw.common import Drawing, md_table, metrics_table, pair_label, pair_scans, target_index, target_pose, title
 from ..view_panel import PanelContent
 from ..view_state import ViewState
-from .common import Drawing, md_table, metrics_table, pair_label, pair_scans, target_index, title
-from .scans import target_pose
+from .base import AppStage, StageView, TargetControl, TourStep
 
 
 def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> Drawing:
@@ -45,4 +43,24 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
     return [], PanelContent(title("icp", snap, t), text=text, table=table)
 
 
-VIEW_FIELDS = ("target",)
+STAGE = AppStage(
+    "icp",
+    StageView(
+        "icp",
+        explanation="The paper compares its fine stage with ICP (iterative closest point) started from the coarse "
+            "result (3.3): every target point pairs with its nearest reference point and the pose that brings "
+            "the pairs together is solved again and again. On trees two stations see different sides of a "
+            "branch, so the nearest point is often the wrong one.",
+    ),
+    draw=render,
+    view_fields=("target",),
+    controls=(TargetControl,),
+    tour=(
+        TourStep(
+            "icp", "The ICP baseline",
+            "The paper compares its fine stage with ICP started from the coarse result (3.3). On a tree two stations see "
+            "different sides of a branch, so the nearest point is often the wrong partner.",
+            "Choose *9 Fine*, then *12 ICP* under *Stage*, and watch the scans move.",
+            view={"panel": "stage"}),
+    ),
+)

@@ -1,0 +1,26 @@
+"""The fine stage: the fine transform from the corresponding sections, iterated (re-sliced and
+re-fitted at each new pose by `fine.sections.fit_at_pose`) and checked against the surfaces."""
+
+from __future__ import annotations
+
+from ..fine.arcs import SliceArcs
+from ..fine.pose import FINE_SECTIONS, FineResult, FineSections, register_fine
+from ..fine.sections import PoseFit, SectionsResult
+from ..fine.slicing import SliceResult
+from ..stage import Stage, StageContext, StageResult
+from .common import pair_label, scan_of, seeds, start_pose
+
+
+def run(ctx: StageContext) -> list[StageResult | None]:
+    def one(k: int) -> FineResult:
+        p = ctx.pairs[k]
+        sl = ctx.outputs["slices"].items[k]
+        start = (PoseFit(slices=sl, arcs=ctx.ok_item("arcs", k, SliceArcs), sections=ctx.ok_item("sections", k, SectionsResult))
+                 if isinstance(sl, SliceResult) else None)
+        return register_fine(scan_of(ctx, p.ref), scan_of(ctx, p.tgt), start_pose(ctx, k), start=start,
+                             seeds=seeds(ctx, p), params=FineSections.of(ctx.params))
+    return ctx.each(one, lambda k: pair_label(ctx, k))
+
+
+STAGE = Stage("fine", "Fine", "The fine transform from the corresponding sections, iterated and checked against the surfaces.",
+              "pair", FINE_SECTIONS, ("hypotheses",), FineResult, run, uses=("slices", "arcs", "sections"))

@@ -1,0 +1,66 @@
+"""The graph stage: every scan placed onto the reference from the verified pairs, and its verdict."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from ..geometry.rigid import invert, mean_displacement, rotation_error_deg
+from ..results import Metric
+from ..stage import Stage, StageContext, StageResult
+from ..verify.evidence import VERIFIED, PairVerification
+from ..verify.graph import Edge, Placement, place_scans
+from .common import scan_of
+
+
+def run(ctx: StageContext) -> list[StageResult | None]:
+    """Every scan placed onto the reference from the verified pairs, jointly (one run for all scans)."""
+    ver = ctx.outputs.get("verify")
+    edges: list[Edge] = []
+    for k, p in enumerate(ctx.pairs):
+        it = ver.items[k] if ver is not None else None
+        if isinstance(it, PairVerification):
+            edges.append(Edge(i=p.ref, j=p.tgt, T=it.T_ref_target, verdict=it.verdict, reasons=it.reasons,
+                              weight=float(max(it.evidence.seen_by_both, 1))))
+        else:  # the pair failed before verification: no transform
+            edges.append(Edge(i=p.ref, j=p.tgt, T=np.eye(4), verdict="failed",
+                              reasons=((it.message if it is not None else "") or "not registered",)))
+    rng = np.random.default_rng(0)
+    samples: dict[int, np.ndarray] = {}
+    for i in range(len(ctx.scans)):
+        pts = scan_of(ctx, i).points
+        samples[i] = pts[rng.choice(len(pts), min(ctx.params.graph.sample_points, len(pts)), replace=False)]
+    placed = place_scans(len(ctx.scans), edges, samples, graph=ctx.params.graph, max_loop_m=ctx.params.verify.max_loop_m)
+    return [_with_truth(ctx, i, _with_step_doubt(ctx, i, pl)) for i, pl in enumerate(placed)]
+
+
+def _with_step_doubt(ctx: StageContext, i: int, pl: Placement) -> Placement:
+    """A scan left unverified while its (or the reference's) angular step is a doubtful estimate: the
+    projection images were drawn at a guessed pixel size, so the step is the first thing to give."""
+    if pl.verdict == VERIFIED or ctx.params.prepare.angular_step_deg is not None:
+        return pl
+    scans = [ctx.scans[j] for j in dict.fromkeys((0, i))]
+    doubtful = [(s.name, s.step) for s in scans if s.step is not None and s.step.low]
+    if not doubtful:
+        return pl
+    why = tuple(f"the angular step of {name}, {step.describe()}, is doubtful, so its projection images may "
+                "be distorted" for name, step in doubtful)
+    hint = "give the instrument's angular steps (--angular-step H V, or prepare.angular_step_deg in the Scans stage)"
+    reasons = pl.reasons + why
+    return replace(pl, reasons=reasons, message="; ".join(reasons), hint=f"{hint}; {pl.hint}" if pl.hint else hint)
+
+
+def _with_truth(ctx: StageContext, i: int, pl: Placement) -> Placement:
+    """A placement with its error against the truth among its metrics, when the truth is known."""
+    ref, scan = ctx.scans[0], ctx.scans[i]
+    if not ctx.truth or pl.T_ref_scan is None or scan.name not in ctx.truth or ref.name not in ctx.truth:
+        return pl
+    T_true = invert(ctx.truth[ref.name]) @ ctx.truth[scan.name]
+    rows = (Metric("rotation error against truth", "deg", rotation_error_deg(pl.T_ref_scan, T_true)),
+            Metric("mean displacement against truth", "m", mean_displacement(pl.T_ref_scan, T_true, scan.points)))
+    return replace(pl, metrics=pl.metrics + rows)
+
+
+STAGE = Stage("graph", "Placement", "Every scan placed onto the reference from the verified pairs, loops closed, all poses solved together.",
+              "scan", ("graph", "verify"), (), Placement, run, uses=("verify",))

@@ -1,0 +1,210 @@
+"""The fitted sections as the Fits and Fine stages draw them (a fit per arc, the table of fits, the
+"Frame a fit" rows), and the prepared scans the fine stages index into.
+
+The sections are already in the reference frame; the target's slice points are mapped by the pose
+they were made at (`rigid.apply_transform`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import trimesh
+import viser
+
+from treereg_core.fine.sections import SectionsResult
+from treereg_core.fine.slicing import SliceResult
+from treereg_core.geometry.rigid import apply_transform
+
+from ..controller import Snapshot
+from ..palette import GREY, HIGHLIGHT, scan_color
+from ..view_state import ViewState
+from .common import md_table, plural, target_index
+
+
+def fine_scans(snap: Snapshot, t: int) -> tuple[Any, Any]:
+    """The prepared reference and target scans of pair `t` (what the fine stages index into)."""
+    prep = snap.output("prepare")
+    return prep.items[0].scan, prep.items[t + 1].scan
+
+
+@dataclass(frozen=True)
+class FitRow:
+    """One row of the fits table (and of the "Frame a fit" list): a fitted section worth a look."""
+
+    number: int  # 1-based, as the table shows it
+    scan: str
+    scan_index: int  # 0 = reference
+    section: Any
+    slice_box: tuple[tuple[float, float], tuple[float, float]]  # (min x, min y), (max x, max y) of that slice's points
+
+    @property
+    def label(self) -> str:
+        s = self.section
+        return f"#{self.number}: {self.scan}, slice {s.slice_index + 1}, {s.kind}, r = {s.radius_m * 100:.1f} cm"
+
+
+def _box(points: np.ndarray) -> tuple[tuple[float, float], tuple[float, float]]:
+    if not len(points):
+        return (0.0, 0.0), (0.0, 0.0)
+    lo, hi = points[:, :2].min(axis=0), points[:, :2].max(axis=0)
+    return (float(lo[0]), float(lo[1])), (float(hi[0]), float(hi[1]))
+
+
+def fit_rows(snap: Snapshot, t: int, sl: SliceResult, sec: SectionsResult, ref: Any, tgt: Any,
+             show_rejected: bool) -> tuple[list[FitRow], int]:
+    """The fits worth listing, accepted first (then rejected, when asked), each by slice and radius;
+    and how many arcs have no fit to show (too few points, failed, or skipped: no NaN rows)."""
+    boxes: dict[int, Any] = {}  # per slice: the horizontal extent of both scans' points in it
+
+    def box(k: int) -> Any:
+        if k not in boxes:
+            parts = [ref.points[sl.ref_indices[k]]] if k < len(sl.ref_indices) else []
+            if k < len(sl.tgt_indices) and len(sl.tgt_indices[k]):
+                parts.append(apply_transform(sec.T_ref_target, tgt.points[sl.tgt_indices[k]]))
+            boxes[k] = _box(np.concatenate(parts)) if parts else _box(np.empty((0, 3)))
+        return boxes[k]
+
+    rows: list[FitRow] = []
+    hidden = 0
+    for plausible in (True, False):
+        for secs, i in ((sec.ref.sections, 0), (sec.tgt.sections, t + 1)):
+            for s in sorted((s for s in secs if s.plausible == plausible), key=lambda s: (s.slice_index, -s.radius_m)):
+                if not (s.fit.ok and np.isfinite(s.radius_m) and np.isfinite(s.centre_m).all()):
+                    hidden += plausible is False
+                    continue
+                if not plausible and not show_rejected:
+                    continue
+                rows.append(FitRow(0, snap.scans[i].name, i, s, box(s.slice_index)))
+    rows = [FitRow(k + 1, r.scan, r.scan_index, r.section, r.slice_box) for k, r in enumerate(rows)]
+    return rows, hidden
+
+
+def slice_points(scene: viser.SceneApi, root: str, t: int, sl: SliceResult, T: np.ndarray, ref: Any, tgt: Any,
+                  size: float) -> list[Any]:
+    """Every slice's points of both scans in the reference frame, in the scans' colours."""
+    handles: list[Any] = []
+    for k in range(sl.n_slices):
+        r_idx, t_idx = sl.ref_indices[k], sl.tgt_indices[k]
+        if len(r_idx):
+            handles.append(scene.add_point_cloud(f"{root}/ref{k}", ref.points[r_idx], scan_color(0), point_size=size,
+                                                 point_shape="circle", precision="float32"))
+        if len(t_idx):
+            handles.append(scene.add_point_cloud(f"{root}/tgt{k}", apply_transform(T, tgt.points[t_idx]),
+                                                 scan_color(t + 1), point_size=size, point_shape="circle",
+                                                 precision="float32"))
+    return handles
+
+
+#: A fit is drawn only when its circle stays within its slice's points, give or take this fraction
+#: of the slice's extent plus `SLACK_M`: the scans see only part of a stem, so a true section may
+#: reach a little beyond its points; a circle of metres fitted to a nearly straight arc does not.
+SLACK_FRACTION = 0.1
+SLACK_M = 0.05
+
+
+def within(centre_xy: np.ndarray, radius_m: float, lo: np.ndarray, hi: np.ndarray) -> bool:
+    """Whether a circle lies within the box lo..hi widened by the slack."""
+    pad = SLACK_FRACTION * float(np.max(hi - lo)) + SLACK_M
+    c = np.asarray(centre_xy, dtype=float)
+    return bool(radius_m > 0 and np.all(c - radius_m >= lo - pad) and np.all(c + radius_m <= hi + pad))
+
+
+def drawable(row: FitRow) -> bool:
+    """A fit is drawn only when it is no larger than the slice it came from: a circle fitted to an
+    almost straight arc can have a radius of kilometres and would hide the tree."""
+    lo, hi = (np.asarray(v, dtype=float) for v in row.slice_box)
+    return within(row.section.centre_m[:2], row.section.radius_m, lo, hi)
+
+
+def section_mesh(section: Any, thickness_m: float, grow: float = 1.0) -> trimesh.Trimesh:
+    """A circle as a short vertical ring-cylinder at its slice; a cylinder along its axis (no longer
+    than a few slice thicknesses: a fit describes its slice, not the whole branch)."""
+    centre = np.asarray(section.centre_m, dtype=float)
+    axis = np.asarray(section.axis, dtype=float)
+    axis = axis / (np.linalg.norm(axis) or 1.0)
+    r = float(section.radius_m) * grow
+    length = thickness_m if section.kind == "circle" else \
+        min(max(float(getattr(section.fit, "length_m", thickness_m)), thickness_m), 3.0 * thickness_m)
+    seg = np.stack([centre - axis * length / 2, centre + axis * length / 2])
+    return trimesh.creation.cylinder(radius=r, segment=seg, sections=32)
+
+
+def _sections_meshes(scene: viser.SceneApi, name: str, sections: list[Any], color: tuple[int, int, int],
+                     thickness_m: float, opacity: float, grow: float = 1.0) -> list[Any]:
+    if not sections:
+        return []
+    mesh = trimesh.util.concatenate([section_mesh(s, thickness_m, grow) for s in sections])
+    return [scene.add_mesh_simple(name, mesh.vertices.astype(np.float32), mesh.faces.astype(np.int32),
+                                  color=color, opacity=opacity, side="double")]
+
+
+def draw_sections(scene: viser.SceneApi, root: str, snap: Snapshot, t: int, sl: SliceResult, sec: SectionsResult,
+                  ref: Any, tgt: Any, view: ViewState) -> tuple[list[Any], str, list[FitRow]]:
+    """The fitted sections of both scans (rejected ones grey, only when asked), the sliced points as
+    context and the tie lines between partners; returns the handles, the fits table and its rows."""
+    thick = sl.thickness_m
+    # The scans are hidden on these stages (points on a fitted surface would hide it): the fitted
+    # slices' points stay as context.
+    handles: list[Any] = slice_points(scene, root, t, sl, sec.T_ref_target, ref, tgt, view.point_size)
+    rows, hidden = fit_rows(snap, t, sl, sec, ref, tgt, view.show_rejected)
+    shown = [r for r in rows if drawable(r)]
+    for who, i in (("ref", 0), ("tgt", t + 1)):
+        good = [r.section for r in shown if r.scan_index == i and r.section.plausible]
+        bad = [r.section for r in shown if r.scan_index == i and not r.section.plausible]
+        handles += _sections_meshes(scene, f"{root}/{who}_fits", good, scan_color(i), thick, 0.55)
+        handles += _sections_meshes(scene, f"{root}/{who}_rejected", bad, GREY, thick, 0.3)
+    focus = rows[view.focus_section] if view.focus_section is not None and view.focus_section < len(rows) else None
+    if focus is not None and drawable(focus):
+        handles += _sections_meshes(scene, f"{root}/focus", [focus.section], HIGHLIGHT, thick, 0.9, grow=1.08)
+    if len(sec.tie_points_ref):
+        segs = np.stack([sec.tie_points_ref, sec.tie_points_tgt], axis=1).astype(np.float32)
+        handles.append(scene.add_line_segments(f"{root}/correspondences", segs, HIGHLIGHT, thickness=3.0,
+                                               thickness_units="screen"))
+        handles.append(scene.add_point_cloud(f"{root}/ties_ref", np.asarray(sec.tie_points_ref), scan_color(0),
+                                             point_size=0.05, point_shape="circle", precision="float32"))
+        handles.append(scene.add_point_cloud(f"{root}/ties_tgt", np.asarray(sec.tie_points_tgt), scan_color(t + 1),
+                                             point_size=0.05, point_shape="circle", precision="float32"))
+    # A plausible fit counts only when a section of the other scan corresponds to it.
+    pairs = np.asarray(sec.correspondences.pairs, dtype=np.int64).reshape(-1, 2)
+    paired = ({id(sec.ref.sections[i]) for i in pairs[:, 0]} | {id(sec.tgt.sections[j]) for j in pairs[:, 1]})
+    table_rows = []
+    for r in rows:
+        s, fit = r.section, r.section.fit
+        verdict = (("yes" if id(s) in paired else "plausible, no partner") if s.plausible
+                   else f"no: {s.reason}")
+        if not drawable(r):
+            verdict += " (larger than its slice: not drawn)"
+        mark = "▶ " if focus is r else ""
+        table_rows.append((f"{mark}{r.number}", r.scan, s.slice_index + 1, s.kind, f"{s.radius_m * 100:.1f}",
+                           f"{fit.rms_m * 1000:.1f}", f"{fit.arc_deg:.0f}", verdict))
+    table = md_table(("#", "scan", "slice", "fit", "radius (cm)", "RMS (mm)", "arc (°)", "used"), table_rows)
+    n_bad = sum(not r.section.plausible for r in fit_rows(snap, t, sl, sec, ref, tgt, True)[0])
+    notes = []
+    if not view.show_rejected and n_bad:
+        notes.append(f"{plural(n_bad, 'rejected fit')} hidden (tick *Show rejected fits* to list and draw them).")
+    if hidden:
+        notes.append(f"{plural(hidden, 'arc')} without a usable fit (too few points, or no section of the other "
+                     "scan nearby) not listed.")
+    if notes:
+        table = " ".join(notes) + "\n\n" + table
+    return handles, table, rows
+
+
+def focus_rows(snap: Snapshot, stage: str, view: ViewState) -> list[FitRow]:
+    """The rows the fits table of stage `stage` ("sections" or "fine") lists for this view."""
+    out = snap.output(stage)
+    if out is None or not out.items:
+        return []
+    t = target_index(snap, stage, view)
+    item = out.items[t]
+    if stage == "sections":
+        sl, sec = snap.output("slices").items[t], item
+    else:
+        sl, sec = getattr(item, "slices", None), getattr(item, "sections", None)
+    if not getattr(sl, "ok", False) or sec is None or not hasattr(sec, "ref"):
+        return []
+    ref, tgt = fine_scans(snap, t)
+    return fit_rows(snap, t, sl, sec, ref, tgt, view.show_rejected)[0]

@@ -1,0 +1,72 @@
+"""The Slices stage: SliceResult — both scans' slice points, the target at the pose the fine stage starts
+from (the paper slices the coarsely aligned scans).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import viser
+
+from treereg_core.fine.slicing import SliceResult
+
+from ..controller import Snapshot
+from ..draw.common import Drawing, md_table, metrics_table, target_index, target_pose, title
+from ..draw.fits import fine_scans, slice_points
+from ..view_panel import PanelContent
+from ..view_state import ViewState
+from .base import AppStage, StageView, TargetControl, TourStep
+
+
+
+
+def _slice_text(snap: Snapshot, sl: SliceResult) -> str:
+    q = snap.params.slices.quantiles
+    where = (f"quantiles {', '.join(f'{v:g}' for v in q)}" if len(q) <= 5
+             else f"{len(q)} quantiles from {min(q):g} to {max(q):g}")
+    text = (f"Slices {sl.thickness_m * 100:.0f} cm thick at {where} of the tree's height "
+            f"({sl.z_extent_m[0]:.2f} to {sl.z_extent_m[1]:.2f} m, reference frame), the target at its coarse pose.")
+    if not sl.ok:
+        text += f"\n\n**Slicing failed:** {sl.message}"
+    return text
+
+
+def render_slices(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> Drawing:
+    t = target_index(snap, "slices", view)
+    sl: SliceResult = snap.output("slices").items[t]
+    ref, tgt = fine_scans(snap, t)
+    T = target_pose(snap, "hypothesis", t)
+    handles = slice_points(scene, root, t, sl, T, ref, tgt, 2.0 * view.point_size)
+    rows = []
+    for k, h in enumerate(sl.heights_m):
+        r_idx, t_idx = sl.ref_indices[k], sl.tgt_indices[k]
+        anchor = ref.points[r_idx].mean(axis=0) if len(r_idx) else np.array([0.0, 0.0, h])
+        handles.append(scene.add_label(f"{root}/label{k}", f"z = {h:.2f} m", position=(anchor[0], anchor[1], h),
+                                       anchor="center-left"))
+        rows.append((k + 1, f"{h:.2f}", f"{len(r_idx):,}", f"{len(t_idx):,}"))
+    table = md_table(("slice", "height (m)", f"{snap.scans[0].name} points", f"{snap.scans[t + 1].name} points"), rows)
+    table += "\n\n" + metrics_table({"slices": sl.metrics})
+    return handles, PanelContent(title("slices", snap, t), text=_slice_text(snap, sl), table=table)
+
+
+STAGE = AppStage(
+    "slices",
+    StageView(
+        "hypothesis",
+        scans="faded",
+        explanation="Fine registration starts from the coarse pose. Both scans are cut into thin horizontal slices at "
+            "quantiles of tree height (paper: the three quartiles, 10 cm thick, 2.2.1; treereg takes more): low "
+            "slices hold the trunk, high ones branches, whose centres become the fine tie points.",
+    ),
+    draw=render_slices,
+    view_fields=("target", "point_size"),
+    controls=(TargetControl,),
+    tour=(
+        TourStep(
+            "slices", "Slices at the coarse pose",
+            "Fine registration cuts both scans into thin horizontal slices (2.2.1). Seen from above, a slice of the trunk "
+            "holds one arc per scan; at the coarse pose the arcs do not yet close into one circle.",
+            "Drag *Height* in the cross-section (left panel), or click the stem in 3-D.",
+            view={"panel": "section", "section_poses": "Coarse", "branch": None, "section_height": None},
+            camera="trunk", highlight="trunk"),
+    ),
+)

@@ -1,0 +1,73 @@
+"""The Verify stage: PairVerification — each pair's evidence and verdict, with what to try when it fails.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import viser
+
+from treereg_core.verify.report import verdict_text
+
+from ..controller import Snapshot
+from ..draw.common import Drawing, metrics_table, pair_label, target_index, title
+from ..view_panel import PanelContent
+from ..view_state import ViewState
+from .base import AppStage, StageView, TargetControl, TourStep
+
+
+#: How each verdict reads in the app.
+BADGE = {"verified": "✓ verified", "unverified": "⚠ unverified", "failed": "✗ failed"}
+
+
+def render_verify(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> Drawing:
+    out = snap.output("verify")
+    t = target_index(snap, "verify", view)
+    v = out.items[t]
+    text = f"{pair_label(snap, t)}: **{BADGE.get(v.verdict, v.verdict)}**.{loosened_note(snap, v.verdict)}"
+    e = getattr(v, "evidence", None)
+    if e is not None and e.sway_m > 0:
+        stable = f"; the stems agree up to {e.stable_height_m:.1f} m above the base" if np.isfinite(e.stable_height_m) else ""
+        text += (f" The crown moved {e.sway_m:.2f} m between the stations (the stem top){stable}. The evidence is "
+                 f"measured with the target unbent by that motion; {e.moved:,} of its points the reference saw "
+                 f"through lie within {e.motion_m * 100:.0f} cm of a surface the reference saw and count as moved "
+                 "(small branches in the wind), not against the pose.")
+    if v.reasons:
+        text += "\n\n" + "\n\n".join(f"- {r[0].upper()}{r[1:]}." for r in v.reasons)
+        if v.hint:
+            text += f"\n\nTry: {v.hint}."
+    labels = [f"{snap.scans[p.tgt].name} → {snap.scans[p.ref].name}" for p in snap.pairs] or \
+        [pair_label(snap, k) for k in range(len(out.items))]
+    table = metrics_table({lab: it.metrics for lab, it in zip(labels, out.items)})
+    return [], PanelContent(title("verify", snap, t), text=text, table=table)
+
+
+def loosened_note(snap: Snapshot, verdict: str) -> str:
+    """" ⚠ Verified under loosened thresholds (…)." when a verified verdict rests on a threshold set looser
+    than its default; the same words as transforms.json and the command line."""
+    text = verdict_text(verdict, snap.params) if verdict == "verified" else ""
+    return f" ⚠ {text[0].upper()}{text[1:]}." if text and text != "verified" else ""
+
+
+STAGE = AppStage(
+    "verify",
+    StageView(
+        "fine",
+        explanation="A registration must show its evidence before it is trusted: enough coarse tie points agree "
+            "compared with what chance gives on the same ties; the target's points lie where the reference scanner "
+            "saw a surface, not in space it saw through (where both stations could see); the surfaces fit within "
+            "their own noise; no other heading explains the scans almost as well; the scanner stays level and at "
+            "its height above the ground. A pair failing any of these is unverified, with the reason.",
+    ),
+    draw=render_verify,
+    view_fields=("target",),
+    controls=(TargetControl,),
+    tour=(
+        TourStep(
+            "verify", "Evidence before trust",
+            "A registration is trusted only with its evidence. Enough tie points must agree compared with chance, the "
+            "target's points lie where the reference saw a surface and not where it saw through, the surfaces fit "
+            "within their noise, no rival heading is nearly as good, the scanner stays level.",
+            "Read each check's value against its threshold; a failed check says what to try.",
+            view={"panel": "stage"}),
+    ),
+)

@@ -160,4 +160,5 @@ def test_moved_thresholds_reach_the_prepare_functions():
     assert remove_mixed(scan, **kw).n_removed > 0
     stood_down = remove_mixed(scan, **kw, max_share=0.0)
     assert stood_down.n_removed == 0 and "too many" in str(stood_down.metrics[0].value)
+    assert "too many" in stood_down.not_filtered and remove_mixed(scan, **kw).not_filtered == ""
     assert np.array_equal(remove_mixed(scan, **kw).mixed, remove_mixed(scan, **kw, dense_share=0.02).mixed)

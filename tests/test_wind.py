@@ -89,6 +89,7 @@ def test_the_mixed_pixel_filter_stays_off_without_a_regular_grid():
     assert guessed.step.low
     out = remove_mixed(guessed, enabled=True, tolerance_m=0.02, slope=4.0)
     assert out.n_removed == 0 and "no regular angular grid" in str(out.metrics[0].value)
+    assert out.not_filtered == out.metrics[0].value  # what the Scans panel says, kept in the result
 
 
 def test_the_mixed_pixel_filter_does_not_take_a_surface_rougher_than_the_grid():

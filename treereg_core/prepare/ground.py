@@ -50,6 +50,7 @@ class PreparedScan:
         saw); None = as read.
     mixed_points : M x 3, the mixed pixels the prepare stage removed from the station (its frame):
         drawn in the Scans stage; the free-space test is blind where they were.
+    mixed_not_filtered : why the mixed-pixel filter stood down on this scan ("" when it ran or is off).
     """
 
     ok: bool
@@ -65,6 +66,7 @@ class PreparedScan:
     T_stem_map: np.ndarray | None = None
     station: Scan | None = None
     mixed_points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    mixed_not_filtered: str = ""
 
     def ground_z(self, xy: np.ndarray, default: float) -> np.ndarray:
         """Height of the ground plane below the points `xy` (K x 2, the scan's frame); `default`

@@ -39,11 +39,13 @@ _RANGE_SPAN_M = 10_000.0
 
 @dataclass(frozen=True, eq=False)
 class MixedPixels:
-    """What the filter found in one scan: `mixed` marks the removed returns; `scan` is the rest."""
+    """What the filter found in one scan: `mixed` marks the removed returns; `scan` is the rest;
+    `not_filtered` says why the filter stood down on it ("" when it ran, or was switched off)."""
 
     scan: Scan
     mixed: np.ndarray
     metrics: tuple[Metric, ...]
+    not_filtered: str = ""
 
     @property
     def n_removed(self) -> int:
@@ -131,8 +133,8 @@ def remove_mixed(scan: Scan, *, enabled: bool, tolerance_m: float, slope: float,
     if scan.step is not None and scan.step.low:
         # Without the instrument's grid (a merged cloud, a scan not in its scanner frame) a
         # neighbour on the estimated grid is no neighbour on the beam's: the filter would guess.
-        return MixedPixels(scan, np.zeros(scan.n_points, dtype=bool),
-                           (Metric("mixed pixels removed", "", f"off: no regular angular grid ({scan.step.describe()})"),))
+        why = f"off: no regular angular grid ({scan.step.describe()})"
+        return MixedPixels(scan, np.zeros(scan.n_points, dtype=bool), (Metric("mixed pixels removed", "", why),), why)
     mixed = find_mixed(scan.points, scan.azimuth_deg, scan.elevation_deg, scan.angular_step_deg, tolerance_m, slope,
                        dense_share=dense_share)
     n = int(mixed.sum())
@@ -140,9 +142,9 @@ def remove_mixed(scan: Scan, *, enabled: bool, tolerance_m: float, slope: float,
         # Half the edge returns mixed leaves a quarter of a scan in tails; more is a surface rougher
         # than the grid (foliage sampled coarser than its leaves, a thinned cloud): removing it
         # would take the tree itself.
-        return MixedPixels(scan, np.zeros(scan.n_points, dtype=bool), (Metric(
-            "mixed pixels removed", "", f"none: {n / scan.n_points:.0%} of the returns lie behind a range jump, too many "
-            "to be tails (the surface is rougher than the angular grid)"),))
+        why = (f"none: {n / scan.n_points:.0%} of the returns lie behind a range jump, too many to be tails (the "
+               "surface is rougher than the angular grid)")
+        return MixedPixels(scan, np.zeros(scan.n_points, dtype=bool), (Metric("mixed pixels removed", "", why),), why)
     metrics = (Metric("mixed pixels removed", "", n),
                Metric("mixed pixels removed, share of the points", "", n / max(scan.n_points, 1)))
     return MixedPixels(scan.with_points(scan.points[~mixed]) if n else scan, mixed, metrics)

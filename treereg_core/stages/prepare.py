@@ -32,7 +32,7 @@ def run(ctx: StageContext) -> list[StageResult | None]:
              for w in work]
     ctx.progress(0.9, "ground, stems and the target tree")
     preps = prepare_scans([m.scan for m in mixed], **ctx.params.pick("prepare", "target"))
-    return [replace(p, station=m.scan, mixed_points=w.scan.points[m.mixed],
+    return [replace(p, station=m.scan, mixed_points=w.scan.points[m.mixed], mixed_not_filtered=m.not_filtered,
                     metrics=(w.metrics if w.reduced else ()) + m.metrics + p.metrics)
             for w, m, p in zip(work, mixed, preps)]
 

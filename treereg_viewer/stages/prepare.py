@@ -61,9 +61,8 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
             removed = getattr(prep, "mixed_points", None)
             mixed = f"{len(removed):,}" if removed is not None and snap.params.prepare.mixed_pixels else "off"
             # The filter stood down on this scan (no regular grid, a surface rougher than it): say why.
-            why = next((m.value for m in getattr(prep, "metrics", ()) if m.description == "mixed pixels removed"
-                        and isinstance(m.value, str) and m.value != "off"), None)
-            if why is not None:
+            why = getattr(prep, "mixed_not_filtered", "")
+            if why:
                 mixed = "not filtered"
                 stood_down.append(f"{scan.name}: mixed pixels {why}.")
             kept = f"{prep.scan.n_points:,}" if getattr(prep, "scan", None) is not None else ""

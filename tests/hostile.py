@@ -9,9 +9,9 @@ import json
 import os
 import re
 import shutil
-import signal
 import subprocess
 import sys
+import time
 import stat
 from pathlib import Path
 
@@ -120,3 +120,16 @@ def stop_register_midway(sandbox: Path, sig: int) -> tuple[int, str]:
     proc.send_signal(sig)
     _, rest = proc.communicate(timeout=60)
     return proc.returncode, (seen + rest).decode()
+
+
+def view_started(proc: subprocess.Popen, timeout_s: float = 90.0) -> list[str]:
+    """The lines `treereg view` (text stdout) printed up to and including its "treereg view: http://"
+    line, or all it printed before it ended or `timeout_s` passed."""
+    lines: list[str] = []
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline and not any("treereg view: http://" in ln for ln in lines):
+        line = proc.stdout.readline()
+        if not line:
+            break
+        lines.append(line)
+    return lines

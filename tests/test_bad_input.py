@@ -9,11 +9,9 @@ compared after. The browser probes (typing "1e12", an upload abandoned mid-way) 
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import re
-import shutil
 import signal
 import stat
 import subprocess
@@ -22,16 +20,13 @@ import threading
 import time
 from pathlib import Path
 
-import numpy as np
 import pytest
 import viser
 
 from conftest import rss_mb
-from hostile import REPO, _env, changed, cli, fingerprint, one_line, stop_register_midway, sandbox  # noqa: F401  (sandbox: a fixture)
-from treereg_cli.main import main
+from hostile import REPO, _env, changed, cli, fingerprint, one_line, stop_register_midway, sandbox, view_started  # noqa: F401  (sandbox: a fixture)
 from treereg_core import params as P
 from treereg_core.demo import DEMO_DIR
-from treereg_core.io.scans import read_points, write_scan
 from treereg_core.io.transforms import read_transforms
 from treereg_core.stages import STAGE_NAMES
 from treereg_viewer.app import TreeregApp, exposure_warning
@@ -210,11 +205,15 @@ def test_files_that_were_already_refused_still_are(sandbox, capsys, content, pat
 
 
 # ---- real processes: Ctrl-C, the port, the host ------------------------------------------------------------
-def test_ctrl_c_is_one_line_exit_130_and_leaves_previous_outputs(sandbox):
+@pytest.mark.parametrize("sig, code, pattern", [
+    (signal.SIGINT, 130, r"^treereg: interrupted \(Ctrl-C\); "),
+    (signal.SIGTERM, 143, r"^treereg: terminated \(SIGTERM\); "),
+], ids=["Ctrl-C", "SIGTERM"])
+def test_ctrl_c_and_sigterm_are_one_line_and_leave_previous_outputs(sandbox, sig, code, pattern):
     before = fingerprint(sandbox)
-    rc, err = stop_register_midway(sandbox, signal.SIGINT)
-    assert rc == 130, err
-    one_line(err, r"^treereg: interrupted \(Ctrl-C\); no file was left half-written or replaced by a partial result$")
+    rc, err = stop_register_midway(sandbox, sig)
+    assert rc == code, err
+    one_line(err, pattern + r"no file was left half-written or replaced by a partial result$")
     assert changed(before, fingerprint(sandbox)) == []  # the previous transforms.json, and no temporary file
 
 
@@ -243,14 +242,8 @@ def test_a_host_other_than_loopback_is_announced_with_what_it_exposes(sandbox):
     proc = subprocess.Popen([sys.executable, "-m", "treereg_cli", "view", "--host", "0.0.0.0", "--port", "0",
                              "--out", sandbox / "out", "--max-upload-mb", "50"],
                             cwd=REPO, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    lines: list[str] = []
     try:
-        deadline = time.monotonic() + 90
-        while time.monotonic() < deadline and not any("treereg view: http://" in ln for ln in lines):
-            line = proc.stdout.readline()
-            if not line:
-                break
-            lines.append(line)
+        lines = view_started(proc)
     finally:
         proc.terminate()
         proc.wait(timeout=20)

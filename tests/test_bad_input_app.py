@@ -16,17 +16,15 @@ import re
 import signal
 import subprocess
 import sys
-import tempfile
 import threading
 import time
 import warnings
-from pathlib import Path
 
 import pytest
 import viser
 from viser.infra._infra import WebsockMessageHandler
 
-from hostile import REPO, _env, changed, cli, fingerprint, one_line, stop_register_midway, sandbox  # noqa: F401  (sandbox: a fixture)
+from hostile import REPO, _env, changed, cli, fingerprint, one_line, sandbox, view_started  # noqa: F401  (sandbox: a fixture)
 from treereg_viewer.app import TreeregApp
 from treereg_viewer.controller import Controller
 from treereg_viewer.viewer import Viewer
@@ -149,26 +147,12 @@ def test_tree_at_off_the_tree_is_named_exit_2(sandbox, capsys):
     assert changed(before, fingerprint(sandbox)) == []
 
 
-def test_sigterm_in_register_is_one_line_exit_143_and_leaves_previous_outputs(sandbox):
-    before = fingerprint(sandbox)
-    rc, err = stop_register_midway(sandbox, signal.SIGTERM)
-    assert rc == 143, err
-    one_line(err, r"^treereg: terminated \(SIGTERM\); no file was left half-written or replaced by a partial result$")
-    assert changed(before, fingerprint(sandbox)) == []  # the previous transforms.json, and no temporary file
-
-
 def test_sigterm_in_view_stops_it_and_removes_its_upload_folder(tmp_path):
     tmp = tmp_path / "tmp"
     tmp.mkdir()
     proc = subprocess.Popen([sys.executable, "-m", "treereg_cli", "view", "--port", "0"], cwd=REPO,
                             env=dict(_env(), TMPDIR=str(tmp)), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    lines: list[str] = []
-    deadline = time.monotonic() + 90
-    while time.monotonic() < deadline and not any("treereg view: http://" in ln for ln in lines):
-        line = proc.stdout.readline()
-        if not line:
-            break
-        lines.append(line)
+    lines = view_started(proc)
     assert any("treereg view: http://" in ln for ln in lines), lines
     assert [p.name for p in tmp.iterdir() if p.name.startswith("treereg-uploads-")], "no upload folder made"
     proc.send_signal(signal.SIGTERM)

@@ -50,13 +50,13 @@ def _probe_args(box: Path, probe: str) -> tuple[list, str]:
             r"x\.ply: --out and --merged are the same file; each output needs its own name"
     if probe == "out through a symbolic link to a scan":
         (box / "to_scan2.json").symlink_to(b)
-        return [a, b, "--out", box / "to_scan2.json"], rf"to_scan2\.json: --out is the input .*scan2\.ply \(the same file\)"
+        return [a, b, "--out", box / "to_scan2.json"], r"to_scan2\.json: --out is the input .*scan2\.ply \(the same file\)"
     if probe == "out a hard link of a scan":
         os.link(b, box / "hard.json")
-        return [a, b, "--out", box / "hard.json"], rf"hard\.json: --out is the input .*scan2\.ply \(the same file\)"
+        return [a, b, "--out", box / "hard.json"], r"hard\.json: --out is the input .*scan2\.ply \(the same file\)"
     if probe == "out is the config":
         (box / "p.json").write_text("{}\n")
-        return [a, b, "--config", box / "p.json", "--out", box / "p.json"], rf"p\.json: --out is the input .*p\.json"
+        return [a, b, "--config", box / "p.json", "--out", box / "p.json"], r"p\.json: --out is the input .*p\.json"
     if probe == "exports e57 is an input":
         e57 = _e57(box / "out" / "t.registered.e57", s / "scan3.ply")
         return [a, b, e57, "--out", box / "out" / "t.json", "--exports"], \

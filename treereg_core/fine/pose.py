@@ -252,7 +252,10 @@ def _refit(run: _Run, T: np.ndarray, known: PoseFit, seen: Scan | None = None) -
     taken from `known`). `seen`: the target unbent (`Bend.warp`), sliced and fitted instead of
     `run.tgt` (its arcs stay those of its own grid)."""
     ps = run.params
-    return fit_at_pose(run.ref, run.tgt, T, slices=ps.slices, arcs=ps.arcs, sections=ps.sections, reference=known, seen=seen)
+    known_ref = known.arcs is not None and known.sections is not None
+    return fit_at_pose(run.ref, run.tgt, T, slices=ps.slices, arcs=ps.arcs, sections=ps.sections, seen=seen,
+                       ref_arcs=known.arcs.ref if known_ref else None,
+                       ref_sections=known.sections.ref if known_ref else None)
 
 
 def _estimate_ties(ref: ScanSections, tgt: ScanSections, corr: Correspondences, fp: FineParams) -> tuple[np.ndarray | None, str]:
@@ -382,9 +385,8 @@ def _iterate(run: _Run, T0: np.ndarray, start: PoseFit, progress: Progress, *, b
             # farther apart than the median (a fork mistaken for a stem) is dropped.
             corr = match_scan_sections(ref_s, tgt_s, fit_p,
                                        max(fp.min_gate_m, fp.gate_factor * float(np.median(corr.distances_m))))
-        if not cur.slices.ok or not corr.ok or len(corr.pairs) < fp.min_pairs:
-            note = (cur.slices.message if not cur.slices.ok else
-                    f"only {len(corr.pairs)} corresponding sections (fine.min_pairs = {fp.min_pairs})")
+        if not corr.ok or len(corr.pairs) < fp.min_pairs:  # (failed slices have no sections: above)
+            note = f"only {len(corr.pairs)} corresponding sections (fine.min_pairs = {fp.min_pairs})"
             break
         if fp.method == "ties":
             U, note = _estimate_ties(ref_s, tgt_s, corr, fp)
@@ -630,8 +632,8 @@ def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, *, params: FineSec
     drawn = _drawn_at(run, T, its.last, bend)
     n_iter = len(its.updates_m)
     profile = profile_at(ref, tgt, T, start.slices.z_extent_m, joint.loss_scale_m, seeds) if start.slices.ok else None
+    limit = iteration_limit(fine, its.bend)  # the limit the kept iterations ran under
     bend = bend if accepted else None
-    limit = iteration_limit(fine, bend)
     metrics = (
         Metric("fine accepted", "", "yes" if accepted else "no"),
         Metric("fine iterations", "", n_iter),

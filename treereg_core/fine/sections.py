@@ -187,10 +187,10 @@ class PoseFit:
     sections: SectionsResult | None = None
 
 
-# Twelve parameters, all but the pose keyword-only: the three stages' sections plus the work already
+# Eleven parameters, all but the pose keyword-only: the three stages' sections plus the work already
 # done (by the stage before, by an earlier iteration, or for the reference once) that it must not redo.
 def fit_at_pose(ref: Scan, tgt: Scan, T_ref_target: np.ndarray, *, slices: SlicesParams, arcs: ArcParams,
-                sections: SectionsParams, done: PoseFit | None = None, reference: PoseFit | None = None,
+                sections: SectionsParams, done: PoseFit | None = None,
                 ref_arcs: tuple[ArcResult, ...] | None = None, ref_sections: ScanSections | None = None,
                 seen: Scan | None = None, until: Literal["slices", "arcs", "sections"] = "sections") -> PoseFit:
     """Slice both scans at the pose `T_ref_target`, separate the slices into arcs and fit the arcs
@@ -208,11 +208,9 @@ def fit_at_pose(ref: Scan, tgt: Scan, T_ref_target: np.ndarray, *, slices: Slice
         The three stages' parameter sections.
     done
         Steps already made (a stage's upstream results): only the rest is computed.
-    reference
-        An earlier fit of the same pair: the reference's arcs and sections are taken from it (they
-        depend on the reference alone: its slices are the same at every pose).
     ref_arcs, ref_sections
-        The reference's arcs and sections when already known (shared by all its pairs).
+        The reference's arcs and sections when already known (shared by all its pairs, and the same
+        at every pose: the reference's slices do not move).
     seen
         The target as sliced and fitted, when not `tgt` itself (the target unbent, `Bend.warp`).
     until
@@ -220,8 +218,6 @@ def fit_at_pose(ref: Scan, tgt: Scan, T_ref_target: np.ndarray, *, slices: Slice
     """
     seen = tgt if seen is None else seen
     T = np.asarray(T_ref_target, dtype=float)
-    if reference is not None and reference.arcs is not None and reference.sections is not None:
-        ref_arcs, ref_sections = reference.arcs.ref, reference.sections.ref
     sl = done.slices if done is not None else slice_scans(ref, seen, T, slices=slices)
     if until == "slices" or not sl.ok:
         return PoseFit(slices=sl)

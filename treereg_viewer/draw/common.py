@@ -9,7 +9,6 @@ import viser
 import viser.transforms as vtf
 
 from treereg_core.results import Metric
-from treereg_core.stages import stage
 
 from ..controller import Snapshot
 from ..labels import label

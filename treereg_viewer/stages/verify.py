@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import viser
 
-from treereg_core.verify.report import verdict_text
+from treereg_core.params import loosened, loosened_text
 
 from ..controller import Snapshot
 from ..draw.common import Drawing, metrics_table, pair_label, target_index, title
@@ -44,8 +44,8 @@ def render_verify(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewSt
 def loosened_note(snap: Snapshot, verdict: str) -> str:
     """" ⚠ Verified under loosened thresholds (…)." when a verified verdict rests on a threshold set looser
     than its default; the same words as transforms.json and the command line."""
-    text = verdict_text(verdict, snap.params) if verdict == "verified" else ""
-    return f" ⚠ {text[0].upper()}{text[1:]}." if text and text != "verified" else ""
+    text = loosened_text(loosened(snap.params)) if verdict == "verified" else ""
+    return f" ⚠ {text[0].upper()}{text[1:]}." if text else ""
 
 
 STAGE = AppStage(

@@ -80,7 +80,7 @@ def sigterm_as_interrupt() -> Iterator[None]:
 def warning_line(message: Warning | str, category: type[Warning]) -> str | None:
     """The one line a warning becomes (None: not shown): its message only, never the file and line of
     code it came from, which a user cannot act on."""
-    if issubclass(category, DEVELOPER_WARNINGS) and not issubclass(category, ScanWarning):
+    if issubclass(category, DEVELOPER_WARNINGS):  # (a ScanWarning is a UserWarning: always shown)
         return None
     text = " ".join(str(message).split())  # one line, whatever the library put in it
     return f"warning: {text}" if text else None

@@ -37,7 +37,8 @@ def explain_line(section: str, f: dataclasses.Field, value: object) -> str:
     """One parameter: its --set key, current value, unit, range, choices and meaning."""
     unit = f" ({f.metadata['unit']})" if f.metadata["unit"] else ""
     lo, hi = f.metadata["min"], f.metadata["max"]
-    span = "" if lo is None and hi is None else f" [{'' if lo is None else f'{lo:g}'} to {'' if hi is None else f'{hi:g}'}]"
+    span = "" if lo is None and hi is None else \
+        f" [{'' if lo is None else P.number_text(lo)} to {'' if hi is None else P.number_text(hi)}]"
     choices = f" {{{'|'.join(P.set_text(c) for c in f.metadata['choices'])}}}" if f.metadata["choices"] else ""
     return f"  --set {section}.{f.name}={P.set_text(value)}{unit}{span}{choices} — {f.metadata['doc']}"
 

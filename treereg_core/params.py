@@ -614,12 +614,12 @@ def _check_range(key: str, values: tuple[Any, ...], meta: Any) -> None:
     unit = f" {meta['unit']}" if meta.get("unit") and meta["unit"] not in ("steps",) else ""
     for v in values:
         if (lo is not None and v < lo) or (hi is not None and v > hi):
-            allowed = f"{_g(lo)} to {_g(hi)}{unit}" if lo is not None and hi is not None else \
-                f"at least {_g(lo)}{unit}" if lo is not None else f"at most {_g(hi)}{unit}"
-            raise ConfigError(f"{key}: {_g(v)}{unit} is outside the allowed range ({allowed})")
+            allowed = f"{number_text(lo)} to {number_text(hi)}{unit}" if lo is not None and hi is not None else \
+                f"at least {number_text(lo)}{unit}" if lo is not None else f"at most {number_text(hi)}{unit}"
+            raise ConfigError(f"{key}: {number_text(v)}{unit} is outside the allowed range ({allowed})")
 
 
-def _g(v: float) -> str:
+def number_text(v: float) -> str:
     """A number as a message shows it: whole numbers in full (a seed's 4294967295), others short."""
     return str(v) if isinstance(v, int) else f"{v:g}"
 

@@ -170,7 +170,7 @@ def _running(pid: int) -> bool:
     except ProcessLookupError:
         return False
     except (OSError, OverflowError):  # not ours to signal (it exists), or no such pid possible: keep
-        return True
+        pass
     return True
 
 

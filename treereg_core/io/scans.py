@@ -395,8 +395,7 @@ def _warn_dropped(label: str, n: int, n_bad: int, why: str) -> None:
 def _far_rows(pts: np.ndarray, keep: np.ndarray) -> tuple[np.ndarray, float, float]:
     """Rows (among `keep`) farther than `OUTLIER_FACTOR` times the points' median spread from their
     median point (largest coordinate difference), the farthest such distance, and the spread."""
-    idx = np.flatnonzero(keep)
-    sample = pts[idx[:: max(1, len(idx) // _SIZE_SAMPLE)]]
+    sample = _kept_sample(pts, keep)
     centre = np.median(sample, axis=0)
     spread = float(np.median(np.abs(sample - centre).max(axis=1)))
     far = np.zeros(len(pts), dtype=bool)
@@ -415,13 +414,21 @@ def _far_rows(pts: np.ndarray, keep: np.ndarray) -> tuple[np.ndarray, float, flo
 
 def _check_not_one_point(label: str, pts: np.ndarray, keep: np.ndarray) -> None:
     """Refuse points that are all one point (a sample first: the full check only when it is)."""
-    idx = np.flatnonzero(keep)
-    first = pts[idx[0]]
-    if np.any(pts[idx[:: max(1, len(idx) // _SIZE_SAMPLE)]] != first):
+    first = pts[int(np.argmax(keep))]
+    if np.any(_kept_sample(pts, keep) != first):
         return
-    if np.all(pts[idx] == first):
-        raise ScanError(label, f"all {len(idx)} points are the same point ({first[0]:g}, {first[1]:g}, {first[2]:g}), "
+    kept = pts[keep]
+    if np.all(kept == first):
+        raise ScanError(label, f"all {len(kept)} points are the same point ({first[0]:g}, {first[1]:g}, {first[2]:g}), "
                                "so the file holds no scan")
+
+
+def _kept_sample(pts: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """About `_SIZE_SAMPLE` of the kept rows, evenly through the file, without an index array as long
+    as the scan (the rows kept are nearly always all of them)."""
+    step = max(1, len(pts) // _SIZE_SAMPLE)
+    sample = pts[::step][keep[::step]]
+    return sample if len(sample) else pts[keep][:_SIZE_SAMPLE]  # the kept rows all fell between the strides
 
 
 def _as_xyz(path: Path, arr: np.ndarray, what: str) -> np.ndarray:

@@ -13,6 +13,7 @@ from treereg_core.batch.report import write_summary
 from treereg_core.batch.runner import PICTURE_NAME, RESULT_NAME, picture_of, run_batch
 from treereg_core.errors import ConfigError, OutputError
 from treereg_core.io.atomic import check_distinct
+from treereg_core.io.naming import scan_names
 from treereg_core.io.transforms import export_paths
 
 from . import progress
@@ -66,10 +67,18 @@ def check_outputs(src: Path, out: Path, jobs: list[TreeJob]) -> None:
     inputs: list[Path] = [src] if src.is_file() else []
     for job in jobs:
         d = out / job.name
-        files = [d / RESULT_NAME, d / PICTURE_NAME, *export_paths(d, [f.name for f in job.scans])]
+        files = [d / RESULT_NAME, d / PICTURE_NAME, *export_paths(d, _scan_names(job))]
         outputs += [(f"the result {f.name} of tree {job.name}", f) for f in files]
         inputs += [*job.scans, *([job.truth] if job.truth else [])]
     check_distinct(outputs, inputs, advice="choose another --out folder")
+
+
+def _scan_names(job: TreeJob) -> list[str]:
+    """The names the tree's scans will have (as `batch.tree.run_tree` names them), before any is read."""
+    try:
+        return scan_names([(f, Path(f).name) for f in job.scans])
+    except ConfigError:  # a file listed twice: that tree fails on its own, saying so
+        return [Path(f).name for f in job.scans]
 
 
 def _notice(text: str) -> None:

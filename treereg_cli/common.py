@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import argparse
 import json
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 from treereg_core import params as P
 from treereg_core.errors import ConfigError
+from treereg_core.io.naming import scan_names
 from treereg_core.io.scans import read_records, record_to_scan
 from treereg_core.params import Params
 from treereg_core.scan import Scan
@@ -99,21 +101,19 @@ def add_param_args(p: argparse.ArgumentParser) -> None:
 
 def read_scans(files: list[str], params: Params, scanner_positions: list[list[float]] | None = None) -> list[Scan]:
     """Read scan files (an E57 or PTX file may hold several scans) with the parameters' angular steps
-    and returns; `scanner_positions` are given per scan, in order. Names must differ (they key the
-    transforms)."""
-    records = [(Path(f), r, n) for f in files for r, n in _records(f)]
+    and returns; `scanner_positions` are given per scan, in order. Each scan is named by
+    `io.naming.scan_names` (by folder where two files share a name: a/scan1.ply, b/scan1.ply), the
+    name that keys the transforms."""
+    records = [(f, r, n) for f in files for r, n in _records(f)]
     positions = [tuple(p) for p in (scanner_positions or [])]
     if positions and len(positions) != len(records):
         names = ", ".join(r.name for _, r, _ in records)
         raise ConfigError(f"--scanner-position was given {len(positions)} time(s) for {len(records)} scans ({names}); "
                           "give it once per scan, in order")
-    scans = [record_to_scan(r, f if n == 1 else Path(f"{f}#{r.name}"), params.prepare.angular_step_deg,
-                            params.prepare.returns, positions[k] if positions else None)
-             for k, (f, r, n) in enumerate(records)]
-    names = [s.name for s in scans]
-    if len(set(names)) != len(names):
-        raise ConfigError(f"scans must have distinct names (file base names, or E57 scan names), got {names}")
-    return scans
+    names = scan_names([(f, r.name) for f, r, _ in records])
+    return [record_to_scan(replace(r, name=name), Path(f) if n == 1 else Path(f"{f}#{r.name}"),
+                           params.prepare.angular_step_deg, params.prepare.returns, positions[k] if positions else None)
+            for k, ((f, r, n), name) in enumerate(zip(records, names))]
 
 
 def _records(path: str) -> list[tuple]:

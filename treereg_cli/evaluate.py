@@ -30,8 +30,9 @@ def add(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("transforms", help="transforms.json written by `treereg register` or the app")
     p.add_argument("--truth", help="truth.json of a simulated case (same scan names)")
-    p.add_argument("--scan-dir", help="folder holding the scans (default: the paths recorded in the "
-                   "transform file, else the transform file's folder)")
+    p.add_argument("--scan-dir", help="folder holding the scans, each at its name (a scan named by its folder, "
+                   "a/scan1.ply, in that sub-folder; default: the paths recorded in the transform file, else the "
+                   "transform file's folder)")
     p.add_argument("--branches", action="store_true", help="also print the per-branch table (paper Figs. 13-14)")
     add_set_arg(p)  # over the parameters the transform file records (e.g. --set evaluation.max_rms_m=0.02)
     p.set_defaults(func=run)

@@ -39,7 +39,8 @@ def add(sub: argparse._SubParsersAction) -> None:
         "under \"unverified\" with the reasons.",
     )
     p.add_argument("scans", nargs="+", metavar="SCAN", help="scan files (first scan = reference): PLY, LAS/LAZ, "
-                   "XYZ/TXT/CSV, NPY/NPZ, or E57/PTX files holding one or more scans")
+                   "XYZ/TXT/CSV, NPY/NPZ, or E57/PTX files holding one or more scans; each scan is named by its file's "
+                   "name (or its name in the E57), by folder where two share one: a/scan1.ply, b/scan1.ply")
     p.add_argument("--out", default="transforms.json", help="transform file to write (default: transforms.json)")
     p.add_argument("--until", choices=tuple(UNTIL), default="fine",
                    help="last stage to run (default: fine, with verification; coarse leaves every scan unverified)")

@@ -287,6 +287,7 @@ class VerifyParams:
     max_loop_m: float = _f(0.02, "m", "with 3 or more scans: loops of pairwise transforms close within this (mean displacement of the tree)", lo=0.0, hi=0.05, looser="higher")
     max_heading_deg: float = _f(0.5, "deg", "wind, when the sections leave the turn about the stem open: the heading the free-space evidence prefers must lie within this of the pose's", lo=0.0, hi=2.0, looser="higher")
     max_motion_m: float = _f(0.1, "m", "wind: with the stem's bend taken out, the branches may still have moved this much on their own between the stations (beyond it the motion cannot be told from a wrong pose)", lo=0.0, hi=0.15, looser="higher")
+    other_tree_consistency: float = _f(0.8, "", "not the same tree: a pair whose tie support is at chance level and whose free-space consistency is below this fails as showing another tree, and no scan is placed from it (measured: right pairs 0.94 or more, pairs of two different trees 0.07 to 0.94)", lo=0.0, hi=0.9)
 
 
 @dataclass(frozen=True)

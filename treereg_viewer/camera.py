@@ -16,6 +16,7 @@ import numpy as np
 from .controller import Snapshot
 from .draw.common import display_subset
 from .stages import registered
+from .view_state import ViewState
 
 #: viser's vertical field of view (75 deg) and the scene's width/height between the two docked
 #: panels at a common 1700 x 1000 window: the horizontal half-angle is the tighter one.
@@ -42,19 +43,57 @@ def _points_to_frame(snap: Snapshot, stage: str) -> list[np.ndarray]:
     return [s.points for s in snap.scans]
 
 
-def frame(snap: Snapshot, stage: str) -> CameraPose | None:
-    """A camera pose showing what stage `stage` draws (None when there are no scans)."""
+#: Stages that show one slice at a time (`ViewState.slice_shown`): the camera frames that slice.
+SLICE_STAGES = ("arcs", "sections", "fine")
+
+
+def _slice_points(snap: Snapshot, view: ViewState) -> np.ndarray | None:
+    """What to frame of the slice the view shows: its fitted sections (centres and rims) once the
+    Fits stage has them, else the reference's points in it (None: every slice, or none yet)."""
+    from .draw.common import target_index
+    from .draw.fits import slice_shown
+
+    sl_out, prep = snap.output("slices"), snap.output("prepare")
+    t = target_index(snap, "slices", view)
+    if sl_out is None or prep is None or t >= len(sl_out.items) or not sl_out.items[t].ok:
+        return None
+    sl = sl_out.items[t]
+    k = slice_shown(snap, t, view, sl.n_slices)
+    if k is None or not len(sl.ref_indices[k]):
+        return None
+    sec_out = snap.output("sections") if view.stage != "arcs" else None
+    sec = sec_out.items[t] if sec_out is not None and t < len(sec_out.items) else None
+    fits = [s for s in getattr(getattr(sec, "ref", None), "sections", ()) if s.slice_index == k and s.plausible
+            and np.isfinite(s.radius_m) and s.radius_m < 2.0]
+    if fits:
+        rim = np.array([[np.cos(a), np.sin(a), 0.0] for a in np.linspace(0, 2 * np.pi, 8, endpoint=False)])
+        return np.concatenate([np.asarray(s.centre_m) + 2.0 * s.radius_m * rim for s in fits])
+    return np.asarray(prep.items[0].scan.points[sl.ref_indices[k]])
+
+
+def frame(snap: Snapshot, stage: str, view: ViewState | None = None) -> CameraPose | None:
+    """A camera pose showing what stage `stage` draws (None when there are no scans): on the Arcs,
+    Fits and Fine stages the one slice the view shows, from a little more above."""
     if not snap.scans:
         return None
+    one = _slice_points(snap, view) if view is not None and stage in SLICE_STAGES else None
+    if one is not None:
+        return _frame_points(snap, one[display_subset(len(one), 5000, seed=7)], elevation_deg=3 * ELEVATION_DEG,
+                             percentile=0.0)
     parts = [p[display_subset(len(p), 5000, seed=7)] for p in _points_to_frame(snap, stage)]
-    pts = np.concatenate(parts)
-    lo, hi = np.percentile(pts, 0.5, axis=0), np.percentile(pts, 99.5, axis=0)  # far strays don't count
+    return _frame_points(snap, np.concatenate(parts))
+
+
+def _frame_points(snap: Snapshot, pts: np.ndarray, elevation_deg: float = ELEVATION_DEG,
+                  percentile: float = 0.5) -> CameraPose:
+    # Far strays don't count (a slice's few fitted rims all do).
+    lo, hi = np.percentile(pts, percentile, axis=0), np.percentile(pts, 100.0 - percentile, axis=0)
     look = (lo + hi) / 2.0
     # From the reference scanner (its origin) towards its tree, i.e. the reference scan's view,
     # from a little above (elevation ELEVATION_DEG).
     tree = snap.scans[0].points.mean(axis=0)
     d = tree[:2] / (np.linalg.norm(tree[:2]) or 1.0)
-    e = np.radians(ELEVATION_DEG)
+    e = np.radians(elevation_deg)
     back = np.array([-d[0] * np.cos(e), -d[1] * np.cos(e), np.sin(e)])
     corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
     # The farthest corner must fit the narrower (horizontal) half-angle, with some room to spare.

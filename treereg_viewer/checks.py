@@ -8,6 +8,7 @@ results; they compute no geometry. The app marks the stage with ⚠ and says why
 from __future__ import annotations
 
 from .controller import Snapshot
+from .labels import verdict_badge
 
 #: Errors against truth beyond these mean the registration failed (the fine stage aims at
 #: well under 0.5 deg and 3 cm).
@@ -66,7 +67,8 @@ def verdict_warnings(snap: Snapshot) -> list[str]:
     graph = snap.output("graph")
     if graph is None:
         return []
-    return [f"{snap.scans[i].name} is {pl.verdict}: {'; '.join(pl.reasons)}" + (f" (try: {pl.hint})" if pl.hint else "")
+    return [f"{verdict_badge(pl.verdict)}: {snap.scans[i].name}: {'; '.join(pl.reasons)}"
+            + (f" (try: {pl.hint})" if pl.hint else "")
             for i, pl in enumerate(graph.items) if pl.verdict != "verified"]
 
 

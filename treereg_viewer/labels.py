@@ -24,3 +24,16 @@ def by_label(text: str) -> str:
         if label(name) == text:
             return name
     raise KeyError(text)
+
+
+#: One mark per verdict, the same in every header, panel, help text and 3-D label.
+VERDICT_MARKS = {"verified": "✓", "unverified": "⚠", "failed": "✗"}
+
+
+def verdict_badge(verdict: str) -> str:
+    """'✓ verified', '⚠ unverified', '✗ failed'."""
+    return f"{VERDICT_MARKS.get(verdict, '?')} {verdict}"
+
+
+#: The marks as a legend sentence, for help texts.
+VERDICT_LEGEND = "✓ verified, ⚠ unverified (a best guess, with the reasons), ✗ failed (not placed)"

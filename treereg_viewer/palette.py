@@ -16,19 +16,33 @@ SCAN_COLORS: tuple[tuple[int, int, int], ...] = (
 
 #: Points that a stage removed (ground, crop) or that are only context.
 GREY = (150, 150, 150)
-#: Kept vs rejected matches and tie lines.
-KEPT = (20, 200, 60)
+#: Kept vs rejected matches and tie lines. No line or arc colour is a scan's colour (nor close to one:
+#: `distinct_from_scans`), so a line never reads as part of a scan and two scans' arcs stay apart.
+KEPT = (230, 0, 200)
 REJECTED = (170, 170, 170)
-HIGHLIGHT = (250, 200, 0)
+HIGHLIGHT = (255, 215, 0)
+#: Where the fine stage moved the target's tie points from (its starting pose) to (the fine pose).
+OFFSET = (20, 20, 20)
 
-#: Categorical colours for arcs (Tableau 10, its grey swapped for indigo: grey means 'not in an arc').
+#: Categorical colours for arcs, chosen away from every scan colour and from grey ('not in an arc').
 CATEGORICAL = np.array(
     [
-        (31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 103, 189),
-        (140, 86, 75), (227, 119, 194), (57, 59, 121), (188, 189, 34), (23, 190, 207),
+        (255, 215, 0), (230, 0, 200), (120, 60, 20), (20, 30, 110), (125, 140, 0),
+        (0, 95, 95), (255, 140, 170), (110, 0, 40), (150, 200, 255), (40, 40, 40),
     ],
     dtype=np.uint8,
 )
+
+
+#: Two colours closer than this in every channel read as the same colour on screen (shading moves a
+#: point's colour by about as much).
+MIN_CHANNEL_GAP = 60
+
+
+def distinct_from_scans(rgb: tuple[int, int, int] | np.ndarray) -> bool:
+    """Whether `rgb` differs from every scan colour by at least MIN_CHANNEL_GAP in some channel."""
+    c = np.asarray(rgb, dtype=int)
+    return all(int(np.abs(c - np.asarray(s)).max()) >= MIN_CHANNEL_GAP for s in SCAN_COLORS)
 
 
 def scan_color(index: int) -> tuple[int, int, int]:

@@ -48,7 +48,7 @@ ABOUT = {"robust": _about_robust, "paper": _about_paper}
 #: One sentence for the message line when a preset is applied.
 ABOUT_SHORT: dict[str, str] = {
     "paper": ("The paper's literal settings often give a wrong coarse transform (few tie points, no outlier "
-              "rejection): the Files tab says why; ⚠ marks a failed registration."),
+              "rejection): the Files tab says why; ✗ marks a failed registration, ⚠ an unverified one."),
 }
 
 

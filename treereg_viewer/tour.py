@@ -39,9 +39,10 @@ class TourPanel:
         else:
             self._go_to(max(0, min(len(STEPS) - 1, self.step + (1 if which.startswith("Next") else -1))))
 
-    def show(self, step: int | None) -> None:
-        """Show step `step` (None hides the card)."""
-        self.step = step
+    def show(self, step: int | None, following: bool = False) -> None:
+        """Show step `step` (None hides the card); a tab `following` the presenter reads the card
+        without the buttons (the presenter leads the steps)."""
+        self.step = None if following else step
         if step is None:
             self.card.visible = False
             self.nav.visible = False
@@ -50,4 +51,4 @@ class TourPanel:
         self.card.content = (f"#### Tour · step {step + 1} of {len(STEPS)}: {s.title}\n\n{s.why}\n\n"
                              f"**Try:** {s.try_this}")
         self.card.visible = True
-        self.nav.visible = True
+        self.nav.visible = not following

@@ -26,15 +26,16 @@ from .view_state import SECTION_POSES, ViewState
 #: At most this many images and plots per stage.
 MAX_IMAGES = 2
 MAX_PLOTS = 3
-#: Tables in the panel: a little room between columns, and a horizontal scrollbar when a table is
-#: wider than the panel (several targets) instead of clipped columns.
-TABLE_CSS = ("<style>.treereg-tables {overflow-x: auto; max-width: 100%;} "
-             ".treereg-tables td, .treereg-tables th {padding: 2px 10px 2px 0 !important; white-space: nowrap;} "
-             ".treereg-tables td:last-child {white-space: normal;}</style>")
+#: Tables in the panels: a little room between columns, and cells that wrap (a long word too) so that
+#: no table is ever wider than its panel, whatever its width (1280 x 720 included): nothing is
+#: clipped and nothing scrolls sideways. The small print under a cell (a parameter's name) is grey.
+TABLE_CSS = ("<style>.treereg-tables {max-width: 100%;} .treereg-tables table {width: 100%;} "
+             ".treereg-tables td, .treereg-tables th {padding: 2px 8px 2px 0 !important; white-space: normal "
+             "!important; overflow-wrap: break-word;} .treereg-tables small {color: #777;}</style>")
 
 
-def scrolling(markdown: str) -> str:
-    """Markdown whose tables scroll sideways in the panel rather than clip (see `TABLE_CSS`)."""
+def fitted(markdown: str) -> str:
+    """Markdown whose tables wrap to the panel's width (see `TABLE_CSS`)."""
     return f'<div class="treereg-tables">\n\n{markdown}\n\n</div>' if "|" in markdown else markdown
 
 
@@ -174,7 +175,7 @@ class ViewPanel:
     def show(self, content: PanelContent) -> None:
         """Replace the panel's content (call inside the viewer's `atomic()` with the scene updates)."""
         self._title.content = f"### {content.title}"
-        self._text.content = scrolling(content.text)
+        self._text.content = fitted(content.text)
         for k, (cap, img) in enumerate(zip(self._captions, self._images)):
             if k < len(content.images):
                 arr, caption = content.images[k]
@@ -195,7 +196,7 @@ class ViewPanel:
                 plot.visible = True
             else:
                 plot.visible = False
-        self._table.content = scrolling(content.table)
+        self._table.content = fitted(content.table)
 
     @property
     def images(self) -> list[Any]:

@@ -19,6 +19,10 @@ SECTION_POSES = {
 }
 
 
+#: `ViewState.slice_shown` for every slice at once.
+ALL_SLICES = -1
+
+
 @dataclass(frozen=True)
 class ViewState:
     """One viewer's display choices."""
@@ -44,3 +48,5 @@ class ViewState:
     section_poses: str = "Coarse and fine"  # a key of SECTION_POSES
     branch: int | None = None  # cross-section of an evaluated branch (its index) instead of the stem
     tour_step: int | None = None  # the guided tour's step, when the tour is on
+    slice_shown: int | None = None  # Arcs, Fits, Fine: one slice (0-based), ALL_SLICES, or None = the busiest
+    rival: str | None = None  # Hypotheses: the rival drawn beside the chosen pose (None = the best distinct one)

@@ -44,11 +44,12 @@ from .view_state import ViewState
 log = logging.getLogger(__name__)
 
 #: Width of the docked control panel (viser's "large" control width) and of the image panel, in a
-#: wide window and in a narrow one (below `NARROW_PX` of scene width the 3-D view would be squeezed).
+#: wide window and in a narrow one (below `NARROW_WINDOW_PX` the panels narrow so that the 3-D view keeps at
+#: least half of a 1280 px window).
 CONTROL_WIDTH_PX = 400
 PANEL_WIDTH_PX = 560
-NARROW_CONTROL_PX = 330
-NARROW_PANEL_PX = 430
+NARROW_CONTROL_PX = 300
+NARROW_PANEL_PX = 330
 NARROW_WINDOW_PX = 1500
 #: What a follower takes over from the presenter: everything it looks at (not its display sizes).
 FOLLOWED = tuple(f.name for f in fields(ViewState) if f.name not in ("point_size", "max_points", "hidden_scans",
@@ -120,6 +121,10 @@ class Viewer:
         scene.on_click()(self._on_scene_click)
         if client is not None:
             client.camera.on_update(self._on_camera)
+            try:  # the tab may have reported its camera while this viewer was being built
+                self._on_camera(client.camera)
+            except (AssertionError, AttributeError, ValueError):
+                pass  # not reported yet: its first report comes to the callback
         self.on_snapshot(self.controller.snapshot)
 
     # ---- the view -------------------------------------------------------------------------------
@@ -159,9 +164,10 @@ class Viewer:
     def select_stage(self, name: str) -> None:
         before = self.view.stage
         self.set_view(stage=name)
-        if registered(before) != registered(name):
-            # Between the scattered scans (own frames) and the registered tree the content moves:
-            # follow it. Within a group the camera stays where the user put it.
+        if registered(before) != registered(name) or (name in camera.SLICE_STAGES) != (before in camera.SLICE_STAGES):
+            # Between the scattered scans (own frames) and the registered tree the content moves, and
+            # the Arcs, Fits and Fine stages show one slice close up: follow it. Within a group the
+            # camera stays where the user put it.
             self.frame_view()
         self.stages.show_stage(name)
         snap = self.controller.snapshot
@@ -254,15 +260,20 @@ class Viewer:
 
     def frame_view(self) -> None:
         """Point this tab's camera at what the current stage draws (the "Frame the view" button)."""
-        self._look(camera.frame(self.controller.snapshot, self.view.stage))
+        self._look(camera.frame(self.controller.snapshot, self.view.stage, self.view))
 
     def _on_camera(self, cam: Any) -> None:
-        # The tab's first report says how wide its 3-D view is, between the two docked panels: a
-        # narrow window (a 1280 x 720 laptop screen) gets narrower panels, so the scene keeps room.
+        # The tab's reports say how wide its 3-D view is: a narrow window (a 1280 x 720 laptop screen)
+        # gets narrower panels, so the scene keeps at least half. A report may come before the panels
+        # are docked (the canvas then the whole window: landscape) or after (between them: the window
+        # less both panels); either reading of a narrow window narrows, and the panels then stay so.
         width = int(getattr(cam, "image_width", 0) or 0)
+        height = int(getattr(cam, "image_height", 0) or 0)
         if width and self._window_px is None:
-            self._window_px = width + self.panel.width + CONTROL_WIDTH_PX
-            if self._window_px < NARROW_WINDOW_PX:
+            docked = width + self.panel.width + CONTROL_WIDTH_PX
+            whole = width if height and width > 1.2 * height else None
+            if docked < NARROW_WINDOW_PX or (whole is not None and whole < NARROW_WINDOW_PX):
+                self._window_px = whole or docked
                 self.panel.set_width(NARROW_PANEL_PX)
                 self.gui.main_panel.set_width(NARROW_CONTROL_PX)
         if self.host.presenter is self:
@@ -324,6 +335,8 @@ class Viewer:
     def show_presenter(self, presenter: Viewer | None) -> None:
         """A presenter started or stopped: offer (and by default start) following, or say who presents."""
         if presenter is None or presenter is self:
+            if self.following:
+                self.tour.show(self.view.tour_step)
             self.following = False
             self.follow_md.visible = False
             self.follow_box.visible = False
@@ -339,9 +352,12 @@ class Viewer:
         self._set_following(True)
 
     def _set_following(self, on: bool) -> None:
+        was = self.following
         self.following = on and self.host.presenter is not None and self.host.presenter is not self
         if self.following:
             self.follow(self.host.presenter)
+        elif was:  # on its own again: the presenter's tour card goes, this tab's own tour (if any) stays
+            self.tour.show(self.view.tour_step)
 
     def follow(self, presenter: Viewer) -> None:
         """Take over what the presenter looks at, and show it in this tab's controls."""
@@ -353,7 +369,8 @@ class Viewer:
             self._view = replace(self._view, **{f: getattr(theirs, f) for f in FOLLOWED})
         snap = self.controller.snapshot
         self.stages.show_view(self.view, snap)
-        self.tour.show(None)
+        self.stages.show_snapshot(snap, self.view)  # the stage list's bold entry is the stage shown
+        self.tour.show(theirs.tour_step, following=True)  # the class reads the presenter's tour card
         self.drawer.request()
         if registered(before.stage) != registered(self.view.stage) and presenter.client is not None:
             try:

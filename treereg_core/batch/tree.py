@@ -22,6 +22,7 @@ import numpy as np
 from ..errors import ConfigError, ScanError
 from ..geometry.rigid import apply_transform, rotation_error_deg
 from ..io.cases import read_truth
+from ..io.naming import scan_names
 from ..io.scans import read_scan
 from ..io.transforms import TransformFile, registration_file
 from ..params import Params, to_dict
@@ -134,9 +135,9 @@ def run_tree(job: TreeJob, params: Params, until: str = "fine", picture: bool = 
         if len(job.scans) < 2:
             raise ConfigError(f"{job.name}: only {len(job.scans)} scan file; at least two are needed")
         scans = [read_scan(f, angular_step_deg=p.prepare.angular_step_deg) for f in job.scans]
-        names = [s.name for s in scans]
-        if len(set(names)) != len(names):
-            raise ConfigError(f"{job.name}: scan files must have distinct base names, got {names}")
+        # Named as `treereg register` names them: by folder where two files share a name.
+        names = scan_names([(f, s.name) for f, s in zip(job.scans, scans)])
+        scans = [s if s.name == n else s.with_points(s.points, name=n) for s, n in zip(scans, names)]
         seconds["read"] = time.perf_counter() - t0
         t1 = time.perf_counter()
         reg = register(scans, p, until=UNTIL[until])

@@ -3,7 +3,8 @@ tagged with the number of the scan it came from (1 = the reference, in the order
 given: the numbers people read in the app and the CLI's output).
 
 PLY carries the number as a `scan_id` vertex property, LAS/LAZ as the standard `point_source_id`,
-so CloudCompare, PDAL or lidR can colour or split the merged cloud by scan.
+so CloudCompare, PDAL or lidR can colour or split the merged cloud by scan; each number's scan name
+is in the PLY header's comments and a LAS/LAZ VLR.
 """
 
 from __future__ import annotations
@@ -47,9 +48,10 @@ def merged_cloud(scans: Sequence[Scan], transforms: Mapping[str, np.ndarray]) ->
 def write_merged(path: str | Path, scans: Sequence[Scan], transforms: Mapping[str, np.ndarray],
                  dtype: str = "float32") -> Path:
     """Write the merged cloud (PLY, LAS or LAZ by extension), atomically, with each point's scan
-    number. PLY coordinates are float32 by default (half the size, about a micrometre at tree
+    number and the name of each number (`write_scan`'s `scan_names`). PLY coordinates are float32 by default (half the size, about a micrometre at tree
     distances), float64 when the cloud lies far from the origin (georeferenced)."""
     points, ids = merged_cloud(scans, transforms)
     if len(points) and np.abs(points).max() > FLOAT32_LIMIT_M:
         dtype = "float64"
-    return write_scan(path, points, dtype=dtype, scan_id=ids)
+    names = {i + 1: s.name for i, s in enumerate(scans) if s.name in transforms}
+    return write_scan(path, points, dtype=dtype, scan_id=ids, scan_names=names)

@@ -17,11 +17,12 @@ from __future__ import annotations
 
 import gzip
 import io as _io
+import json
 import re
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TextIO
+from typing import Mapping, TextIO
 
 import numpy as np
 
@@ -45,6 +46,8 @@ READ_EXTENSIONS: tuple[str, ...] = POINT_EXTENSIONS + MULTI_SCAN_EXTENSIONS
 RETURN_COLUMNS: tuple[str, ...] = ("return_number", "returnnumber", "target_index", "return_index")
 #: Everything `write_scan` writes.
 WRITE_EXTENSIONS: tuple[str, ...] = (".ply", ".las", ".laz")
+#: User id of the LAS/LAZ VLR naming the scans of a merged cloud (JSON: {"1": "a/scan1.ply", ...}).
+SCAN_NAMES_VLR = "treereg"
 
 #: A tree cloud in metres spans at most this (1st to 99th percentile along its longest axis, file
 #: units): the tallest trees are about 100 m, a scan with its surroundings a few hundred metres.
@@ -835,7 +838,7 @@ def _first_bad_line(path: Path, gzipped: bool, delimiter: str | None, skip: int,
 
 # ---- writing -----------------------------------------------------------------------------------
 def write_scan(path: str | Path, points_or_scan: np.ndarray | Scan, dtype: str = "float64",
-               scan_id: np.ndarray | None = None) -> Path:
+               scan_id: np.ndarray | None = None, scan_names: Mapping[int, str] | None = None) -> Path:
     """Write points (or a `Scan`'s points) as PLY (binary little-endian) or LAS/LAZ, atomically.
 
     Parameters
@@ -851,6 +854,10 @@ def write_scan(path: str | Path, points_or_scan: np.ndarray | Scan, dtype: str =
         Optional N integers 0..65535 saying which scan each point came from (a merged cloud): the
         PLY gets a `scan_id` vertex property (a scalar field in CloudCompare), LAS/LAZ the
         standard `point_source_id`.
+    scan_names
+        Optional {scan number: scan name} for `scan_id` (the merged cloud's scans): PLY header
+        comments `comment scan_id 1 = "a/scan1.ply"`, a LAS/LAZ VLR (user id `SCAN_NAMES_VLR`)
+        holding them as JSON.
 
     Returns
     -------
@@ -873,7 +880,7 @@ def write_scan(path: str | Path, points_or_scan: np.ndarray | Scan, dtype: str =
         if ids.shape != (len(pts),) or (len(ids) and (ids.min() < 0 or ids.max() > 65535)):
             raise ValueError(f"scan_id must hold one integer 0..65535 per point, got shape {ids.shape}")
         ids = ids.astype(np.uint16)
-    tagged = {} if ids is None else {"scan_id": ids}
+    tagged = {} if ids is None else {"scan_id": ids, "scan_names": dict(scan_names or {})}
     if ext == ".ply":
         if dtype not in ("float64", "float32"):
             raise ValueError(f"dtype must be 'float64' or 'float32', got {dtype!r}")
@@ -883,15 +890,18 @@ def write_scan(path: str | Path, points_or_scan: np.ndarray | Scan, dtype: str =
     return path
 
 
-def _write_ply(path: Path, pts: np.ndarray, dtype: str, scan_id: np.ndarray | None = None) -> None:
+def _write_ply(path: Path, pts: np.ndarray, dtype: str, scan_id: np.ndarray | None = None,
+               scan_names: Mapping[int, str] | None = None) -> None:
     ply_type = "double" if dtype == "float64" else "float"
     fields = [("x", dtype), ("y", dtype), ("z", dtype)]
     extra = ""
     if scan_id is not None:
         fields.append(("scan_id", "uint16"))
         extra = "property ushort scan_id\n"
+    # A name as JSON text: ASCII (as the header must be), on one line, whatever the name holds.
+    names = "".join(f"comment scan_id {k} = {json.dumps(n)}\n" for k, n in sorted((scan_names or {}).items()))
     header = (
-        "ply\nformat binary_little_endian 1.0\ncomment written by treereg\n"
+        f"ply\nformat binary_little_endian 1.0\ncomment written by treereg\n{names}"
         f"element vertex {len(pts)}\n"
         f"property {ply_type} x\nproperty {ply_type} y\nproperty {ply_type} z\n{extra}end_header\n"
     )
@@ -904,7 +914,8 @@ def _write_ply(path: Path, pts: np.ndarray, dtype: str, scan_id: np.ndarray | No
         fh.write(rec.tobytes())
 
 
-def _write_las(path: Path, pts: np.ndarray, compress: bool, scan_id: np.ndarray | None = None) -> None:
+def _write_las(path: Path, pts: np.ndarray, compress: bool, scan_id: np.ndarray | None = None,
+               scan_names: Mapping[int, str] | None = None) -> None:
     import laspy
 
     header = laspy.LasHeader(point_format=0, version="1.2")
@@ -915,5 +926,8 @@ def _write_las(path: Path, pts: np.ndarray, compress: bool, scan_id: np.ndarray 
     las.x, las.y, las.z = pts[:, 0], pts[:, 1], pts[:, 2]
     if scan_id is not None:
         las.point_source_id = scan_id
+    if scan_names:
+        text = json.dumps({str(k): n for k, n in sorted(scan_names.items())})
+        las.vlrs.append(laspy.VLR(SCAN_NAMES_VLR, 1, "scan name per point_source_id", text.encode("ascii")))
     with open(path, "wb") as fh:
         las.write(fh, do_compress=compress, laz_backend=laspy.LazBackend.Lazrs if compress else None)

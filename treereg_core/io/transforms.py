@@ -6,7 +6,8 @@
      "transforms": {"scan2.ply": [[r00, r01, r02, tx], ..., [0, 0, 0, 1]], ...},
      "params": {...}, "software": "treereg 0.1.0", ...extra keys}
 
-Keys of "transforms" are the scan files' base names; each 4x4 (row-major) is `T_ref_scan`, mapping a
+Keys of "transforms" are the scans' names (`io.naming`: the files' base names, by folder where two
+share one: "a/scan1.ply"); each 4x4 (row-major) is `T_ref_scan`, mapping a
 point of that scan into the reference frame. The reference may be absent (it maps by the identity).
 Other top-level keys (metrics, angular steps, stations, ...) are kept in `TransformFile.extra`.
 """
@@ -17,6 +18,7 @@ import dataclasses
 import json
 import math
 import re
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
@@ -30,6 +32,7 @@ from ..params import Params, changed_from_defaults, loosened, loosened_text, to_
 from ..scan import Scan
 from . import atomic
 from .json_input import load_json
+from .naming import file_safe, file_stem
 from .atomic import write_text_atomic
 
 #: Largest |R^T R - I| entry accepted for the rotation part of a transform.
@@ -256,12 +259,14 @@ def parse_pdal_matrix(text: str) -> np.ndarray:
 
 
 def _stems(names: list[str]) -> dict[str, str]:
-    """File stem per scan name for the export files; the full name where two stems would clash."""
-    stems = {n: Path(n).stem for n in names}
-    counts: dict[str, int] = {}
-    for s in stems.values():
-        counts[s] = counts.get(s, 0) + 1
-    return {n: (s if counts[s] == 1 else n) for n, s in stems.items()}
+    """File stem per scan name for the export files (`naming.file_stem`: `a/scan1.ply` -> `a_scan1`,
+    never a folder); where two stems would clash, the whole names made safe (`b.ply`, `b.las`), and
+    numbered where even those would (`a/b.ply` beside `a_b.ply`)."""
+    stems = {n: file_stem(n) for n in names}
+    for fallback in (file_safe, lambda n: f"{file_safe(n)}~{names.index(n) + 1}"):
+        counts = Counter(stems.values())
+        stems.update({n: fallback(n) for n, s in stems.items() if counts[s] > 1})
+    return stems
 
 
 def export_names(names: Sequence[str], name: str = DEFAULT_NAME) -> dict[str, tuple[str, str]]:

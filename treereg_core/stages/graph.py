@@ -21,8 +21,8 @@ def run(ctx: StageContext) -> list[StageResult | None]:
     for k, p in enumerate(ctx.pairs):
         it = ver.items[k] if ver is not None else None
         if isinstance(it, PairVerification):
-            edges.append(Edge(i=p.ref, j=p.tgt, T=it.T_ref_target, verdict=it.verdict, reasons=it.reasons,
-                              weight=float(max(it.evidence.seen_by_both, 1))))
+            edges.append(Edge(i=p.ref, j=p.tgt, T=it.T_ref_target, verdict=it.verdict, reasons=it.reasons, hint=it.hint,
+                              other_tree=it.other_tree, weight=float(max(it.evidence.seen_by_both, 1))))
         else:  # the pair failed before verification: no transform
             edges.append(Edge(i=p.ref, j=p.tgt, T=np.eye(4), verdict="failed",
                               reasons=((it.message if it is not None else "") or "not registered",)))

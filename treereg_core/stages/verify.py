@@ -9,7 +9,7 @@ from ..fine.pose import FineResult
 from ..fine.surface import surface_of
 from ..prepare.ground import stem_position
 from ..stage import Stage, StageContext, StageResult
-from ..verify.evidence import PairResults, PairScene, PairVerification, gather_evidence, judge, verification
+from ..verify.evidence import PairResults, PairScene, PairVerification, assess, gather_evidence, verification
 from ..verify.hypotheses import HypothesesResult
 from .common import pair_label, prepared, range_image_of, scan_of, surface
 
@@ -34,8 +34,9 @@ def run(ctx: StageContext) -> list[StageResult | None]:
         e = gather_evidence(scene, found, verify=ctx.params.verify, hypotheses=hp, acceptance=ctx.params.acceptance,
                             wind=ctx.params.wind,
                             support_inlier_m=ctx.params.coarse.final_inlier_m or ctx.params.coarse.inlier_m)
-        return verification(f.T_ref_target, e, *judge(e, verify=ctx.params.verify, coarse=ctx.params.coarse,
-                                                      acceptance=ctx.params.acceptance))
+        return verification(f.T_ref_target, e, assess(e, verify=ctx.params.verify, coarse=ctx.params.coarse,
+                                                      acceptance=ctx.params.acceptance, target=tgt.name,
+                                                      reference=scan_of(ctx, p.ref).name))
     return ctx.each(one, lambda k: pair_label(ctx, k))
 
 

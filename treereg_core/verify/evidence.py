@@ -28,6 +28,7 @@ With three or more scans the pose graph adds loop closure (`graph`).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable, Iterable
 
 import numpy as np
 
@@ -95,8 +96,10 @@ class Evidence:
 class PairVerification:
     """The verify stage's result for one pair.
 
-    `ok` is True when a transform exists (verified or not); `verdict` says whether it can be
-    trusted, `reasons` why not (sentences a user can act on), `hint` what to try.
+    `ok` is True when a transform exists (verified, unverified, or failed because the scans show two
+    different trees: the transform is kept for inspection); `verdict` says whether it can be
+    trusted, `reasons` why not (sentences a user can act on), `hint` what to try, `checks` every
+    check with its value, threshold and outcome.
     """
 
     ok: bool
@@ -107,6 +110,15 @@ class PairVerification:
     reasons: tuple[str, ...]
     hint: str
     evidence: Evidence
+    #: Every check beside its threshold (`Check`), in the order of the reasons; the reasons are the
+    #: failed checks' own.
+    checks: tuple["Check", ...] = ()
+
+    @property
+    def other_tree(self) -> bool:
+        """The two scans show different trees (the "same tree" check failed, the only way a verified
+        pair fails): no scan is placed from this pair."""
+        return self.verdict == FAILED
 
 
 def scanner_height_m(plane: tuple[float, float, float, float] | None) -> float | None:
@@ -292,73 +304,308 @@ def _rival_under_wind(hyp: HypothesesResult, T: np.ndarray, pts: np.ndarray, jud
     return label, float(base - cons)
 
 
+@dataclass(frozen=True)
+class Check:
+    """One check of a pair's verdict beside its threshold, as the app shows it in a table.
+
+    Attributes
+    ----------
+    what : what is checked, in a person's words ("tie support", "free-space consistency").
+    value : what was measured (None: not measured; NaN reads as not measured too).
+    unit : "", "m", "deg", "points" or "ties".
+    relation, limit : the check passes when `value <relation> limit` (">=" or "<="); `limit` is the
+        effective threshold compared with (e.g. max(coarse.min_ties, chance_factor x chance)).
+    parameter : the Params key that sets the limit ("verify.chance_factor").
+    rule : how the limit is made, in words, and why a check was not judged.
+    passed : True, False, or None when not judged (not measured, or not applicable).
+    reason, hint : the sentence among the pair's reasons and what to try, when it failed ("" otherwise).
+    """
+
+    what: str
+    value: float | int | None
+    unit: str
+    relation: str
+    limit: float | int | None
+    parameter: str
+    rule: str
+    passed: bool | None
+    reason: str = ""
+    hint: str = ""
+
+    def value_text(self) -> str:
+        """"0.912", "1.2 mm", "4.1°", "412"; "not measured" for None or NaN."""
+        return quantity_text(self.value, self.unit)
+
+    def limit_text(self) -> str:
+        """"≥ 0.95", "≤ 3.6 mm"; "" when there is no limit."""
+        if self.limit is None or not _measured(self.limit):
+            return ""
+        sign = "≥" if self.relation == ">=" else "≤"
+        return f"{sign} {quantity_text(self.limit, self.unit) if self.unit else f'{float(self.limit):.3g}'}"
+
+
+def _measured(v: float | int | None) -> bool:
+    return v is not None and bool(np.isfinite(float(v)))
+
+
+def _unbounded(v: float | int | None) -> bool:
+    """Measured, but beyond what the measurement reaches (a distance searched up to a limit)."""
+    return v is not None and bool(np.isposinf(float(v)))
+
+
+def _mm(v_m: float) -> str:
+    """Metres as millimetres with one decimal, two significant digits below 0.1 mm ("0" only for
+    zero: never "0.0" for a small nonzero length)."""
+    mm = 1000.0 * v_m
+    return "0" if mm == 0 else f"{mm:.1f}" if abs(mm) >= 0.1 else f"{mm:.2g}"
+
+
+def quantity_text(value: float | int | None, unit: str) -> str:
+    """A measured value as a person reads it: "0.912", "1.2 mm", "0.35 m", "4.1°", "412"; "not
+    measured" for None or NaN (never "nan")."""
+    if _unbounded(value):
+        return "beyond reach"
+    if not _measured(value):
+        return "not measured"
+    v = float(value)  # type: ignore[arg-type]
+    if unit == "m":
+        return f"{v:.2f} m" if abs(v) >= 0.1 else f"{_mm(v)} mm"
+    if unit == "deg":
+        return f"{v:.2f}°" if abs(v) < 1.0 else f"{v:.1f}°"
+    if unit in ("points", "ties"):
+        return f"{v:.0f}" if v == round(v) else f"{v:.1f}"
+    return f"{v:.3f}"
+
+
+def _check(what: str, value: float | int | None, unit: str, relation: str, limit: float | int | None, parameter: str,
+           rule: str, *, judged: bool = True, reason: Callable[[], str] = lambda: "", hint: str = "") -> Check:
+    """A Check compared here and only here: passed when judged and `value <relation> limit` (a NaN
+    value fails a judged check); its reason is written only when it failed."""
+    passed = (bool(value >= limit) if relation == ">=" else bool(value <= limit)) if judged else None  # type: ignore[operator]
+    return Check(what, value, unit, relation, limit, parameter, rule, passed,
+                 reason() if passed is False else "", hint if passed is False else "")
+
+
+_CALM_HINT = "rescan these stations in calmer air, or add a station scanned soon after the reference"
+_SAME_TREE_HINT = "check that both scans show the same tree"
+
+
+def _support(e: Evidence, p: VerifyParams, coarse: CoarseParams) -> Check:
+    limit = max(coarse.min_ties, p.chance_factor * e.chance_inliers)
+    judged = e.chance_inliers >= 0
+    rule = (f"{p.chance_factor:g} × the {e.chance_inliers} inliers reached by chance (at least coarse.min_ties = "
+            f"{coarse.min_ties})" if judged else "not judged: the ties were not re-paired at random")
+    moving = (f"; the crown moved {e.sway_m:.2f} m between the stations, and ties on a moving crown agree less"
+              if e.sway_m > 0 else "")
+    return _check("tie support", e.inliers, "ties", ">=", limit if judged else None, "verify.chance_factor", rule,
+                  judged=judged, hint=_SAME_TREE_HINT, reason=lambda: (
+                      f"only {e.inliers} of {e.ties} tie points agree with the coarse transform or the final pose, against "
+                      f"{e.chance_inliers} when the ties are re-paired at random (verify.chance_factor = {p.chance_factor:g})"
+                      + moving))
+
+
+def _overlap(e: Evidence, p: VerifyParams) -> Check:
+    return _check("points seen by both stations", e.seen_by_both, "points", ">=", p.min_seen, "verify.min_seen",
+                  f"verify.min_seen = {p.min_seen}: enough overlap to judge the free space",
+                  hint="add a station between these two", reason=lambda: (
+                      f"only {e.seen_by_both} of the target's points lie where both stations could see them "
+                      f"(verify.min_seen = {p.min_seen}): too little overlap to judge"))
+
+
+def _motion(e: Evidence, p: VerifyParams, judged: bool) -> Check:
+    # (measured up to twice the allowance: farther is "beyond reach")
+    far = (f"{100 * e.motion_needed_m:.0f} cm or more" if not _unbounded(e.motion_needed_m) else
+           f"more than {200 * p.max_motion_m:.0f} cm")
+    return _check("branches' own motion (wind)", e.motion_needed_m, "m", "<=", p.max_motion_m, "verify.max_motion_m",
+                  f"verify.max_motion_m = {p.max_motion_m:g} m: beyond it the wind cannot be told from a wrong pose "
+                  "(measured up to twice that)" + ("" if judged else " (not judged: too little overlap)"),
+                  judged=judged, hint=_CALM_HINT, reason=lambda: (
+                      f"the crown moved between the stations (the stem top by {e.sway_m:.2f} m), and with the stem's "
+                      f"bend taken out its branches still stand {far} from where the "
+                      f"reference saw them (verify.max_motion_m = {p.max_motion_m:g}): too much motion to tell the "
+                      "wind from a wrong pose"))
+
+
+def _consistency(e: Evidence, p: VerifyParams, why_not: str) -> Check:
+    moved = (f", after the crown's motion was taken out ({e.moved} points within {100 * e.motion_m:.0f} cm of a "
+             "surface the reference saw counted as moved)") if e.sway_m > 0 else ""
+    return _check("free-space consistency", e.consistency, "", ">=", p.min_consistency, "verify.min_consistency",
+                  f"verify.min_consistency = {p.min_consistency:g} of the points both stations see lie where the "
+                  "reference saw a surface" + (f" (not judged: {why_not})" if why_not else ""),
+                  judged=not why_not, hint=f"{_SAME_TREE_HINT}, or pick another hypothesis in the app", reason=lambda: (
+                      f"{1 - e.consistency:.1%} of the points both stations see lie in space the reference saw "
+                      f"through{moved} (consistency {e.consistency:.3f} < verify.min_consistency = {p.min_consistency:g})"))
+
+
+def _same_tree(e: Evidence, p: VerifyParams, judged: bool, target: str, reference: str) -> Check:
+    """Support at chance level and much of the target in the reference's free space (right poses leave
+    6% or less there, two different trees 7% to 93%): the scans show two different trees, and the
+    pair fails rather than stays a best guess."""
+    return _check("same tree", e.consistency, "", ">=", p.other_tree_consistency, "verify.other_tree_consistency",
+                  f"verify.other_tree_consistency = {p.other_tree_consistency:g}, judged when the tie support is at chance "
+                  "level: below it more of the target lies in the reference's free space than a right pose leaves"
+                  + ("" if judged else " (not judged: the tie support is above chance or the overlap too small)"),
+                  judged=judged, hint=f"check the files: {target} and {reference} may be scans of different trees",
+                  reason=lambda: f"it does not show the same tree as {reference}")
+
+
+def _margin(e: Evidence, p: VerifyParams) -> Check:
+    # A hypothesis picked by hand settles the ambiguity: the person looked at both.
+    why_not = ("the hypothesis was chosen by hand" if e.chosen_by_hand else
+               "no competing hypothesis was scored" if not _measured(e.margin) else "")
+    rival = f" (best rival: {e.rival})" if e.rival else ""
+
+    def reason() -> str:
+        if e.margin < 0:
+            return (f"another hypothesis ({e.rival}) explains the scans better (its consistency is "
+                    f"{-e.margin:.3f} higher): the heading is wrong or ambiguous")
+        return (f"another hypothesis ({e.rival}) explains the scans almost as well (consistency margin "
+                f"{e.margin:.3f} < verify.min_margin = {p.min_margin:g}): the heading is ambiguous")
+    return _check("ambiguity margin", e.margin, "", ">=", p.min_margin, "verify.min_margin",
+                  f"verify.min_margin = {p.min_margin:g}: the chosen pose's consistency over the best distinct rival's"
+                  + rival + (f" (not judged: {why_not})" if why_not else ""), judged=not why_not, reason=reason,
+                  hint="compare the competing poses in the app (treereg view) and pick one, or add a station")
+
+
+def _residual(e: Evidence, p: VerifyParams) -> Check:
+    judged = _measured(e.noise_m) and e.noise_m > 0
+    limit = p.max_residual_factor * e.noise_m if judged else None
+    rule = (f"{p.max_residual_factor:g} × the scans' own noise ({_mm(e.noise_m)} mm)" if judged else
+            f"verify.max_residual_factor = {p.max_residual_factor:g} × the scans' own noise (not judged: the noise was "
+            "not measured)")
+
+    def reason() -> str:
+        what = "do not pair up" if not _measured(e.residual_m) else f"lie {_mm(e.residual_m)} mm apart"
+        return (f"the two surfaces {what}, more than {p.max_residual_factor:g} times the scans' own noise "
+                f"({_mm(e.noise_m)} mm)")
+    return _check("surface residual", e.residual_m, "m", "<=", limit, "verify.max_residual_factor", rule,
+                  judged=judged, reason=reason)
+
+
+def _stem_lean(e: Evidence, ap: AcceptanceParams) -> Check:
+    limit = max(ap.stem_tilt_deg, 3.0 * e.stem_tilt_std_deg)
+    noise = f"; noise {e.stem_tilt_std_deg:.2f}°" if _measured(e.stem_tilt_std_deg) else ""
+    return _check("stem lean", e.stem_tilt_deg, "deg", "<=", limit, "acceptance.stem_tilt_deg",
+                  f"acceptance.stem_tilt_deg = {ap.stem_tilt_deg:g}°, or 3 × the lean's noise if larger"
+                  + ("" if _measured(e.stem_tilt_deg) else " (not judged: no stem profile)"),
+                  judged=_measured(e.stem_tilt_deg), reason=lambda: (
+                      f"the target's stem leans {e.stem_tilt_deg:.2f}° against the reference's (acceptance.stem_tilt_deg "
+                      f"= {ap.stem_tilt_deg:g}{noise}): the pose tilts the scan against the tree both stations saw"))
+
+
+def _stem_shift(e: Evidence, ap: AcceptanceParams) -> Check:
+    limit = max(ap.stem_shift_m, 3.0 * e.stem_shift_std_m)
+    noise = f"; noise {_mm(e.stem_shift_std_m)} mm" if _measured(e.stem_shift_std_m) else ""
+    return _check("stem shift", e.stem_shift_m, "m", "<=", limit, "acceptance.stem_shift_m",
+                  f"acceptance.stem_shift_m = {_mm(ap.stem_shift_m)} mm, or 3 × the shift's noise if larger"
+                  + ("" if _measured(e.stem_shift_m) else " (not judged: no stem profile)"),
+                  judged=_measured(e.stem_shift_m), reason=lambda: (
+                      f"the two stems stand {_mm(e.stem_shift_m)} mm apart (acceptance.stem_shift_m = "
+                      f"{ap.stem_shift_m * 1000:g} mm{noise})"))
+
+
+def _heading(e: Evidence, p: VerifyParams) -> Check:
+    judged = _measured(e.heading_offset_deg)
+    return _check("heading (wind)", abs(e.heading_offset_deg), "deg", "<=", p.max_heading_deg, "verify.max_heading_deg",
+                  f"verify.max_heading_deg = {p.max_heading_deg:g}°: the heading the free-space evidence prefers, from "
+                  "the pose's" + ("" if judged else " (not judged: measured only when the sections leave the turn about "
+                                                    "the stem open)"),
+                  judged=judged, hint=_CALM_HINT, reason=lambda: (
+                      f"the crown moved (the stem top by {e.sway_m:.2f} m) and the sections leave the turn about the "
+                      f"stem open: the free-space evidence puts the heading {abs(e.heading_offset_deg):.1f}° or more from "
+                      f"the pose, or cannot fix it (verify.max_heading_deg = {p.max_heading_deg:g})"))
+
+
+def _tilt(e: Evidence, p: VerifyParams) -> Check:
+    return _check("scanner tilt", e.tilt_deg, "deg", "<=", p.max_tilt_deg, "verify.max_tilt_deg",
+                  f"verify.max_tilt_deg = {p.max_tilt_deg:g}°: scanners stand nearly level", judged=_measured(e.tilt_deg),
+                  reason=lambda: (f"the transform tilts the scanner by {e.tilt_deg:.1f}° (verify.max_tilt_deg = "
+                                  f"{p.max_tilt_deg:g}); scanners stand nearly level"))
+
+
+def _height(e: Evidence, p: VerifyParams) -> Check:
+    dh = e.height_difference_m
+    return _check("scanner height difference", abs(dh) if dh is not None else None, "m", "<=", p.max_height_difference_m,
+                  "verify.max_height_difference_m",
+                  f"verify.max_height_difference_m = {p.max_height_difference_m:g} m: each scanner at the height above the "
+                  "ground its own scan shows" + ("" if dh is not None else " (not judged: not both scans show ground)"),
+                  judged=dh is not None, reason=lambda: (
+                      f"the target's scanner would stand {abs(dh):.2f} m "  # type: ignore[arg-type]
+                      f"{'higher' if dh > 0 else 'lower'} above the ground than its own scan shows"))  # type: ignore[operator]
+
+
+def checks(e: Evidence, *, verify: VerifyParams, coarse: CoarseParams, acceptance: AcceptanceParams | None = None,
+           target: str = "the target", reference: str = "the reference") -> tuple[Check, ...]:
+    """Every check of the pair's verdict, in the order its reasons are given: "same tree" first (judged
+    only when the support is at chance level), then support, overlap, the wind's motion (only when the
+    crown moved), consistency (judged only with enough overlap and a motion the wind explains),
+    ambiguity, residual, the stems, the heading (wind only), the scanner's tilt and height."""
+    p, ap = verify, acceptance or AcceptanceParams()
+    support, overlap = _support(e, p, coarse), _overlap(e, p)
+    motion = (_motion(e, p, judged=bool(overlap.passed)),) if e.sway_m > 0 else ()
+    why_not = ("too little overlap" if not overlap.passed else
+               "the crown moved too much" if motion and not motion[0].passed else
+               "not measured" if not _measured(e.consistency) else "")
+    same = _same_tree(e, p, support.passed is False and bool(overlap.passed) and _measured(e.consistency),
+                      target, reference)
+    heading = (_heading(e, p),) if e.sway_m > 0 or _measured(e.heading_offset_deg) else ()
+    return (same, support, overlap, *motion, _consistency(e, p, why_not), _margin(e, p), _residual(e, p),
+            _stem_lean(e, ap), _stem_shift(e, ap), *heading, _tilt(e, p), _height(e, p))
+
+
+def joined_hints(hints: Iterable[str]) -> str:
+    """Hints joined by "; " with no clause twice: a hint whose clauses (split at ", or ") another hint
+    holds too is left out, and a clause that repeats (or is contained in) an earlier or longer one is
+    dropped ("check that both scans show the same tree" and "check that both scans show the same tree,
+    or pick another hypothesis in the app" give the second once)."""
+    groups = [h.split(", or ") for h in dict.fromkeys(h for h in hints if h)]
+    groups = [g for k, g in enumerate(groups)
+              if not any(set(g) < set(o) or (set(g) == set(o) and j < k) for j, o in enumerate(groups) if j != k)]
+    clauses = [c for g in groups for c in g]
+    seen: set[str] = set()
+    out = []
+    for g in groups:
+        kept = [c for c in g if c not in seen and not any(c != o and c in o for o in clauses)]
+        seen.update(kept)
+        if kept:
+            out.append(", or ".join(kept))
+    return "; ".join(out)
+
+
+@dataclass(frozen=True)
+class Judgement:
+    """The verdict of a pair from its checks: the reasons are the failed checks' (in their order),
+    the hint theirs joined (a pair of two different trees: only the hint to check the files)."""
+
+    verdict: str
+    reasons: tuple[str, ...]
+    hint: str
+    checks: tuple[Check, ...]
+
+
+def assess(e: Evidence, *, verify: VerifyParams, coarse: CoarseParams, acceptance: AcceptanceParams | None = None,
+           target: str = "the target", reference: str = "the reference") -> Judgement:
+    """The pair's checks and its verdict: failed when it shows another tree than the reference,
+    unverified when any other check failed, else verified."""
+    cs = checks(e, verify=verify, coarse=coarse, acceptance=acceptance, target=target, reference=reference)
+    failed = [c for c in cs if c.passed is False]
+    reasons = tuple(c.reason for c in failed)
+    if cs[0].passed is False:  # "same tree": the files are what to check, nothing generic
+        return Judgement(FAILED, reasons, cs[0].hint, cs)
+    hint = joined_hints(c.hint for c in failed) or ("try --keep-unverified to use the best guess anyway" if failed else "")
+    return Judgement(UNVERIFIED if failed else VERIFIED, reasons, hint, cs)
+
+
 def judge(e: Evidence, *, verify: VerifyParams, coarse: CoarseParams,
           acceptance: AcceptanceParams | None = None) -> tuple[str, tuple[str, ...], str]:
     """The verdict from the evidence: (verdict, reasons it is not verified, what to try)."""
-    p = verify
-    ap = acceptance or AcceptanceParams()
-    reasons: list[str] = []
-    hints: list[str] = []
-    if e.chance_inliers >= 0 and e.inliers < max(coarse.min_ties, p.chance_factor * e.chance_inliers):
-        moving = (f"; the crown moved {e.sway_m:.2f} m between the stations, and ties on a moving crown agree less"
-                  if e.sway_m > 0 else "")
-        reasons.append(f"only {e.inliers} of {e.ties} tie points agree with the coarse transform or the final pose, against "
-                       f"{e.chance_inliers} when the ties are re-paired at random (verify.chance_factor = {p.chance_factor:g})"
-                       + moving)
-        hints.append("check that both scans show the same tree")
-    if not e.seen_by_both >= p.min_seen:
-        reasons.append(f"only {e.seen_by_both} of the target's points lie where both stations could see them "
-                       f"(verify.min_seen = {p.min_seen}): too little overlap to judge")
-        hints.append("add a station between these two")
-    elif e.sway_m > 0 and e.motion_needed_m > p.max_motion_m:
-        reasons.append(f"the crown moved between the stations (the stem top by {e.sway_m:.2f} m), and with the stem's "
-                       f"bend taken out its branches still stand {100 * e.motion_needed_m:.0f} cm or more from where the "
-                       f"reference saw them (verify.max_motion_m = {p.max_motion_m:g}): too much motion to tell the "
-                       "wind from a wrong pose")
-        hints.append("rescan these stations in calmer air, or add a station scanned soon after the reference")
-    elif not e.consistency >= p.min_consistency:
-        moved = (f", after the crown's motion was taken out ({e.moved} points within {100 * e.motion_m:.0f} cm of a "
-                 "surface the reference saw counted as moved)") if e.sway_m > 0 else ""
-        reasons.append(f"{1 - e.consistency:.1%} of the points both stations see lie in space the reference saw "
-                       f"through{moved} (consistency {e.consistency:.3f} < verify.min_consistency = {p.min_consistency:g})")
-        hints.append("check that both scans show the same tree, or pick another hypothesis in the app")
-    # A hypothesis picked by hand settles the ambiguity: the person looked at both.
-    if np.isfinite(e.margin) and e.margin < p.min_margin and not e.chosen_by_hand:
-        if e.margin < 0:
-            reasons.append(f"another hypothesis ({e.rival}) explains the scans better (its consistency is "
-                           f"{-e.margin:.3f} higher): the heading is wrong or ambiguous")
-        else:
-            reasons.append(f"another hypothesis ({e.rival}) explains the scans almost as well (consistency margin "
-                           f"{e.margin:.3f} < verify.min_margin = {p.min_margin:g}): the heading is ambiguous")
-        hints.append("compare the competing poses in the app (treereg view) and pick one, or add a station")
-    if np.isfinite(e.noise_m) and e.noise_m > 0 and not e.residual_m <= p.max_residual_factor * e.noise_m:
-        what = "do not pair up" if not np.isfinite(e.residual_m) else f"lie {e.residual_m * 1000:.1f} mm apart"
-        reasons.append(f"the two surfaces {what}, more than {p.max_residual_factor:g} times the scans' own noise "
-                       f"({e.noise_m * 1000:.1f} mm)")
-    if np.isfinite(e.stem_tilt_deg) and e.stem_tilt_deg > max(ap.stem_tilt_deg, 3.0 * e.stem_tilt_std_deg):
-        reasons.append(f"the target's stem leans {e.stem_tilt_deg:.2f}° against the reference's (acceptance.stem_tilt_deg "
-                       f"= {ap.stem_tilt_deg:g}; noise {e.stem_tilt_std_deg:.2f}°): the pose tilts the scan against the "
-                       "tree both stations saw")
-    if np.isfinite(e.stem_shift_m) and e.stem_shift_m > max(ap.stem_shift_m, 3.0 * e.stem_shift_std_m):
-        reasons.append(f"the two stems stand {e.stem_shift_m * 1000:.1f} mm apart (acceptance.stem_shift_m = "
-                       f"{ap.stem_shift_m * 1000:g} mm; noise {e.stem_shift_std_m * 1000:.1f} mm)")
-    if np.isfinite(e.heading_offset_deg) and abs(e.heading_offset_deg) > p.max_heading_deg:
-        reasons.append(f"the crown moved (the stem top by {e.sway_m:.2f} m) and the sections leave the turn about the "
-                       f"stem open: the free-space evidence puts the heading {abs(e.heading_offset_deg):.1f}° or more from "
-                       f"the pose, or cannot fix it (verify.max_heading_deg = {p.max_heading_deg:g})")
-        hints.append("rescan these stations in calmer air, or add a station scanned soon after the reference")
-    if e.tilt_deg > p.max_tilt_deg:
-        reasons.append(f"the transform tilts the scanner by {e.tilt_deg:.1f}° (verify.max_tilt_deg = {p.max_tilt_deg:g}); "
-                       "scanners stand nearly level")
-    if e.height_difference_m is not None and abs(e.height_difference_m) > p.max_height_difference_m:
-        reasons.append(f"the target's scanner would stand {abs(e.height_difference_m):.2f} m "
-                       f"{'higher' if e.height_difference_m > 0 else 'lower'} above the ground than its own scan shows")
-    verdict = VERIFIED if not reasons else UNVERIFIED
-    hint = "; ".join(dict.fromkeys(hints)) or ("try --keep-unverified to use the best guess anyway" if reasons else "")
-    return verdict, tuple(reasons), hint
+    j = assess(e, verify=verify, coarse=coarse, acceptance=acceptance)
+    return j.verdict, j.reasons, j.hint
 
 
-def verification(T: np.ndarray, e: Evidence, verdict: str, reasons: tuple[str, ...], hint: str) -> PairVerification:
+def verification(T: np.ndarray, e: Evidence, j: Judgement) -> PairVerification:
+    """The verify stage's result for a pair: its transform, evidence, checks and verdict."""
+    verdict, reasons = j.verdict, j.reasons
     metrics = (
         Metric("verdict", "", verdict),
         Metric("coarse inliers", "", e.inliers),
@@ -381,4 +628,4 @@ def verification(T: np.ndarray, e: Evidence, verdict: str, reasons: tuple[str, .
         (Metric("heading the evidence prefers (turn about the stem, from the pose)", "deg", e.heading_offset_deg),)
         if np.isfinite(e.heading_offset_deg) else ())
     return PairVerification(ok=True, message="; ".join(reasons), metrics=metrics, T_ref_target=np.asarray(T, dtype=float),
-                            verdict=verdict, reasons=reasons, hint=hint, evidence=e)
+                            verdict=verdict, reasons=reasons, hint=j.hint, evidence=e, checks=j.checks)

@@ -25,7 +25,7 @@ from scipy.sparse.csgraph import minimum_spanning_tree
 from ..geometry.rigid import apply_transform, invert, make_transform, rotation_from_vector
 from ..params import GraphParams
 from ..results import Metric
-from .evidence import FAILED, UNVERIFIED, VERIFIED
+from .evidence import FAILED, UNVERIFIED, VERIFIED, joined_hints
 
 
 def select_pairs(similarity: np.ndarray, extra: int) -> list[tuple[int, int]]:
@@ -65,6 +65,10 @@ class Edge:
     T: np.ndarray
     verdict: str
     reasons: tuple[str, ...] = ()
+    #: What the pair's verdict says to try, and whether it failed because the two scans show different
+    #: trees (its reasons then name the other scan: a scan is never placed from such a pair).
+    hint: str = ""
+    other_tree: bool = False
     loop_error_m: float = float("nan")
     used: bool = False
     weight: float = 1.0
@@ -202,7 +206,12 @@ def place_scans(n: int, edges: list[Edge], samples: dict[int, np.ndarray], *, gr
                                  reasons=reasons, hint="", via=via, edges=all_edges))
             continue
         # Not reachable through verified edges: the best guess is the pair with the reference (or
-        # any pair whose other scan is placed), unverified with its reasons.
+        # any pair whose other scan is placed), unverified with its reasons; failed with its pair's
+        # reasons and hint when a placed scan's pair says it shows another tree.
+        other_tree = next((e for e in mine if e.other_tree and (e.i if e.j == k else e.j) in poses), None)
+        if other_tree is not None:
+            out.append(_failed(other_tree.reasons, other_tree.hint, all_edges))
+            continue
         guess, why = None, []
         for e in mine:
             other = e.i if e.j == k else e.j
@@ -214,11 +223,27 @@ def place_scans(n: int, edges: list[Edge], samples: dict[int, np.ndarray], *, gr
             break
         dropped_here = [f"the pair with scan {(e.i if e.j == k else e.j) + 1} keeps a loop open by {r * 1000:.1f} mm "
                         f"(verify.max_loop_m = {max_loop_m:g})" for e, r in dropped if k in (e.i, e.j)]
-        failed_here = [f"its pair with scan {(e.i if e.j == k else e.j) + 1} failed: {'; '.join(e.reasons)}"
-                       for e in mine if e.verdict == FAILED] if guess is None else []
-        reasons = tuple(dropped_here + why + failed_here) or ("no registered pair links it to the reference",)
-        verdict = UNVERIFIED if guess is not None else FAILED
-        hint = "add a station between it and its neighbours, or check that it shows the same tree"
-        out.append(Placement(ok=guess is not None, message="; ".join(reasons), metrics=(Metric("verdict", "", verdict),),
-                             T_ref_scan=guess, verdict=verdict, reasons=reasons, hint=hint, edges=all_edges))
+        failed_here = [r for e in mine if e.verdict == FAILED for r in _failure(e, k)] if guess is None else []
+        reasons = tuple(dict.fromkeys(dropped_here + why + failed_here)) or ("no registered pair links it to the reference",)
+        if guess is None:
+            out.append(_failed(reasons, joined_hints(e.hint for e in mine if e.other_tree) or _PLACE_HINT, all_edges))
+            continue
+        out.append(Placement(ok=True, message="; ".join(reasons), metrics=(Metric("verdict", "", UNVERIFIED),),
+                             T_ref_scan=guess, verdict=UNVERIFIED, reasons=reasons, hint=_PLACE_HINT, edges=all_edges))
     return out
+
+
+_PLACE_HINT = "add a station between it and its neighbours, or check that it shows the same tree"
+
+
+def _failure(e: Edge, k: int) -> tuple[str, ...]:
+    """Why scan k's failed pair `e` failed: its own reasons when they name the other scan (two
+    different trees), else "its pair with scan N failed: ..."."""
+    if e.other_tree:
+        return e.reasons
+    return (f"its pair with scan {(e.i if e.j == k else e.j) + 1} failed: {'; '.join(e.reasons)}",)
+
+
+def _failed(reasons: tuple[str, ...], hint: str, edges: tuple[Edge, ...]) -> Placement:
+    return Placement(ok=False, message="; ".join(reasons), metrics=(Metric("verdict", "", FAILED),), T_ref_scan=None,
+                     verdict=FAILED, reasons=tuple(reasons), hint=hint, edges=edges)

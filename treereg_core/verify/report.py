@@ -11,7 +11,7 @@ import numpy as np
 from ..params import Params, loosened, loosened_text
 from ..scan import Scan
 from ..stage import Pair, StageOutput
-from .evidence import FAILED, UNVERIFIED, VERIFIED
+from .evidence import FAILED, UNVERIFIED, VERIFIED, Check
 
 
 def _num(v: Any) -> Any:
@@ -49,6 +49,7 @@ def quality_report(scans: Sequence[Scan], pairs: Sequence[Pair], outputs: Mappin
             row["verdict"] = it.verdict
             row.update({key: _num(v) for key, v in it.evidence.as_dict().items()})
             row["reasons"] = list(it.reasons)
+            row["checks"] = [check_row(c) for c in getattr(it, "checks", ())]
         else:
             row["verdict"] = FAILED
             row["reasons"] = [getattr(it, "message", "") or "not verified"] if it is not None else ["not verified"]
@@ -58,6 +59,13 @@ def quality_report(scans: Sequence[Scan], pairs: Sequence[Pair], outputs: Mappin
                 row["used_in_placement"] = e.used
         edges.append(row)
     return {"scans": per_scan, "edges": edges}
+
+
+def check_row(c: Check) -> dict[str, Any]:
+    """One check of a pair as transforms.json holds it: what, value, unit, relation, limit, the
+    parameter that sets it, and passed (null: not judged)."""
+    return {"what": c.what, "value": _num(c.value), "unit": c.unit, "relation": c.relation, "limit": _num(c.limit),
+            "parameter": c.parameter, "passed": c.passed}
 
 
 def _motion_pair(pairs: Sequence[Pair], outputs: Mapping[str, StageOutput], i: int) -> int | None:

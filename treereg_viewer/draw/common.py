@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from typing import Any, Iterable
 
 import numpy as np
@@ -11,7 +12,7 @@ import viser.transforms as vtf
 from treereg_core.results import Metric
 
 from ..controller import Snapshot
-from ..labels import label
+from ..labels import label, verdict_badge
 from ..view_panel import PanelContent
 from ..view_state import ViewState
 
@@ -35,29 +36,60 @@ def pose_kwargs(T: np.ndarray) -> dict[str, np.ndarray]:
     return {"wxyz": vtf.SO3.from_matrix(T[:3, :3]).wxyz, "position": T[:3, 3].copy()}
 
 
+#: Where a long word may wrap in a narrow table column: after a '/', '_' or '.' followed by a letter
+#: (a scan named by its folder, "a/scan1.ply"; a parameter, "verify.min_consistency"), never inside
+#: a tag ("</small>": no letter before its '/').
+_BREAK_AFTER = re.compile(r"(?<=\w)([/_.])(?=[A-Za-z])")
+
+
+def breakable(text: str) -> str:
+    """`text` whose long words may wrap after their '/', '_' and '.' (an HTML <wbr>: nothing is
+    added to the text a person copies)."""
+    return _BREAK_AFTER.sub("\\1<wbr>", text)
+
+
 def md_table(header: tuple[str, ...], rows: list[tuple[Any, ...]]) -> str:
-    """A markdown table; cells are str()-ed, '|' escaped."""
+    """A markdown table; cells are str()-ed, '|' escaped, long words breakable (`breakable`)."""
     if not rows:
         return ""
 
     def cell(v: Any) -> str:
         if isinstance(v, float):
-            v = f"{v:.4g}"
-        return str(v).replace("|", "\\|")
+            v = f"{v:.4g}" if np.isfinite(v) else "–"  # never "nan" on screen
+        return breakable(str(v)).replace("|", "\\|")
 
-    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines = ["| " + " | ".join(cell(h) for h in header) + " |", "|" + "---|" * len(header)]
     lines += ["| " + " | ".join(cell(v) for v in r) + " |" for r in rows]
     return "\n".join(lines)
 
 
+#: Value columns per metrics table: more (many stations) continue in a table below, so that a table
+#: fits a narrow panel (330 px at 1280 x 720).
+COLUMNS_PER_TABLE = 3
+
+
+def metric_text(m: Metric) -> str:
+    """A metric's value as shown: never "nan" (a value not measured says so)."""
+    v = m.value
+    if isinstance(v, float) and not np.isfinite(v):
+        return "not measured"
+    return m.formatted()
+
+
 def metrics_table(columns: dict[str, Iterable[Metric]]) -> str:
-    """Metric rows side by side: one column per label (e.g. per target scan), one row per metric."""
-    cols = {k: {m.description: m.formatted() for m in v} for k, v in columns.items()}
+    """Metric rows side by side: one column per label (e.g. per target scan), one row per metric;
+    at most COLUMNS_PER_TABLE columns per table."""
+    cols = {k: {m.description: metric_text(m) for m in v} for k, v in columns.items()}
     names: list[str] = []
     for c in cols.values():
         names += [n for n in c if n not in names]
-    rows = [(n, *(c.get(n, "") for c in cols.values())) for n in names]
-    return md_table(("metric", *cols.keys()), rows)
+    keys = list(cols)
+    tables = []
+    for a in range(0, max(len(keys), 1), COLUMNS_PER_TABLE):
+        part = keys[a:a + COLUMNS_PER_TABLE]
+        rows = [(n, *(cols[k].get(n, "") for k in part)) for n in names]
+        tables.append(md_table(("metric", *part), rows))
+    return "\n\n".join(t for t in tables if t)
 
 
 def target_index(snap: Snapshot, name: str, view: ViewState) -> int:
@@ -77,20 +109,16 @@ def title(name: str, snap: Snapshot | None = None, t: int | None = None) -> str:
     return f"{head}: {pair_label(snap, t)}" + (f" {badges}" if badges else "")
 
 
-#: How a pair's verdict reads in a heading, when a stage result carries one (`verdict`).
-VERDICT_BADGES = {"verified": "✓ verified", "unverified": "? unverified", "failed": "✗ failed"}
-
-
 def pair_badges(snap: Snapshot, t: int) -> str:
     """Short marks after a pair's name in every stage heading: the latest registration verdict a
     stage result of this pair carries (an attribute `verdict`: "verified", "unverified",
     "failed"), latest stage first. Empty when no result carries one."""
-    for name in reversed(("coarse", "fine")):
+    for name in reversed(("coarse", "fine", "verify")):
         out = snap.output(name)
         item = out.items[t] if out is not None and t < len(out.items) else None
         verdict = getattr(item, "verdict", None)
         if verdict:
-            return f"[{VERDICT_BADGES.get(str(verdict), str(verdict))}]"
+            return f"[{verdict_badge(str(verdict))}]"
     return ""
 
 

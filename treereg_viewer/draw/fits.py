@@ -20,8 +20,11 @@ from treereg_core.geometry.rigid import apply_transform
 
 from ..controller import Snapshot
 from ..palette import GREY, HIGHLIGHT, scan_color
-from ..view_state import ViewState
+from ..view_state import ALL_SLICES, ViewState
 from .common import md_table, plural, target_index
+
+#: With every slice shown, the fits table lists at most this many rows (a slice at a time lists all).
+MAX_ROWS = 40
 
 
 def fine_scans(snap: Snapshot, t: int) -> tuple[Any, Any]:
@@ -53,10 +56,42 @@ def _box(points: np.ndarray) -> tuple[tuple[float, float], tuple[float, float]]:
     return (float(lo[0]), float(lo[1])), (float(hi[0]), float(hi[1]))
 
 
+def busiest_slice(snap: Snapshot, t: int) -> int:
+    """The slice of pair `t` with the most fitted sections of both scans (the most to look at; the
+    arcs' count before the Fits stage has run, else the lowest slice)."""
+    sec = snap.output("sections")
+    item = sec.items[t] if sec is not None and t < len(sec.items) else None
+    counts: dict[int, int] = {}
+    if item is not None and hasattr(item, "ref"):
+        for s in (*item.ref.sections, *item.tgt.sections):
+            if s.plausible:
+                counts[s.slice_index] = counts.get(s.slice_index, 0) + 1
+    arcs = snap.output("arcs")
+    a = arcs.items[t] if not counts and arcs is not None and t < len(arcs.items) else None
+    if a is not None and hasattr(a, "ref"):
+        for k, (r, g) in enumerate(zip(a.ref, a.tgt)):
+            counts[k] = r.n_arcs + g.n_arcs
+    return max(counts, key=lambda k: (counts[k], -k)) if counts else 0
+
+
+def slice_shown(snap: Snapshot, t: int, view: ViewState, n_slices: int) -> int | None:
+    """The slice the Arcs, Fits and Fine views show for pair `t` (None: every slice)."""
+    if view.slice_shown == ALL_SLICES or n_slices == 0:
+        return None
+    k = busiest_slice(snap, t) if view.slice_shown is None else view.slice_shown
+    return int(min(max(k, 0), n_slices - 1))
+
+
+def slice_label(k: int, heights_m: Any) -> str:
+    """'slice 3 at 2.41 m' (counted from 1, as the tables do)."""
+    return f"slice {k + 1} at {float(heights_m[k]):.2f} m" if k < len(heights_m) else f"slice {k + 1}"
+
+
 def fit_rows(snap: Snapshot, t: int, sl: SliceResult, sec: SectionsResult, ref: Any, tgt: Any,
-             show_rejected: bool) -> tuple[list[FitRow], int]:
-    """The fits worth listing, accepted first (then rejected, when asked), each by slice and radius;
-    and how many arcs have no fit to show (too few points, failed, or skipped: no NaN rows)."""
+             show_rejected: bool, only_slice: int | None = None) -> tuple[list[FitRow], int]:
+    """The fits worth listing, accepted first (then rejected, when asked), each by slice and radius
+    (of slice `only_slice` alone, when given); and how many arcs have no fit to show (too few
+    points, failed, or skipped: no NaN rows)."""
     boxes: dict[int, Any] = {}  # per slice: the horizontal extent of both scans' points in it
 
     def box(k: int) -> Any:
@@ -71,7 +106,8 @@ def fit_rows(snap: Snapshot, t: int, sl: SliceResult, sec: SectionsResult, ref: 
     hidden = 0
     for plausible in (True, False):
         for secs, i in ((sec.ref.sections, 0), (sec.tgt.sections, t + 1)):
-            for s in sorted((s for s in secs if s.plausible == plausible), key=lambda s: (s.slice_index, -s.radius_m)):
+            mine = (s for s in secs if s.plausible == plausible and only_slice in (None, s.slice_index))
+            for s in sorted(mine, key=lambda s: (s.slice_index, -s.radius_m)):
                 if not (s.fit.ok and np.isfinite(s.radius_m) and np.isfinite(s.centre_m).all()):
                     hidden += plausible is False
                     continue
@@ -83,10 +119,11 @@ def fit_rows(snap: Snapshot, t: int, sl: SliceResult, sec: SectionsResult, ref: 
 
 
 def slice_points(scene: viser.SceneApi, root: str, t: int, sl: SliceResult, T: np.ndarray, ref: Any, tgt: Any,
-                  size: float) -> list[Any]:
-    """Every slice's points of both scans in the reference frame, in the scans' colours."""
+                  size: float, only_slice: int | None = None) -> list[Any]:
+    """Every slice's points of both scans (or slice `only_slice`'s) in the reference frame, in the
+    scans' colours."""
     handles: list[Any] = []
-    for k in range(sl.n_slices):
+    for k in range(sl.n_slices) if only_slice is None else (only_slice,):
         r_idx, t_idx = sl.ref_indices[k], sl.tgt_indices[k]
         if len(r_idx):
             handles.append(scene.add_point_cloud(f"{root}/ref{k}", ref.points[r_idx], scan_color(0), point_size=size,
@@ -146,10 +183,11 @@ def draw_sections(scene: viser.SceneApi, root: str, snap: Snapshot, t: int, sl: 
     """The fitted sections of both scans (rejected ones grey, only when asked), the sliced points as
     context and the tie lines between partners; returns the handles, the fits table and its rows."""
     thick = sl.thickness_m
+    only = slice_shown(snap, t, view, sl.n_slices)
     # The scans are hidden on these stages (points on a fitted surface would hide it): the fitted
     # slices' points stay as context.
-    handles: list[Any] = slice_points(scene, root, t, sl, sec.T_ref_target, ref, tgt, view.point_size)
-    rows, hidden = fit_rows(snap, t, sl, sec, ref, tgt, view.show_rejected)
+    handles: list[Any] = slice_points(scene, root, t, sl, sec.T_ref_target, ref, tgt, view.point_size, only)
+    rows, hidden = fit_rows(snap, t, sl, sec, ref, tgt, view.show_rejected, only)
     shown = [r for r in rows if drawable(r)]
     for who, i in (("ref", 0), ("tgt", t + 1)):
         good = [r.section for r in shown if r.scan_index == i and r.section.plausible]
@@ -159,30 +197,37 @@ def draw_sections(scene: viser.SceneApi, root: str, snap: Snapshot, t: int, sl: 
     focus = rows[view.focus_section] if view.focus_section is not None and view.focus_section < len(rows) else None
     if focus is not None and drawable(focus):
         handles += _sections_meshes(scene, f"{root}/focus", [focus.section], HIGHLIGHT, thick, 0.9, grow=1.08)
-    if len(sec.tie_points_ref):
-        segs = np.stack([sec.tie_points_ref, sec.tie_points_tgt], axis=1).astype(np.float32)
+    ties = tie_mask(sec, sl, only)
+    if ties.any():
+        segs = np.stack([sec.tie_points_ref[ties], sec.tie_points_tgt[ties]], axis=1).astype(np.float32)
         handles.append(scene.add_line_segments(f"{root}/correspondences", segs, HIGHLIGHT, thickness=3.0,
                                                thickness_units="screen"))
-        handles.append(scene.add_point_cloud(f"{root}/ties_ref", np.asarray(sec.tie_points_ref), scan_color(0),
+        handles.append(scene.add_point_cloud(f"{root}/ties_ref", np.asarray(sec.tie_points_ref)[ties], scan_color(0),
                                              point_size=0.05, point_shape="circle", precision="float32"))
-        handles.append(scene.add_point_cloud(f"{root}/ties_tgt", np.asarray(sec.tie_points_tgt), scan_color(t + 1),
+        handles.append(scene.add_point_cloud(f"{root}/ties_tgt", np.asarray(sec.tie_points_tgt)[ties], scan_color(t + 1),
                                              point_size=0.05, point_shape="circle", precision="float32"))
     # A plausible fit counts only when a section of the other scan corresponds to it.
     pairs = np.asarray(sec.correspondences.pairs, dtype=np.int64).reshape(-1, 2)
     paired = ({id(sec.ref.sections[i]) for i in pairs[:, 0]} | {id(sec.tgt.sections[j]) for j in pairs[:, 1]})
     table_rows = []
-    for r in rows:
+    listed = rows if only is not None else rows[:MAX_ROWS]
+    for r in listed:
         s, fit = r.section, r.section.fit
-        verdict = (("yes" if id(s) in paired else "plausible, no partner") if s.plausible
-                   else f"no: {s.reason}")
+        verdict = (("yes" if id(s) in paired else "no partner") if s.plausible else f"no: {s.reason}")
         if not drawable(r):
             verdict += " (larger than its slice: not drawn)"
         mark = "▶ " if focus is r else ""
-        table_rows.append((f"{mark}{r.number}", r.scan, s.slice_index + 1, s.kind, f"{s.radius_m * 100:.1f}",
+        where = () if only is not None else (s.slice_index + 1,)  # one slice shown: its number is said above
+        table_rows.append((f"{mark}{r.number}", f"scan {r.scan_index + 1}", *where, s.kind, f"{s.radius_m * 100:.1f}",
                            f"{fit.rms_m * 1000:.1f}", f"{fit.arc_deg:.0f}", verdict))
-    table = md_table(("#", "scan", "slice", "fit", "radius (cm)", "RMS (mm)", "arc (°)", "used"), table_rows)
-    n_bad = sum(not r.section.plausible for r in fit_rows(snap, t, sl, sec, ref, tgt, True)[0])
-    notes = []
+    header = ("#", "scan", *(() if only is not None else ("slice",)), "fit", "r (cm)", "RMS (mm)", "arc (°)", "used")
+    table = md_table(header, table_rows)
+    n_bad = sum(not r.section.plausible for r in fit_rows(snap, t, sl, sec, ref, tgt, True, only)[0])
+    notes = [f"Shown: {slice_label(only, sl.heights_m)} of {sl.n_slices} (pick another under *Slice*, Stage tab)."
+             if only is not None else f"Shown: all {sl.n_slices} slices."]
+    if len(listed) < len(rows):
+        notes.append(f"The first {len(listed)} of {len(rows)} fits are listed: pick a slice under *Slice* to list "
+                     "its fits.")
     if not view.show_rejected and n_bad:
         notes.append(f"{plural(n_bad, 'rejected fit')} hidden (tick *Show rejected fits* to list and draw them).")
     if hidden:
@@ -191,6 +236,21 @@ def draw_sections(scene: viser.SceneApi, root: str, snap: Snapshot, t: int, sl: 
     if notes:
         table = " ".join(notes) + "\n\n" + table
     return handles, table, rows
+
+
+def tie_mask(sec: SectionsResult, sl: SliceResult, only_slice: int | None) -> np.ndarray:
+    """Which tie points to draw: all, or those of the sections fitted in slice `only_slice` (the
+    ties come pair by pair of corresponding sections, in `correspondences.pairs` order: one per
+    circle, two per cylinder)."""
+    n = len(sec.tie_points_ref)
+    if only_slice is None or n == 0:
+        return np.ones(n, dtype=bool)
+    keep: list[bool] = []
+    for i, j in np.asarray(sec.correspondences.pairs, dtype=np.int64).reshape(-1, 2):
+        a, b = sec.ref.sections[i], sec.tgt.sections[j]
+        k = 1 if "circle" in (a.kind, b.kind) else 2
+        keep += [a.slice_index == only_slice] * k
+    return np.array(keep, dtype=bool) if len(keep) == n else np.ones(n, dtype=bool)
 
 
 def focus_rows(snap: Snapshot, stage: str, view: ViewState) -> list[FitRow]:
@@ -207,4 +267,4 @@ def focus_rows(snap: Snapshot, stage: str, view: ViewState) -> list[FitRow]:
     if not getattr(sl, "ok", False) or sec is None or not hasattr(sec, "ref"):
         return []
     ref, tgt = fine_scans(snap, t)
-    return fit_rows(snap, t, sl, sec, ref, tgt, view.show_rejected)[0]
+    return fit_rows(snap, t, sl, sec, ref, tgt, view.show_rejected, slice_shown(snap, t, view, sl.n_slices))[0]

@@ -46,8 +46,10 @@ def profile_figure(f: Any, ref_name: str, tgt_name: str, colour_index: int, tole
         fig.add_trace(go.Scatter(x=[0.0, max(float(off.max()), 2 * tol)], y=[stable, stable], mode="lines",
                                  name=f"the stems agree up to {stable:.1f} m", line=dict(color="#1e8c3c", dash="dot")))
     fig.update_layout(
-        margin=dict(l=50, r=10, t=30, b=90),
-        legend=dict(orientation="h", x=0.5, xanchor="center", y=-0.25, yanchor="top"),
+        # The legend at the figure's foot (not under the axis by a share of the plot's height: in a
+        # narrow panel its rows would cover the axis title).
+        margin=dict(l=50, r=10, t=30, b=140),
+        legend=dict(orientation="h", x=0.5, xanchor="center", yref="container", y=0.0, yanchor="bottom"),
         title=dict(text=f"{tgt_name}'s stem against {ref_name}'s, by height", font=dict(size=12)),
         xaxis_title="horizontal offset of the stem (mm)", yaxis_title="height above the stem's base (m)",
         xaxis=dict(rangemode="tozero"), yaxis=dict(rangemode="tozero"))

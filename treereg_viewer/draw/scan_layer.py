@@ -72,13 +72,43 @@ def scans_shown(view: ViewState) -> bool:
     return view_of(view.stage).scans != "hidden"
 
 
+def verdict_shown(snap: Snapshot, view: ViewState, i: int) -> str:
+    """How scan i is marked in 3-D on this stage: "" (verified, or before registration), "unverified"
+    (drawn at its best guess, ghosted and labelled) or "failed" (labelled; not drawn where the scans
+    stand at their final placement, ghosted at a pair's own pose for inspection)."""
+    if i == 0 or not registered(view.stage):
+        return ""
+    verdict = snap.verdicts.get(snap.scans[i].name, ("",))[0] if i < len(snap.scans) else ""
+    return verdict if verdict in ("unverified", "failed") else ""
+
+
+#: An unverified (or inspected failed) scan: every GHOST_STRIDE-th point, lightened by GHOST_LIGHT.
+GHOST_STRIDE = 3
+GHOST_LIGHT = 0.55
+
+
+def _verdict_label(snap: Snapshot, view: ViewState, i: int, pts: np.ndarray) -> tuple[str, tuple[float, float, float]]:
+    """The 3-D label of a marked scan and where it goes (its own frame: above its tree)."""
+    mark = verdict_shown(snap, view, i)
+    name = snap.scans[i].name
+    if mark == "unverified":
+        text = f"⚠ {name}: unverified, best guess"
+    elif stage_pose(view) == "final":
+        text = f"✗ {name}: failed, not placed"
+    else:
+        text = f"✗ {name}: failed (this stage's pose, for inspection)"
+    top = np.array([*np.median(pts[:, :2], axis=0), float(np.quantile(pts[:, 2], 0.99)) + 0.4 + 0.5 * i])
+    return text, (float(top[0]), float(top[1]), float(top[2]))
+
+
 def scan_layer_key(snap: Snapshot, view: ViewState) -> tuple[Any, ...]:
     """What the scan layer's points depend on (it is redrawn only when this changes)."""
     residual = ((view.result_pose, view.residual_max_m, id(snap.output(POSE_STAGE.get(view.result_pose, view.result_pose))))
                 if residual_mode(view) else None)
     return (tuple(id(s) for s in snap.scans), id(snap.output("prepare")), view.stage == "prepare", context_only(view),
             view.point_size, view.max_points, view.show_stations, registered(view.stage), residual, see_through(view),
-            view.show_mixed and view.stage == "prepare")
+            view.show_mixed and view.stage == "prepare",
+            tuple(verdict_shown(snap, view, i) for i in range(len(snap.scans))), stage_pose(view) == "final")
 
 
 def draw_scan_layer(scene: viser.SceneApi, snap: Snapshot, view: ViewState,
@@ -122,6 +152,21 @@ def draw_scan_layer(scene: viser.SceneApi, snap: Snapshot, view: ViewState,
         node = scan_node(i)
         visible = scan.name not in view.hidden_scans
         handles.append(scene.add_frame(node, show_axes=False, visible=visible))
+        mark = verdict_shown(snap, view, i)
+        if mark:
+            text, where = _verdict_label(snap, view, i, pts[idx])
+            if mark == "failed" and stage_pose(view) == "final":
+                # Not placed: nothing to draw where the registered scans stand; the label stands above
+                # the reference's tree.
+                ref_pts = prepared.items[0].scan.points if prepared is not None and prepared.items[0].ok else pts
+                text, where = _verdict_label(snap, view, i, ref_pts[display_subset(len(ref_pts), 5000, seed=1)])
+                handles.append(scene.add_label(f"/scans/verdict{i}", text, position=where, anchor="bottom-center"))
+                continue
+            handles.append(scene.add_label(f"{node}/verdict", text, position=where, anchor="bottom-center"))
+            # A best guess (or a failed pair at its own pose) is drawn ghosted: fewer, lighter points.
+            full = np.broadcast_to(np.asarray(colors, dtype=float).reshape(-1, 3), (len(idx), 3))[::GHOST_STRIDE]
+            idx = idx[::GHOST_STRIDE]
+            colors = (full * (1 - GHOST_LIGHT) + 255 * GHOST_LIGHT).astype(np.uint8)
         if see_through(view) and prep is not None and getattr(prep, "ok", False):
             # Gaussian splats blend: half-transparent discs of about the point size.
             n = len(idx)

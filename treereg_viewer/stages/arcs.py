@@ -14,20 +14,22 @@ from treereg_core.fine.slicing import SliceResult
 from treereg_core.geometry.rigid import apply_transform
 
 from ..controller import Snapshot
-from ..draw.common import Drawing, md_table, metrics_table, pair_label, target_index, target_pose, title
-from ..draw.fits import fine_scans
+from ..draw.common import Drawing, md_table, metrics_table, pair_label, pair_scans, target_index, target_pose, title
+from ..draw.fits import fine_scans, slice_label, slice_shown
 from ..palette import categorical
 from ..view_panel import PanelContent
 from ..view_state import ViewState
 from .base import AppStage, StageView, TargetControl, TourStep
+from .slices import SliceControl
 
 
 def _arc_points(scene: viser.SceneApi, root: str, ar: SliceArcs, T: np.ndarray, ref: Any, tgt: Any,
-                size: float) -> tuple[list[Any], list[tuple[str, str]]]:
-    """Both scans' arcs coloured one per arc; per slice the arc counts."""
+                size: float, only: int | None) -> tuple[list[Any], list[tuple[str, str]]]:
+    """Both scans' arcs coloured one per arc (of slice `only`, or every slice); per slice the arc counts."""
     handles: list[Any] = []
     counts: list[tuple[str, str]] = []
     for k in range(max(len(ar.ref), len(ar.tgt))):
+        drawn = only in (None, k)
         row = []
         for who, arcs, scan, M, offset in (("ref", ar.ref, ref, None, 0), ("tgt", ar.tgt, tgt, T, 5)):
             if k >= len(arcs):
@@ -35,7 +37,7 @@ def _arc_points(scene: viser.SceneApi, root: str, ar: SliceArcs, T: np.ndarray, 
                 continue
             a = arcs[k]
             row.append(f"{a.n_arcs}" + ("" if a.ok else f" ({a.message})"))
-            if len(a.indices) == 0:
+            if len(a.indices) == 0 or not drawn:
                 continue
             pts = scan.points[a.indices]
             if M is not None:
@@ -53,13 +55,20 @@ def render_arcs(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewStat
     ar: SliceArcs = snap.output("arcs").items[t]
     sl: SliceResult = snap.output("slices").items[t]
     ref, tgt = fine_scans(snap, t)
-    handles, counts = _arc_points(scene, root, ar, target_pose(snap, "hypothesis", t), ref, tgt, 2.0 * view.point_size)
-    rows = [(k + 1, f"{sl.heights_m[k]:.2f}" if k < len(sl.heights_m) else "", *c) for k, c in enumerate(counts)]
-    text = ("Colours tell the arcs of a slice apart (an arc: a connected component in the scan's own angular "
-            f"grid, c = {snap.params.arcs.connectivity:g}; the same colour recurs from slice to slice); grey "
-            f"points belong to arcs smaller than {snap.params.arcs.min_points} points. The target is at the pose "
-            "the fine stage starts from (5 Hypotheses).")
-    table = md_table(("slice", "height (m)", f"arcs in {snap.scans[0].name}", f"arcs in {snap.scans[t + 1].name}"), rows)
+    only = slice_shown(snap, t, view, sl.n_slices)
+    handles, counts = _arc_points(scene, root, ar, target_pose(snap, "hypothesis", t), ref, tgt, 2.0 * view.point_size,
+                                  only)
+    rows = [(("▶ " if k == only else "") + str(k + 1), f"{sl.heights_m[k]:.2f}" if k < len(sl.heights_m) else "", *c)
+            for k, c in enumerate(counts)]
+    shown = (f"Shown: {slice_label(only, sl.heights_m)} of {sl.n_slices} (▶ in the table; pick another under *Slice*, "
+             "Stage tab). " if only is not None else f"Shown: all {sl.n_slices} slices. ")
+    text = (shown + "Colours tell the arcs of a slice apart (an arc: a connected component in the scan's own angular "
+            f"grid, neighbours within c = {snap.params.arcs.connectivity:g} angular steps; the same colour recurs from "
+            f"slice to slice, and no arc has a scan's colour); grey points belong to arcs smaller than "
+            f"{snap.params.arcs.min_points} points (arcs.min_points). The target is at the pose the fine stage starts "
+            "from (5 Hypotheses).")
+    i, j = pair_scans(snap, t)
+    table = md_table(("slice", "height (m)", f"arcs, scan {i + 1}", f"arcs, scan {j + 1}"), rows)
     table += "\n\n" + metrics_table({pair_label(snap, t): ar.metrics})
     return handles, PanelContent(title("arcs", snap, t), text=text, table=table)
 
@@ -68,14 +77,14 @@ STAGE = AppStage(
     "arcs",
     StageView(
         "hypothesis",
-        scans="faded",
+        scans="hidden",
         explanation="Each slice holds several arcs (trunk and branch sections). Because the scanner samples a fixed "
             "angular grid, two points are neighbours when their angles differ by at most c·φ and c·ϕ "
             "(paper: c = 3, 2.2.2); connected components give the arcs, coloured one per component.",
     ),
     draw=render_arcs,
-    view_fields=("target", "point_size"),
-    controls=(TargetControl,),
+    view_fields=("target", "point_size", "slice_shown"),
+    controls=(TargetControl, SliceControl),
     tour=(
         TourStep(
             "arcs", "Arcs by angular connectivity",

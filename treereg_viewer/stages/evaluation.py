@@ -139,13 +139,13 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
     if truth:  # the analyst's first question, answered above the plot
         text += "\n\n" + md_table(
             # Short headers: the verdict column must fit the panel without scrolling sideways.
-            ("target", "registration", f"within {TRUTH_ROT_DEG:g}°, {TRUTH_DISP_M * 100:g} cm", "rotation (°)",
-             "displacement (mm)"),
+            ("target", "regis&shy;tration", f"within {TRUTH_ROT_DEG:g}°, {TRUTH_DISP_M * 100:g} cm", "rotation (°)",
+             "mean displace&shy;ment (mm)"),
             [(pair, label, "yes" if good else "**no**", f"{rot:.3f}", f"{disp * 1000:.1f}")
              for pair, label, rot, disp, good in truth_rows(snap, names_only=True)])
     if notes:
         text += "\n\n" + "\n\n".join(notes)
-    text += "".join(f"\n\n**⚠** {w}" for w in truth_warnings(snap))
+    text += "".join(f"\n\n**✗** {w}" for w in truth_warnings(snap))
     if not report.ok and report.message:
         text += f"\n\n**Evaluation:** {report.message}"
     plots = []
@@ -170,7 +170,7 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
             d = ", ".join(f"{x * 1000:.1f}" for x in b.distances_m)
             rows.append((label, b.index + 1, f"{b.height_m:.2f}", f"{b.radius_m * 100:.1f}", d, f"{b.mean_m * 1000:.1f}"))
     if rows:
-        table += "\n\n" + md_table(("registration", "branch", "height (m)", "radius (cm)", "d₁…dₙ (mm)", "d̄ (mm)"), rows)
+        table += "\n\n" + md_table(("regis&shy;tration", "branch", "height (m)", "r (cm)", "d₁…dₙ (mm)", "d̄ (mm)"), rows)
     shown = evs.get(method)
     handles = branch_rings(scene, root, shown, scan_color(t + 1)) if shown is not None else []
     return handles, PanelContent(title("evaluation", snap, t), text=text, images=tuple(images), plots=tuple(plots),
@@ -211,7 +211,7 @@ STAGE = AppStage(
             "points at equal height averaged, d̄ (eq. 8, 3.3), here for each pair's own fine transform. The targets "
             "are drawn at their final (joint) placement unless you pick another. ICP from the coarse result is shown beside it, "
             "as the paper compares. When a truth.json comes with the scans (the demo, simulated cases), the "
-            "errors against it are listed first; ⚠ marks a registration that failed. Colour the points by their "
+            "errors against it are listed first; ✗ marks a registration far from the truth. Colour the points by their "
             "distance to the other scans to see where the scans agree.",
     ),
     draw=render,

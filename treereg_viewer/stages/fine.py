@@ -6,14 +6,19 @@ from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
 import viser
+
+from treereg_core.geometry.rigid import apply_transform, invert
 
 from ..controller import Snapshot
 from ..draw.common import Drawing, metrics_table, pair_label, pair_scans, plural, target_index, title
-from ..draw.fits import draw_sections, fine_scans
+from ..draw.fits import draw_sections, fine_scans, slice_shown, tie_mask
+from ..palette import OFFSET
 from ..draw.motion import motion_sentence, profile_figure
 from ..view_panel import PanelContent
 from ..view_state import ViewState
+from .slices import SliceControl
 from .base import AppStage, StageView, TargetControl, TourStep
 from .sections import FitControls
 
@@ -38,6 +43,44 @@ def fine_status(snap: Snapshot, t: int, f: Any) -> str:
     return text
 
 
+def fine_offsets(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState, t: int,
+                 T_fine: np.ndarray) -> tuple[list[Any], str]:
+    """Fine against Fits: a line from each of the target's tie points at the pose the Fits stage
+    started from to where the fine pose puts it (of the slice in view), and a sentence with their
+    mean length."""
+    sec_out, sl_out = snap.output("sections"), snap.output("slices")
+    sec = sec_out.items[t] if sec_out is not None and t < len(sec_out.items) else None
+    sl = sl_out.items[t] if sl_out is not None and t < len(sl_out.items) else None
+    if sec is None or sl is None or not hasattr(sec, "tie_points_tgt") or not len(sec.tie_points_tgt):
+        return [], ""
+    keep = tie_mask(sec, sl, slice_shown(snap, t, view, sl.n_slices))
+    start = np.asarray(sec.tie_points_tgt, dtype=float)[keep]
+    if not len(start):
+        return [], ""
+    moved = apply_transform(np.asarray(T_fine, dtype=float) @ invert(np.asarray(sec.T_ref_target, dtype=float)), start)
+    d = np.linalg.norm(moved - start, axis=1)
+    k = magnification(float(np.mean(d)))
+    tips = start + k * (moved - start)
+    handles = [scene.add_line_segments(f"{root}/offsets", np.stack([start, tips], axis=1).astype(np.float32), OFFSET,
+                                       thickness=4.0, thickness_units="screen")]
+    longer = f", drawn {k:g} times longer to be seen" if k > 1 else ""
+    return handles, (f" Black lines: how far the fine pose moved each of the target's tie points from where they stood "
+                     f"in *8 Fits* (the starting pose){longer}: {np.mean(d) * 1000:.1f} mm on average, at most "
+                     f"{np.max(d) * 1000:.1f} mm, of the {plural(len(d), 'tie point')} shown.")
+
+
+#: Offsets of a few millimetres are drawn longer, so that they reach out of the fitted sections
+#: (decimetres across; the tie points sit at their centres): the mean offset is drawn about this
+#: long (m), by a round factor.
+SHOWN_OFFSET_M = 0.3
+
+
+def magnification(mean_offset_m: float) -> float:
+    """1, 2, 5, ... 500: the round factor that draws the mean offset about SHOWN_OFFSET_M long."""
+    want = SHOWN_OFFSET_M / max(mean_offset_m, 1e-6)
+    return float(max([1.0] + [f for f in (2.0, 5.0, 10.0, 20.0, 50.0, 100.0, 200.0, 500.0) if f <= want]))
+
+
 def render_fine(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> Drawing:
     t = target_index(snap, "fine", view)
     f = snap.output("fine").items[t]
@@ -48,9 +91,11 @@ def render_fine(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewStat
         ref, tgt = fine_scans(snap, t)
         handles, table, _ = draw_sections(scene, root, snap, t, f.slices, f.sections, ref, tgt, view)
         n = f.sections.n_pairs
+        lines, moved = fine_offsets(scene, root, snap, view, t, f.T_ref_target)
+        handles += lines
         text += (f" Shown: the sections at the final pose ({plural(n, 'corresponding pair')}); partners should now "
-                 "coincide. The *Cross-section* view (left panel, top) shows the scans' stem arcs at the coarse "
-                 "and the fine pose side by side.")
+                 f"coincide.{moved} The *Cross-section* view (left panel, top) shows the scans' stem arcs at the "
+                 "coarse and the fine pose side by side.")
     table = metrics_table({pair_label(snap, t): f.metrics}) + ("\n\n" + table if table else "")
     i, j = pair_scans(snap, t)
     tol = snap.params.wind.stable_tolerance_m
@@ -74,8 +119,8 @@ STAGE = AppStage(
             "Shown: the sections at the final pose.",
     ),
     draw=render_fine,
-    view_fields=("target", "point_size", "show_rejected", "focus_section"),
-    controls=(TargetControl, FitControls),
+    view_fields=("target", "point_size", "show_rejected", "focus_section", "slice_shown"),
+    controls=(TargetControl, SliceControl, FitControls),
     tour=(
         TourStep(
             "fine", "From separate arcs to one ring",

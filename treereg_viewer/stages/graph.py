@@ -4,6 +4,8 @@ coloured by verdict, loop errors on hover). All numbers come from the results; t
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import plotly.graph_objects as go
 import viser
@@ -14,7 +16,8 @@ from ..palette import hex_color, scan_color
 from ..view_panel import PanelContent
 from ..view_state import ViewState
 from .base import AppStage, StageView, TourStep
-from .verify import BADGE, loosened_note
+from ..labels import VERDICT_LEGEND, verdict_badge
+from .verify import loosened_note
 
 
 #: Edge colours of the station graph, by verdict.
@@ -52,25 +55,38 @@ def graph_figure(snap: Snapshot) -> go.Figure | None:
 
 def render_graph(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> Drawing:
     graph = snap.output("graph")
-    rows = []
+    rows, why = [], []
     for i, (s, pl) in enumerate(zip(snap.scans, graph.items)):
-        via = ", ".join(str(v + 1) for v in pl.via)
-        rows.append((f"{i + 1}: {s.name}", BADGE.get(pl.verdict, pl.verdict), via, "; ".join(pl.reasons)))
+        via = ", ".join(str(v + 1) for v in pl.via) or "–"
+        rows.append((f"{i + 1}: {s.name}", verdict_badge(pl.verdict), via))
+        if pl.verdict != "verified":
+            hint = f" Try: {pl.hint}." if pl.hint else ""
+            why.append(f"- **{verdict_badge(pl.verdict)} {s.name}:** " + "; ".join(pl.reasons) + "." + hint)
     n_ok = sum(pl.verdict == "verified" for pl in graph.items)
-    text = (f"{n_ok} of {len(graph.items)} scans verified. Every scan is shown at its joint placement. Solid edges: "
-            "verified pairs used in the joint solve; dotted: pairs left out (unverified, failed, or dropped because "
-            "a loop did not close).") + loosened_note(snap, "verified" if n_ok > 1 else "")
+    text = (f"{n_ok} of {len(graph.items)} scans verified ({VERDICT_LEGEND}). Verified and unverified scans are drawn "
+            "at their placement, an unverified one see-through and labelled as a best guess; a failed one is not "
+            "drawn. Solid edges: verified pairs used in the joint solve; dotted: pairs left out (unverified, failed, "
+            "or dropped because a loop did not close).") + loosened_note(snap, "verified" if n_ok > 1 else "")
+    if why:
+        text += "\n\n" + "\n".join(why)
     plots = []
     fig = graph_figure(snap)
     if fig is not None and len(snap.scans) > 2:
         plots.append((fig, 1.3))
-    table = md_table(("scan", "verdict", "placed through scans", "why not verified"), rows)
+    table = md_table(("scan", "verdict", "placed through scans"), rows)
     edges = graph.items[0].edges if graph.items else ()
+    limit = snap.params.verify.max_loop_m
     if edges:
-        table += "\n\n" + md_table(("pair", "verdict", "loop error (mm)", "used"), [
-            (f"{snap.scans[e.j].name} → {snap.scans[e.i].name}", e.verdict,
-             f"{e.loop_error_m * 1000:.2f}" if np.isfinite(e.loop_error_m) else "", "yes" if e.used else "no")
-            for e in edges])
+        def loop(e: Any) -> str:
+            if not np.isfinite(e.loop_error_m):
+                return "–"
+            ok = e.loop_error_m <= limit
+            return f"{'✓' if ok else '✗'} {e.loop_error_m * 1000:.2f}"
+
+        table += "\n\n" + md_table(("pair", "verdict", f"loop error (mm, ≤ {limit * 1000:g}: verify.max_loop_m)",
+                                     "used"), [
+            (f"{snap.scans[e.j].name} → {snap.scans[e.i].name}", verdict_badge(e.verdict), loop(e),
+             "yes" if e.used else "no") for e in edges])
     return [], PanelContent(title("graph"), text=text, plots=tuple(plots), table=table)
 
 
@@ -91,7 +107,7 @@ STAGE = AppStage(
             "graph", "Every station placed",
             "With three or more scans each verified pair is an edge between stations; around a loop the transforms must "
             "compose to nothing, and all poses are solved together. Each scan ends verified, unverified (best guess and "
-            "why) or failed: the marks in the header.",
+            "why) or failed (not placed): the marks ✓, ⚠ and ✗ in the header.",
             "Look at the station graph: which pairs carry each scan to scan 1?",
             view={"panel": "stage"}),
     ),

@@ -12,10 +12,29 @@ from treereg_core.geometry.rigid import apply_transform
 
 from ..controller import Snapshot
 from ..draw.common import Drawing, display_subset, md_table, pair_label, plural, target_index, title
-from ..palette import GREY, scan_color
+from ..palette import GREY
 from ..view_panel import PanelContent
 from ..view_state import ViewState
 from .base import AppStage, ControlHost, StageControls, StageView, TargetControl, TourStep
+
+
+def rival_shown(h: Any, view: ViewState) -> Any | None:
+    """The rival drawn beside the chosen pose: the view's pick, else the best distinct rival (else the
+    best other candidate)."""
+    others = [c for c in h.candidates if c.label != h.chosen]
+    by_label = {c.label: c for c in others}
+    return by_label.get(view.rival or "") or by_label.get(h.runner_up) or (others[0] if others else None)
+
+
+def margin_sentence(snap: Snapshot, h: Any) -> str:
+    """The margin to the best distinct rival against the threshold the verdict holds it to."""
+    need = snap.params.verify.min_margin
+    if not h.runner_up:
+        return "No distinct rival was scored: nothing else explains the scans."
+    ok = h.margin >= need
+    how = f"{h.margin:.3f} less consistent" if h.margin >= 0 else f"{-h.margin:.3f} more consistent"
+    return (f"The best distinct rival, {h.runner_up}, is {how}: margin {h.margin:.3f} "
+            f"{'≥' if ok else '<'} {need:g} (verify.min_margin) {'✓' if ok else '✗'}.")
 
 
 def render_hypotheses(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> Drawing:
@@ -24,30 +43,71 @@ def render_hypotheses(scene: viser.SceneApi, root: str, snap: Snapshot, view: Vi
     tgt = snap.output("prepare").items[t + 1].scan
     idx = display_subset(tgt.n_points, min(view.max_points, 15_000), seed=t)
     handles: list[Any] = []
+    rival = rival_shown(h, view)
+    if rival is not None:  # the chosen pose is where the scan layer already draws the target
+        handles.append(scene.add_point_cloud(f"{root}/rival", apply_transform(rival.T_ref_target, tgt.points[idx]),
+                                             GREY, point_size=view.point_size * 0.7, point_shape="circle",
+                                             precision="float32"))
+    chosen = next((c for c in h.candidates if c.label == h.chosen), None)
+    best = chosen.visibility.consistency if chosen is not None else float("nan")
+    need = snap.params.verify.min_margin
     rows = []
-    for n, c in enumerate(h.candidates):
-        chosen = c.label == h.chosen
-        colour = scan_color(t + 1) if chosen else GREY
-        if not chosen:  # the chosen pose is where the scan layer already draws the target
-            handles.append(scene.add_point_cloud(f"{root}/candidate{n}", apply_transform(c.T_ref_target, tgt.points[idx]),
-                                                 colour, point_size=view.point_size * 0.7, point_shape="circle",
-                                                 precision="float32"))
+    for c in h.candidates:
         v = c.visibility
-        rows.append((("**" + c.label + "**") if chosen else c.label, c.support or "", f"{v.consistency:.3f}",
-                     f"{v.seen_by_both:,}", f"{v.violations:,}"))
+        name = f"**{c.label}** (chosen)" if c.label == h.chosen else c.label
+        if rival is not None and c.label == rival.label:
+            name += " · drawn grey"
+        if c.label == h.chosen:
+            margin = "–"
+        else:
+            m = best - v.consistency
+            margin = f"{m:.3f}" + ((" ✓" if m >= need else " ✗") if c.label == h.runner_up else "")
+        rows.append((name, c.support or "", f"{v.consistency:.3f}", f"{v.violations:,} of {v.seen_by_both:,}", margin))
     if not h.candidates:
         text = f"{pair_label(snap, t)}: {h.message[0].upper()}{h.message[1:]}."
     else:
         hand = " (chosen by hand)" if h.chosen_by_hand else ""
-        text = (f"{pair_label(snap, t)}: **{h.chosen}**{hand} is the most consistent pose; the best distinct rival, "
-                f"{h.runner_up or 'none'}, is {h.margin:.3f} less consistent. Grey: the rivals at their polished "
-                "poses. Consistency: the share of the points both stations see that lie where the reference saw a "
-                "surface, not in space its laser passed through.")
+        drawn = (f" Grey: {rival.label} at its polished pose (pick another under *Rival shown*, Stage tab)."
+                 if rival is not None else "")
+        text = (f"{pair_label(snap, t)}: **{h.chosen}**{hand} is the most consistent pose. {margin_sentence(snap, h)}"
+                f"{drawn} Consistency: the share of the points both stations see that lie where the reference saw a "
+                "surface, not in space its laser passed through; margin: the chosen pose's consistency minus the "
+                "row's.")
         if h.unscored_modes:  # the coarse stage counts every mode: say where the missing ones went
             text += (f" Not scored: {plural(h.unscored_modes, 'further RANSAC mode')} with fewer than "
                      f"{snap.params.hypotheses.min_mode_support} agreeing ties (hypotheses.min_mode_support).")
-    table = md_table(("hypothesis", "tie support", "consistency", "seen by both", "in free space"), rows)
+    table = md_table(("hypothesis", "ties", "consis&shy;tency", "in free space", f"margin (≥ {need:g})"), rows)
     return handles, PanelContent(title("hypotheses", snap, t), text=text, table=table)
+
+
+class RivalControl(StageControls):
+    """"Rival shown": which competing pose is drawn grey beside the chosen one (one at a time)."""
+
+    def __init__(self, gui: viser.GuiApi, host: ControlHost, stage: str) -> None:
+        self.host = host
+        self.dropdown = gui.add_dropdown("Rival shown", ("(none)",),
+                                         hint="The competing pose drawn in grey beside the chosen one (it opens on the "
+                                         "best distinct rival).")
+        self.dropdown.on_update(lambda _: host.quiet or host.set_view(rival=self.dropdown.value))
+
+    def show_view(self, view: ViewState, snap: Snapshot) -> None:
+        self.show_snapshot(snap, view)
+
+    def refresh_focus(self, snap: Snapshot, view: ViewState) -> None:
+        self.show_snapshot(snap, view)
+
+    def show_snapshot(self, snap: Snapshot, view: ViewState) -> None:
+        hyp = snap.output("hypotheses")
+        if hyp is None or not hyp.items:
+            return
+        h = hyp.items[min(view.target, len(hyp.items) - 1)]
+        options = tuple(c.label for c in getattr(h, "candidates", ()) if c.label != h.chosen) or ("(none)",)
+        if tuple(self.dropdown.options) != options:
+            self.dropdown.options = options
+        r = rival_shown(h, view) if hasattr(h, "candidates") else None
+        want = r.label if r is not None else options[0]
+        if self.dropdown.value != want:
+            self.dropdown.value = want  # type: ignore[misc]
 
 
 class HypothesisControl(StageControls):
@@ -93,13 +153,13 @@ STAGE = AppStage(
         explanation="A nearly round crown looks alike from several headings: RANSAC's winner can be the wrong one. "
             "So every distinct RANSAC solution and the coarse transform turned about the stem by quarter, third and half turns are "
             "each aligned cheaply by the surfaces and judged by what the reference scanner saw: a target point lying "
-            "where the reference's laser passed through empty space speaks against the pose (grey: the rivals). The "
+            "where the reference's laser passed through empty space speaks against the pose (grey: one rival at a time). The "
             "most consistent pose goes on to the fine stage; the margin to the best distinct rival says how sure "
-            "that is. You can pick another hypothesis here.",
+            "that is: the verdict asks for at least verify.min_margin. You can pick another hypothesis here.",
     ),
     draw=render_hypotheses,
-    view_fields=("target", "point_size", "max_points"),
-    controls=(TargetControl, HypothesisControl),
+    view_fields=("target", "point_size", "max_points", "rival"),
+    controls=(TargetControl, RivalControl, HypothesisControl),
     tour=(
         TourStep(
             "hypotheses", "Could it be another heading?",
@@ -107,8 +167,9 @@ STAGE = AppStage(
             "treereg keeps every distinct RANSAC solution and the coarse pose turned about the stem (quarter, third and half turns), aligns each "
             "cheaply and asks the reference scanner: a target point where its laser passed through empty space "
             "speaks against the pose.",
-            "Read the table: the margin between the chosen pose and its best rival. Pick another under *Use "
-            "hypothesis* and watch the later stages run again.",
+            "Read the table's margin column: the chosen pose's consistency minus each rival's, the best distinct rival "
+            "marked ✓ or ✗ against its threshold. Pick another under *Use hypothesis* and watch the later stages run "
+            "again.",
             view={"panel": "stage"}),
     ),
 )

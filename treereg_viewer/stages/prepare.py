@@ -69,15 +69,19 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
             if getattr(prep, "ground_mask", None) is not None:
                 ground = f"{int(np.count_nonzero(prep.ground_mask)):,}"
             xy = getattr(prep, "stem_xy", None)
-            target = f"{xy[0]:.2f}, {xy[1]:.2f}" if xy is not None and getattr(prep, "target", "") else "all points"
+            target = (f"stem at {xy[0]:.2f}, {xy[1]:.2f}" if xy is not None and getattr(prep, "target", "")
+                      else "every point (no stem picked)")
         step = scan.step
         how = "" if given or step is None or step.source == "given" else (" (grid)" if step.source == "grid" else f" (est., {step.confidence:.2f})")
+        # Few columns, the counts stacked in one cell: the table fits a 330 px panel (1280 x 720).
+        counts = "<br>".join(f"{v} {what}" for v, what in ((f"{scan.n_points:,}", "read"), (kept, "kept"),
+                                                             (ground, "ground")) if v)
+        if mixed:
+            counts += "<br>" + (f"mixed pixels {mixed}" if mixed in ("off", "not filtered") else f"{mixed} mixed pixels")
         rows.append((
-            f"{i + 1}{' (reference)' if i == 0 else ''}", scan.name, f"{scan.n_points:,}",
-            f"{phi:.3g} / {vphi:.3g}{how}", mixed, kept, ground, target,
+            f"{i + 1}: {scan.name}{' (reference)' if i == 0 else ''}", counts, f"{phi:.3g} / {vphi:.3g}{how}", target,
         ))
-    table = md_table(("#", "scan", "points", "φ / ϕ (deg)", "mixed pixels", "kept", "ground",
-                      "target stem x, y (m)"), rows)
+    table = md_table(("scan", "points", "φ / ϕ (deg)", "tree taken (x, y in m)"), rows)
     text = not_ready_text(snap, "prepare")
     if prepared is not None:
         bad = [f"**{snap.scans[i].name}:** {it.message}" for i, it in enumerate(prepared.items) if not it.ok]

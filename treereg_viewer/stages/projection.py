@@ -60,10 +60,13 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
         tiles = [upscale(t, k) for t in tiles]
         lay = hstack(tiles, gap=12) if side else vstack(tiles, gap=12)
         images.append((fit_width(lay.image), ("Left to right: " if side else "Top to bottom: ") + ", ".join(names)))
+    pp = snap.params.projection
+    span = f"{first.angles_deg[0]:+.0f}° to {first.angles_deg[-1]:+.0f}°" if len(first.angles_deg) else "no span"
     text = (
-        f"Step {k0 + 1} of {len(first.angles_deg)}: points rotated by θ = {first.angles_deg[k0]:+.1f}° about the "
-        f"vertical axis through each scan's centre. Black in the paper, here each scan's colour: pixels holding "
-        f"points; white: empty pixels. Shown upright, as seen from the scanner."
+        f"Step {k0 + 1} of {len(first.angles_deg)}: points rotated by {first.angles_deg[k0]:+.1f}° about the "
+        f"vertical axis through each scan's centre (steps θ = {pp.theta_deg:g}°, projection.theta_deg; from {span}). "
+        f"A pixel covers {pp.pixel_factor:g} angular steps each way (projection.pixel_factor). Black in the paper, "
+        "here each scan's colour: pixels holding points; white: empty pixels. Shown upright, as seen from the scanner."
     )
     bad = [f"**{snap.scans[i].name}:** {it.message}" for i, it in enumerate(seqs) if not getattr(it, "ok", True)]
     if bad:
@@ -109,8 +112,8 @@ STAGE = AppStage(
         explanation="Each scan is projected onto a sphere around its scanner: a pixel covers k·φ × k·ϕ of azimuth α and "
             "elevation β (φ, ϕ: the instrument's angular steps; paper: k = 2) and is black when any point falls "
             "in it (eq. 2-3). Two stations see the tree from different sides, so their images differ; the paper "
-            "therefore rotates each cloud about the vertical axis through its mean (x̄, ȳ) in steps θ = 10° from "
-            "−360°/n to +360°/n (n scans) and projects again, giving a sequence of views (2.1.2). "
+            "therefore rotates each cloud about the vertical axis through its mean (x̄, ȳ) in steps θ (paper: 10°; "
+            "the value in force is in the panel and under Parameters) from −360°/n to +360°/n (n scans) and projects again, giving a sequence of views (2.1.2). "
             "The slider walks the sequence.",
     ),
     draw=render,
@@ -121,7 +124,7 @@ STAGE = AppStage(
             "projection", "Rotating projection",
             "Each scan is projected onto a sphere around its scanner into a binary image: a pixel is black when a point "
             "falls into it (paper 2.1.1). Two stations see the tree from different sides, so the paper turns each cloud "
-            "about the vertical axis in 10° steps and projects it again (2.1.2).",
+            "about the vertical axis in steps of θ (paper: 10°) and projects it again (2.1.2).",
             "Move *Rotation step* (Stage tab) and watch each scan's image change as its tree turns.",
             view={"panel": "stage"}),
     ),

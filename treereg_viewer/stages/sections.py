@@ -15,6 +15,7 @@ from ..draw.common import Drawing, metrics_table, pair_label, plural, target_ind
 from ..draw.fits import draw_sections, fine_scans, focus_rows
 from ..view_panel import PanelContent
 from ..view_state import ViewState
+from .slices import SliceControl
 from .base import AppStage, ControlHost, StageControls, StageView, TargetControl, TourStep
 
 
@@ -86,8 +87,8 @@ STAGE = AppStage(
             "than the one below it (4.2), are not used; tick *Show rejected fits* to see them in grey.",
     ),
     draw=render_sections,
-    view_fields=("target", "point_size", "show_rejected", "focus_section"),
-    controls=(TargetControl, FitControls),
+    view_fields=("target", "point_size", "show_rejected", "focus_section", "slice_shown"),
+    controls=(TargetControl, SliceControl, FitControls),
     tour=(
         TourStep(
             "sections", "Circles, cylinders and their centres",

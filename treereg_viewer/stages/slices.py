@@ -11,11 +11,53 @@ from treereg_core.fine.slicing import SliceResult
 
 from ..controller import Snapshot
 from ..draw.common import Drawing, md_table, metrics_table, target_index, target_pose, title
-from ..draw.fits import fine_scans, slice_points
+from ..draw.fits import fine_scans, slice_label, slice_points, slice_shown
 from ..view_panel import PanelContent
-from ..view_state import ViewState
-from .base import AppStage, StageView, TargetControl, TourStep
+from ..view_state import ALL_SLICES, ViewState
+from .base import AppStage, ControlHost, StageControls, StageView, TargetControl, TourStep
 
+#: The "Slice" list's entry for every slice at once.
+EVERY_SLICE = "all slices"
+
+
+class SliceControl(StageControls):
+    """"Slice": the one slice the Arcs, Fits and Fine views show and frame (they open on the slice with
+    the most fits), or every slice."""
+
+    def __init__(self, gui: viser.GuiApi, host: ControlHost, stage: str) -> None:
+        self.host = host
+        self.stage = stage
+        self.dropdown = gui.add_dropdown("Slice", (EVERY_SLICE,),
+                                         hint="One slice, framed close up (the view opens on the slice with the most "
+                                         "fits), or every slice at once.")
+        self.dropdown.on_update(lambda _: host.quiet or self._picked())
+
+    def _options(self, snap: Snapshot, view: ViewState) -> tuple[str, ...]:
+        sl = snap.output("slices")
+        t = target_index(snap, "slices", view)
+        heights = sl.items[t].heights_m if sl is not None and t < len(sl.items) and sl.items[t].ok else ()
+        return (EVERY_SLICE, *(slice_label(k, heights) for k in range(len(heights))))
+
+    def _picked(self) -> None:
+        options = tuple(self.dropdown.options)
+        k = options.index(self.dropdown.value) - 1 if self.dropdown.value in options else ALL_SLICES
+        self.host.set_view(slice_shown=ALL_SLICES if k < 0 else k, focus_section=None)
+        self.host.app.frame_view()
+
+    def show_view(self, view: ViewState, snap: Snapshot) -> None:
+        self.show_snapshot(snap, view)
+
+    def refresh_focus(self, snap: Snapshot, view: ViewState) -> None:
+        self.show_snapshot(snap, view)  # another pair has other slices
+
+    def show_snapshot(self, snap: Snapshot, view: ViewState) -> None:
+        options = self._options(snap, view)
+        if tuple(self.dropdown.options) != options:
+            self.dropdown.options = options
+        k = slice_shown(snap, target_index(snap, "slices", view), view, len(options) - 1)
+        want = EVERY_SLICE if k is None else options[k + 1]
+        if self.dropdown.value != want:
+            self.dropdown.value = want  # type: ignore[misc]
 
 
 

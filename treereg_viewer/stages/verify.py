@@ -3,27 +3,40 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import viser
 
 from treereg_core.params import loosened, loosened_text
 
 from ..controller import Snapshot
-from ..draw.common import Drawing, metrics_table, pair_label, target_index, title
+from ..draw.common import Drawing, breakable, md_table, metrics_table, pair_label, target_index, title
+from ..labels import verdict_badge
 from ..view_panel import PanelContent
 from ..view_state import ViewState
 from .base import AppStage, StageView, TargetControl, TourStep
 
 
-#: How each verdict reads in the app.
-BADGE = {"verified": "✓ verified", "unverified": "⚠ unverified", "failed": "✗ failed"}
+#: A check's mark: passed, failed, not judged (not measured, or not applicable).
+CHECK_MARK = {True: "✓", False: "✗", None: "–"}
+
+
+def checks_table(checks: Any) -> str:
+    """Every check of the verdict beside its threshold: ✓/✗, what is checked (and the parameter that
+    sets the threshold), the measured value, the threshold."""
+    rows = []
+    for c in checks:
+        what = f"{c.what}<br><small>{breakable(c.parameter)}</small>" if c.parameter else c.what
+        rows.append((CHECK_MARK.get(c.passed, "–"), what, c.value_text(), c.limit_text() or "–"))
+    return md_table(("", "check (set by)", "measured", "threshold"), rows)
 
 
 def render_verify(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> Drawing:
     out = snap.output("verify")
     t = target_index(snap, "verify", view)
     v = out.items[t]
-    text = f"{pair_label(snap, t)}: **{BADGE.get(v.verdict, v.verdict)}**.{loosened_note(snap, v.verdict)}"
+    text = f"{pair_label(snap, t)}: **{verdict_badge(v.verdict)}**.{loosened_note(snap, v.verdict)}"
     e = getattr(v, "evidence", None)
     if e is not None and e.sway_m > 0:
         stable = f"; the stems agree up to {e.stable_height_m:.1f} m above the base" if np.isfinite(e.stable_height_m) else ""
@@ -35,9 +48,13 @@ def render_verify(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewSt
         text += "\n\n" + "\n\n".join(f"- {r[0].upper()}{r[1:]}." for r in v.reasons)
         if v.hint:
             text += f"\n\nTry: {v.hint}."
-    labels = [f"{snap.scans[p.tgt].name} → {snap.scans[p.ref].name}" for p in snap.pairs] or \
-        [pair_label(snap, k) for k in range(len(out.items))]
-    table = metrics_table({lab: it.metrics for lab, it in zip(labels, out.items)})
+    checks = tuple(getattr(v, "checks", ()))
+    if checks:
+        text += ("\n\nEach check's measured value against its threshold (✓ passed, ✗ failed, – not judged); the "
+                 "parameter under each check sets its threshold.")
+        table = checks_table(checks)
+    else:  # a pair that never reached verification: its message says why
+        table = metrics_table({pair_label(snap, t): v.metrics})
     return [], PanelContent(title("verify", snap, t), text=text, table=table)
 
 
@@ -67,7 +84,8 @@ STAGE = AppStage(
             "A registration is trusted only with its evidence. Enough tie points must agree compared with chance, the "
             "target's points lie where the reference saw a surface and not where it saw through, the surfaces fit "
             "within their noise, no rival heading is nearly as good, the scanner stays level.",
-            "Read each check's value against its threshold; a failed check says what to try.",
+            "Read each check's measured value against its threshold (✓ passed, ✗ failed); a failed check says what "
+            "to try.",
             view={"panel": "stage"}),
     ),
 )

@@ -64,7 +64,7 @@ def render_graph(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewSta
             why.append(f"- **{verdict_badge(pl.verdict)} {s.name}:** " + "; ".join(pl.reasons) + "." + hint)
     n_ok = sum(pl.verdict == "verified" for pl in graph.items)
     text = (f"{n_ok} of {len(graph.items)} scans verified ({VERDICT_LEGEND}). Verified and unverified scans are drawn "
-            "at their placement, an unverified one see-through and labelled as a best guess; a failed one is not "
+            "at their placement, an unverified one pale (fewer, lighter points) and labelled a best guess; a failed one is not "
             "drawn. Solid edges: verified pairs used in the joint solve; dotted: pairs left out (unverified, failed, "
             "or dropped because a loop did not close).") + loosened_note(snap, "verified" if n_ok > 1 else "")
     if why:

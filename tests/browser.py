@@ -47,15 +47,12 @@ def view(args: list[str], cwd: Path = REPO) -> Iterator[tuple[str, float, float]
         proc.kill()
 
 
-def open_page(browser, url: str, scene: bool = True, width: int = 1700, height: int = 1000):
-    """A new browser context on `url`, offline-guarded; waits for the GUI (and the scans, if `scene`).
-    Returns (context, page, the URLs the page tried to load from elsewhere)."""
-    from playwright.sync_api import expect
-
-    context = browser.new_context(viewport={"width": width, "height": height}, accept_downloads=True)
+def offline(context) -> list[str]:
+    """Only the app's own server may answer the context's pages; returns what they tried to load
+    from elsewhere (the app must load nothing else)."""
     blocked: list[str] = []
 
-    def guard(route):  # the app must load nothing but its own server
+    def guard(route):
         if route.request.url.startswith(("http://127.0.0.1", "ws://127.0.0.1")):
             route.continue_()
         else:
@@ -63,6 +60,16 @@ def open_page(browser, url: str, scene: bool = True, width: int = 1700, height: 
             route.abort()
 
     context.route("**/*", guard)
+    return blocked
+
+
+def open_page(browser, url: str, scene: bool = True, width: int = 1700, height: int = 1000):
+    """A new browser context on `url`, offline-guarded; waits for the GUI (and the scans, if `scene`).
+    Returns (context, page, the URLs the page tried to load from elsewhere)."""
+    from playwright.sync_api import expect
+
+    context = browser.new_context(viewport={"width": width, "height": height}, accept_downloads=True)
+    blocked = offline(context)
     page = context.new_page()
     # The machine is shared: SwiftShader and the app compete with other work for two cores.
     page.set_default_timeout(90_000)

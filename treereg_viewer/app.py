@@ -46,6 +46,9 @@ log = logging.getLogger(__name__)
 
 #: Largest scan file a browser may upload unless the app is told otherwise.
 MAX_UPLOAD_BYTES = 1024 * 1000 * 1000
+#: Seconds the worker gives way to a tab that connects (building its GUI takes up to half a second;
+#: its drawer asks for more once the first view is drawn).
+CONNECT_GIVE_WAY_S = 1.0
 
 
 class TreeregApp:
@@ -100,6 +103,9 @@ class TreeregApp:
 
     # ---- viewers ------------------------------------------------------------------------------------
     def _connect(self, client: viser.ClientHandle) -> None:
+        # A tab opening while the pipeline computes: its GUI is built, its first view drawn and shown
+        # while the worker gives way (the tab's drawer extends the pause once it has drawn).
+        self.controller.give_way(CONNECT_GIVE_WAY_S)
         v = Viewer(self, client.gui, client.scene, client, client.atomic)
         with self._lock:
             self._viewers[client.client_id] = v

@@ -32,6 +32,14 @@ from .uploads import discard
 
 log = logging.getLogger(__name__)
 
+#: The worker gives way to a tab opening while it computes (its GUI built, its first view drawn and
+#: shown): on two cores the browser, the tab's threads and viser's need the CPU (and the GIL) that the
+#: pipeline takes. It pauses at its next pipeline event (a few tenths of a second apart) for at most
+#: GIVE_WAY_MAX_S, then runs at least GIVE_WAY_GAP_S before it pauses again: tabs opening one after
+#: another slow a run at most two-fold.
+GIVE_WAY_MAX_S = 2.5
+GIVE_WAY_GAP_S = 2.5
+
 
 @dataclass(frozen=True)
 class Snapshot:
@@ -83,6 +91,15 @@ class _Run:
     """The stage a run is computing, as the pipeline's events say (None between stages)."""
 
     stage: str | None
+
+
+@dataclass
+class _GiveWay:
+    """When the worker pauses for the tabs (guarded by the controller's lock)."""
+
+    until: float = 0.0  # time.monotonic() until which a tab asked the worker to wait
+    not_before: float = 0.0  # the worker ran too little since its last pause: no pause before this
+    paused_s: float = 0.0  # total time paused (what giving way cost the runs)
 
 
 @dataclass
@@ -157,6 +174,7 @@ class Controller:
         self._version = 0
         self._stopped = False
         self._crashed: dict[str, str] = {}  # stages that raised, until inputs change or Run is pressed
+        self._give_way = _GiveWay()
         self._snapshot = self._make_snapshot(busy=False, running=None, message="", error=False)
         self._thread = threading.Thread(target=self._loop, name="treereg-worker", daemon=True)
         self._thread.start()
@@ -247,6 +265,17 @@ class Controller:
         with self._wake:
             self._req.notes.append((message, error))
             self._notify()
+
+    def give_way(self, seconds: float) -> None:
+        """Ask the worker to pause for `seconds` from now (a tab opens); it does at its next pipeline
+        event, within the bounds of GIVE_WAY_MAX_S and GIVE_WAY_GAP_S. Any thread; returns at once."""
+        with self._lock:
+            self._give_way.until = max(self._give_way.until, time.monotonic() + seconds)
+
+    @property
+    def paused_s(self) -> float:
+        """Seconds the worker has paused for the tabs so far (runs took this much longer)."""
+        return self._give_way.paused_s
 
     def wait_idle(self, timeout: float = 60.0) -> bool:
         """Block until the worker has nothing left to do (tests, CLI exports). True if idle."""
@@ -369,10 +398,17 @@ class Controller:
         seconds = time.perf_counter() - t0
         # Report the first stage that failed (the cause); pairs that did not fail went on past it.
         failed = next((s for s in todo if (o := pipe.output(s)) is not None and not o.ok), None)
-        if failed is not None:
+        ran = [s for s in todo if pipe.output(s) is not None]
+        took = f"Ran {', '.join(label(s) for s in ran)} in {seconds:.1f} s. " if ran else ""
+        if failed == "graph":
+            # Scans that failed their verdict: named here, their reasons once, in the lines below.
+            gone = [pipe.scans[i].name for i, pl in enumerate(pipe.output("graph").items) if pl.verdict == "failed"]
+            self._publish(message=f"{took}✗ {', '.join(gone) or 'a scan'} failed: not placed (why: below, and in "
+                                  f"{label('graph')}).", error=True)
+        elif failed is not None:
             went_on = last is not None and last.stage != failed and any(it.ok for it in last.items)
             more = f" The other pairs went on to {label(last.stage)}." if went_on else ""
-            self._publish(message=f"{label(failed)} failed: {pipe.output(failed).message}.{more}", error=True)
+            self._publish(message=f"{took}{label(failed)} failed: {pipe.output(failed).message}.{more}", error=True)
         elif todo:
             self._publish(message=f"Ran {', '.join(label(s) for s in todo)} in {seconds:.1f} s.")
         else:
@@ -381,7 +417,9 @@ class Controller:
     def _on_event(self, run: _Run, event: Event) -> None:
         """The pipeline's events, on the worker thread: a snapshot as each stage starts (so it holds
         the outputs of the stages before it: a tab on an early stage, e.g. Arcs after an arcs
-        parameter changed, sees its result while later stages still run), and the progress."""
+        parameter changed, sees its result while later stages still run), and the progress. A tab
+        that asked the worker to give way gets its pause here."""
+        self._pause_for_tabs()
         if isinstance(event, StageStarted):
             if event.stage != run.stage:
                 run.stage = event.stage
@@ -391,6 +429,18 @@ class Controller:
         elif isinstance(event, StageProgress):
             for fn in self._progress_listeners:
                 fn(event.run_fraction, event.line)
+
+    def _pause_for_tabs(self) -> None:
+        """On the worker: wait while a tab asked it to give way (see GIVE_WAY_MAX_S)."""
+        with self._wake:
+            gw, start = self._give_way, time.monotonic()
+            if start < gw.not_before or start >= gw.until:
+                return
+            while not self._stopped and (left := min(gw.until, start + GIVE_WAY_MAX_S) - time.monotonic()) > 0:
+                self._wake.wait(timeout=left)
+            end = time.monotonic()
+            gw.paused_s += end - start
+            gw.not_before = end + GIVE_WAY_GAP_S
 
     def _make_snapshot(self, busy: bool, running: str | None, message: str, error: bool) -> Snapshot:
         pipe = self._pipeline

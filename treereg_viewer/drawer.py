@@ -11,6 +11,11 @@ the viewer's connection. Every browser tab has its own Drawer on its own scene; 
 The drawing thread is also where the pipeline's news reaches the tab's GUI (`post`): the worker
 thread never calls viser itself (viser's message buffers are not made for a thread that outruns
 the app's own; a call from the worker once ended a run with "deque mutated during iteration").
+
+Responsive while the pipeline computes (issue 18): once the tab's first view is drawn the worker
+gives way while the browser shows it (`give_way`: `Controller.give_way`).
+Plotly's script (4.8 MB, which holds the browser for about a second) is sent when the tab's person
+pauses, and a panel with the tab's first plots shows everything else first.
 """
 
 from __future__ import annotations
@@ -19,6 +24,7 @@ import logging
 import threading
 import time
 from contextlib import AbstractContextManager
+from dataclasses import replace
 from typing import Any, Callable
 
 import viser
@@ -36,6 +42,16 @@ from .view_panel import PanelContent, ViewPanel
 from .view_state import ViewState
 
 log = logging.getLogger(__name__)
+
+#: Seconds the worker gives way once the tab's first view is drawn: the browser lays out the whole
+#: GUI and renders its first frames. (Later redraws do not ask: measured on the demo, Next answered
+#: as fast without, and the run took 2.5 s longer with.)
+FIRST_VIEW_GIVE_WAY_S = 1.0
+#: Plotly's script holds the browser for about a second wherever it goes: it is sent once the tab has
+#: had no request for PLOTS_AFTER_IDLE_S (a person reading a stage's explanation), or PLOTS_PENDING_IDLE_S
+#: after a panel was shown without its plots (its heading, text and images are painted by then).
+PLOTS_AFTER_IDLE_S = 5.0
+PLOTS_PENDING_IDLE_S = 0.5
 
 
 def render_stage(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> tuple[list[Any], PanelContent]:
@@ -65,6 +81,7 @@ class Drawer:
         get_view: Callable[[], ViewState],
         derived: Derived,
         on_error: Callable[[str], None] | None = None,
+        give_way: Callable[[float], None] | None = None,
     ) -> None:
         self.scene = scene
         self.panel = panel
@@ -85,6 +102,12 @@ class Drawer:
         self.draws = 0  # number of completed redraws (tests wait on it)
         self.last_seconds = 0.0
         self.section: Any = None  # the cross-section shown last (tests read it)
+        #: Called with seconds once this tab's first view is drawn: `Controller.give_way` (without
+        #: one nothing needs to give way).
+        self.give_way: Callable[[float], None] = give_way or (lambda seconds: None)
+        self._drawn_view: ViewState | None = None
+        self._asked_at = 0.0  # time.monotonic() of the last redraw a person asked for
+        self._plots_pending = False  # the panel shows a stage without its plots: the script is not sent yet
         self._groups = {name: scene.add_frame(f"/{name}", show_axes=False, visible=False) for name in STAGE_NAMES}
         self._thread = threading.Thread(target=self._loop, name="treereg-drawer", daemon=True)
         self._thread.start()
@@ -105,10 +128,10 @@ class Drawer:
             self._cond.notify_all()
 
     def wait_idle(self, timeout: float = 30.0) -> bool:
-        """Block until every requested redraw and posted job is done (tests)."""
+        """Block until every requested redraw and posted job is done, plots shown late included (tests)."""
         deadline = time.monotonic() + timeout
         with self._cond:
-            while self._dirty or self._jobs or self._busy:
+            while self._dirty or self._jobs or self._busy or self._plots_pending:
                 left = deadline - time.monotonic()
                 if left <= 0:
                     return False
@@ -126,19 +149,22 @@ class Drawer:
         while True:
             with self._cond:
                 while not self._dirty and not self._jobs and not self._stopped:
-                    self._cond.wait()
+                    wait = self._plots_wait()
+                    if wait is not None and wait <= 0:
+                        break
+                    self._cond.wait(timeout=wait)
                 if self._stopped:
                     return
                 jobs, self._jobs = list(self._jobs.values()), {}
+                if (wait := self._plots_wait()) is not None and wait <= 0:  # no redraw for a while: the plots' script
+                    jobs.append(self._prepare_plots)
                 self._busy = True
             self._run_jobs(jobs)
             with self._cond:  # the jobs may have asked for a redraw
                 dirty, self._dirty = self._dirty, False
             try:
                 if dirty:
-                    t0 = time.perf_counter()
-                    self.draw(self._get_snapshot(), self._get_view())
-                    self.last_seconds = time.perf_counter() - t0
+                    self._redraw()
             except Exception as e:  # a drawing bug must not kill the thread; the user sees one line
                 log.exception("drawing failed")
                 self._on_error(f"Drawing failed: {type(e).__name__}: {e}")
@@ -147,6 +173,37 @@ class Drawer:
                     self._busy = False
                     self.draws += dirty
                     self._cond.notify_all()
+
+    def _redraw(self) -> None:
+        """Draw the latest state. A change of the view (not only the pipeline's news) is a person's
+        request (the plots' script waits for a pause in them); after the first view the worker gives way."""
+        view, first = self._get_view(), self._drawn_view is None
+        t0 = time.perf_counter()
+        self.draw(self._get_snapshot(), view)
+        self.last_seconds = time.perf_counter() - t0
+        if view != self._drawn_view:
+            self._asked_at = time.monotonic()
+        self._drawn_view = view
+        if first:
+            self.give_way(FIRST_VIEW_GIVE_WAY_S)
+
+    def _plots_wait(self) -> float | None:
+        """Seconds until plotly's script is due (None: sent, or no first view yet). Counted from the last
+        redraw a person asked for, or the panel left without its plots: the pipeline's news (status,
+        progress, results) does not make a tab busy."""
+        if self._drawn_view is None or self.panel.plots:
+            return None
+        idle = PLOTS_PENDING_IDLE_S if self._plots_pending else PLOTS_AFTER_IDLE_S
+        return self._asked_at + idle - time.monotonic()
+
+    def _prepare_plots(self) -> None:
+        """Send plotly's script; a panel that waits for its plots is shown again, with them."""
+        with self._atomic():
+            self.panel.prepare_plots()
+        if self._plots_pending:
+            self._plots_pending = False
+            self._keys.pop("panel", None)
+            self.request()
 
     @staticmethod
     def _run_jobs(jobs: list[Callable[[], None]]) -> None:
@@ -210,7 +267,12 @@ class Drawer:
             panel_key = ("section", key) if sectioning else ("stage", self._keys["stage"])
             if self._keys.get("panel") != panel_key:
                 content = cross_section.render(snap, view, cs, branch) if sectioning else self._stage_content
-                self.panel.show(content)
+                # The tab's first plots bring plotly's script, which holds the browser for about a
+                # second: the heading, text, images and 3-D go first, the plots once the tab is idle.
+                self._plots_pending = bool(content.plots) and not self.panel.plots
+                if self._plots_pending:
+                    self._asked_at = max(self._asked_at, time.monotonic())
+                self.panel.show(replace(content, plots=()) if self._plots_pending else content)
                 self._keys["panel"] = panel_key
                 self.section = cs if sectioning else None
             rng = height_range(snap) if sectioning else None

@@ -18,6 +18,7 @@ from treereg_core.stages import stage as core_stage
 from .actions import AppActions
 from .checks import stage_warnings
 from .controller import Snapshot
+from .labels import VERDICT_MARKS
 from .param_widgets import SectionWidgets
 from .stages import STAGE_NAMES, by_label, label, stage_of
 from .stages.base import StageControls, TargetControl
@@ -45,8 +46,7 @@ def verdict_line(snap: Snapshot) -> str:
     graph = snap.output("graph")
     if graph is None or len(graph.items) != len(snap.scans):
         return ""
-    marks = {"verified": "✓", "unverified": "⚠", "failed": "✗"}
-    return "\n\n**Scans:** " + " · ".join(f"{marks.get(pl.verdict, '?')} {i + 1} {s.name}"
+    return "\n\n**Scans:** " + " · ".join(f"{VERDICT_MARKS.get(pl.verdict, '?')} {i + 1} {s.name}"
                                            for i, (s, pl) in enumerate(zip(snap.scans, graph.items)))
 
 
@@ -169,12 +169,17 @@ class StagePanel:
             if failed:
                 why = snap.crashed.get(failed[0]) or snap.outputs[failed[0]].message
                 lines.append(f"**⚠ {label(failed[0])} failed:** {why}")
-        lines += [f"**⚠** {w}" for ws in warned.values() for w in ws]
+        # A verdict line carries its own mark (⚠ unverified, ✗ failed); other warnings get ⚠.
+        lines += [w if w[:1] in VERDICT_MARKS.values() else f"**⚠** {w}" for ws in warned.values() for w in ws]
         self.message_md.content = "\n\n".join(lines)
         if not snap.busy:
-            # At rest the bar shows how much of the pipeline is up to date (a failure stops it there).
-            self.progress.value = 100.0 * sum(snap.status(s) == "done" for s in STAGE_NAMES) / len(STAGE_NAMES)
+            # At rest the bar shows how much of the pipeline is up to date (a failure stops it there),
+            # and says so: a part-full bar must not read as a run that hangs.
+            done = sum(snap.status(s) == "done" for s in STAGE_NAMES)
+            self.progress.value = 100.0 * done / len(STAGE_NAMES)
             self.progress.animated = False
+            self.progress_text.content = (f"*{done} of {len(STAGE_NAMES)} stages up to date; nothing is running.*"
+                                          if done < len(STAGE_NAMES) else "")
         else:
             self.progress.animated = True
         # Ranges of the view controls follow the results (counted from 1).

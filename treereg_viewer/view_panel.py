@@ -125,7 +125,7 @@ class ViewPanel:
             self.width = width
             self._panel.set_width(width)
 
-    def _ensure_plots(self) -> None:
+    def prepare_plots(self) -> None:
         # Made on first use: the first plot sends plotly's 3 MB script to the browser, which would
         # otherwise delay the first view of the scans by about two seconds.
         if self._plots:
@@ -187,7 +187,7 @@ class ViewPanel:
                 cap.visible = False
                 img.visible = False
         if content.plots:
-            self._ensure_plots()
+            self.prepare_plots()
         for k, plot in enumerate(self._plots):
             if k < len(content.plots):
                 fig, aspect = content.plots[k]

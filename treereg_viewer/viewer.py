@@ -117,7 +117,8 @@ class Viewer:
             self.present_box.on_update(lambda _: host.set_presenter(self, bool(self.present_box.value)))
 
         self.drawer = Drawer(scene, atomic, self.panel, lambda: self.controller.snapshot, lambda: self.view,
-                             host.derived, on_error=lambda msg: self.controller.note(msg, error=True))
+                             host.derived, on_error=lambda msg: self.controller.note(msg, error=True),
+                             give_way=self.controller.give_way if client is not None else None)  # a browser tab
         scene.on_click()(self._on_scene_click)
         if client is not None:
             client.camera.on_update(self._on_camera)
@@ -441,8 +442,6 @@ class Viewer:
         self.stages.show_snapshot(snap, self.view)
         self.scans.show_snapshot(snap)
         self.stages.sync_params(self.controller.params)  # another tab may have changed them
-        if not snap.busy:
-            self.stages.progress_text.content = ""
         self.drawer.request()
 
     def on_progress(self, fraction: float, text: str) -> None:

@@ -12,7 +12,7 @@ import viser.transforms as vtf
 from treereg_core.results import Metric
 
 from ..controller import Snapshot
-from ..labels import label, verdict_badge
+from ..labels import STAGE_NAMES, label, verdict_badge
 from ..view_panel import PanelContent
 from ..view_state import ViewState
 
@@ -105,7 +105,9 @@ def title(name: str, snap: Snapshot | None = None, t: int | None = None) -> str:
     head = label(name)
     if snap is None or t is None:
         return head
-    badges = pair_badges(snap, t)
+    # A verdict is the Verify stage's: shown from there on (an earlier stage's view is not redrawn
+    # when a later stage re-runs, so a badge there could be stale).
+    badges = pair_badges(snap, t) if STAGE_NAMES.index(name) >= STAGE_NAMES.index("verify") else ""
     return f"{head}: {pair_label(snap, t)}" + (f" {badges}" if badges else "")
 
 

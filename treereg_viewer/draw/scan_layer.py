@@ -76,9 +76,11 @@ def verdict_shown(snap: Snapshot, view: ViewState, i: int) -> str:
     """How scan i is marked in 3-D on this stage: "" (verified, or before registration), "unverified"
     (drawn at its best guess, ghosted and labelled) or "failed" (labelled; not drawn where the scans
     stand at their final placement, ghosted at a pair's own pose for inspection)."""
-    if i == 0 or not registered(view.stage):
+    # The placement's verdicts only: before it has run a scan has none (not "unverified").
+    graph = snap.output("graph")
+    if i == 0 or not registered(view.stage) or graph is None or i >= len(graph.items):
         return ""
-    verdict = snap.verdicts.get(snap.scans[i].name, ("",))[0] if i < len(snap.scans) else ""
+    verdict = graph.items[i].verdict
     return verdict if verdict in ("unverified", "failed") else ""
 
 

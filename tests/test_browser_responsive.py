@@ -1,0 +1,145 @@
+"""Responsive from the first second (issue 18, point 8), in headless Chromium.
+
+A fresh app on the demo in this process, as `treereg view` starts it: the pipeline starts its run
+as the page opens. While the run computes, the first view must be drawn within 3 s of the page
+opening and Next must answer (the panel's heading names the next stage) within 1 s; once every
+stage is done no view may keep redrawing itself. Debian's Chromium through Playwright, offline-
+guarded, WebGL on SwiftShader (see tests/conftest.py). `-s` prints the times.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import pytest
+
+pytestmark = pytest.mark.browser
+
+pytest.importorskip("playwright.sync_api")
+
+import viser  # noqa: E402
+from browser import offline  # noqa: E402
+
+from treereg_core.demo import demo_case  # noqa: E402
+from treereg_viewer.app import TreeregApp  # noqa: E402
+from treereg_viewer.controller import Controller  # noqa: E402
+from treereg_viewer.labels import label  # noqa: E402
+
+#: What issue 18 asks (measured here: first view 2.0–2.6 s, Next 0.2–0.5 s).
+FIRST_VIEW_S = 3.0
+NEXT_S = 1.0
+#: Seconds a person looks at the first view before pressing Next.
+LOOK_S = 1.0
+#: Once done, a view watched this long gets nothing from the app and draws only viser's heartbeat
+#: (the client's safety net: one frame a second; a frame on SwiftShader can take most of a second,
+#: so a run of frames is not told from heartbeats by counting alone).
+QUIET_S = 2.0
+
+FRAME = "() => window.__viserTestpoints?.rendererInfo?.render?.frame ?? -1"
+#: The docked panel's heading names stage `l` ('2 Projection', '4 Coarse: scan2.ply → scan1.ply ...').
+HEADING = ("(l) => [...document.querySelectorAll('h3')].some(h => h.textContent === l || "
+           "h.textContent.startsWith(l + ':') || h.textContent.startsWith(l + ' '))")
+#: Every stage done: the status line names them all and none is stale (○) or running (…).
+FINISHED = ("() => [...document.querySelectorAll('p')].map(p => p.textContent).some(t => t.includes('1 Scans') && "
+            "t.includes('13 Result') && t.includes(' · ') && !/[○…] \\d+ [A-Z]/.test(t))")
+
+
+@dataclass
+class FirstRun:
+    page: object
+    blocked: list[str]
+    first_view_s: float
+    nexts: list[tuple[str, bool, float]] = field(default_factory=list)  # (stage asked, worker busy, seconds)
+    received: list[float] = field(default_factory=list)  # time.perf_counter() of each websocket message
+
+
+def _next(page, asked: str) -> float:
+    """Press Next as a person does (a click where the button is) and time until the heading names `asked`."""
+    box = page.get_by_role("button", name="Next", exact=True).bounding_box()
+    t0 = time.perf_counter()
+    page.mouse.click(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
+    page.wait_for_function(HEADING, arg=asked, timeout=30_000)
+    return time.perf_counter() - t0
+
+
+@pytest.fixture(scope="module")
+def first_run(browser):
+    """The demo's first run in a fresh app, the page opened as it starts: first view, then Next twice
+    while the pipeline computes. Yields the measurements and the page (the run goes on)."""
+    demo = demo_case()
+    context = browser.new_context(viewport={"width": 1600, "height": 1000})
+    blocked = offline(context)
+    page = context.new_page()
+    page.set_default_timeout(60_000)
+    received: list[float] = []
+    page.on("websocket", lambda ws: ws.on("framereceived", lambda _: received.append(time.perf_counter())))
+    server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    app = TreeregApp(server, Controller(list(demo.scans), truth=demo.truth), tabs="each")
+    try:
+        t0 = time.perf_counter()
+        page.goto(f"http://127.0.0.1:{server.get_port()}/")
+        nodes = " && ".join(f"!!m.nodeRefFromName['/scans/s{i}/points']" for i in range(len(demo.scans)))
+        page.wait_for_function(f"() => {{ const m = window.__viserMutable; return !!m && {nodes}; }}")
+        drawn = page.evaluate(FRAME)
+        page.wait_for_function(f"() => ({FRAME})() > {drawn}")  # a frame with the scans in it
+        run = FirstRun(page, blocked, time.perf_counter() - t0, received=received)
+        print(f"\n  first view {run.first_view_s:.2f} s")
+        page.wait_for_timeout(int(LOOK_S * 1000))
+        for stage in ("projection", "matching"):
+            busy = app.controller.snapshot.busy
+            run.nexts.append((label(stage), busy, _next(page, label(stage))))
+            print(f"  Next to {label(stage)}: {run.nexts[-1][2]:.2f} s (worker computing: {busy})")
+            page.wait_for_timeout(int(LOOK_S * 1000))
+        yield run
+    finally:
+        context.close()
+        app.close()
+        server.stop()
+
+
+def test_the_first_view_is_drawn_within_3_s_while_the_run_starts(first_run):
+    assert first_run.first_view_s < FIRST_VIEW_S, f"the first view took {first_run.first_view_s:.2f} s"
+    assert not first_run.blocked, f"the page tried to load {first_run.blocked}"
+
+
+def test_next_answers_within_1_s_while_a_stage_computes(first_run):
+    assert all(busy for _, busy, _ in first_run.nexts), f"the run ended before Next was pressed: {first_run.nexts}"
+    slow = [(stage, round(s, 2)) for stage, _, s in first_run.nexts if s >= NEXT_S]
+    assert not slow, f"Next answered late: {slow}"
+
+
+def _frames(page, seconds: float) -> list[list[float]]:
+    """The renderer's frame counter sampled every 100 ms for `seconds`: [[ms, frame], ...]."""
+    page.evaluate("() => { window.__quiet = []; window.__quietTimer = setInterval(() => window.__quiet.push("
+                  "[performance.now(), window.__viserTestpoints.rendererInfo.render.frame]), 100); }")
+    page.wait_for_timeout(int(seconds * 1000))
+    return page.evaluate("() => { clearInterval(window.__quietTimer); return window.__quiet; }")
+
+
+def _settle(page, quiet_ms: int = 400, timeout_s: float = 10.0) -> None:
+    """Wait until no frame was drawn for `quiet_ms` (a view still drawing after `timeout_s` fails)."""
+    deadline, last = time.monotonic() + timeout_s, page.evaluate(FRAME)
+    while time.monotonic() < deadline:
+        page.wait_for_timeout(quiet_ms)
+        if (now := page.evaluate(FRAME)) == last:
+            return
+        last = now
+    pytest.fail(f"the view was still drawing {timeout_s} s after it was chosen")
+
+
+def test_no_view_keeps_redrawing_once_every_stage_is_done(first_run):
+    page = first_run.page
+    page.wait_for_function(FINISHED, timeout=120_000, polling=100)
+    for stage in ("hypotheses", "sections"):  # the views reported to keep redrawing
+        page.get_by_label("Stage", exact=True).click()
+        page.get_by_role("option", name=label(stage), exact=True).click()
+        page.wait_for_function(HEADING, arg=label(stage))
+        _settle(page)  # the redraw the choice asked for (the camera glides to the registered tree)
+        t0, f0 = time.perf_counter(), page.evaluate(FRAME)
+        page.wait_for_timeout(int(QUIET_S * 1000))
+        drawn, t1 = page.evaluate(FRAME) - f0, time.perf_counter()
+        sent = sum(t0 <= t <= t1 for t in first_run.received)
+        print(f"  {label(stage)}: {sent} messages from the app and {drawn} frames in {t1 - t0:.1f} s")
+        assert sent == 0, f"{label(stage)}: the app kept sending ({sent} messages in {QUIET_S} s)"
+        assert drawn <= QUIET_S + 1, f"{label(stage)} kept redrawing: {drawn} frames in {QUIET_S} s"

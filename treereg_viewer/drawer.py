@@ -47,10 +47,10 @@ log = logging.getLogger(__name__)
 #: GUI and renders its first frames. (Later redraws do not ask: measured on the demo, Next answered
 #: as fast without, and the run took 2.5 s longer with.)
 FIRST_VIEW_GIVE_WAY_S = 1.0
-#: Plotly's script holds the browser for about a second wherever it goes: it is sent once the tab has
-#: had no request for PLOTS_AFTER_IDLE_S (a person reading a stage's explanation), or PLOTS_PENDING_IDLE_S
-#: after a panel was shown without its plots (its heading, text and images are painted by then).
-PLOTS_AFTER_IDLE_S = 5.0
+#: Plotly's script holds the browser for about a second wherever it goes: it is sent
+#: PLOTS_PENDING_IDLE_S after the first panel with plots was shown without them (its heading, text
+#: and images are painted by then). Not before a stage with plots is shown: sent to every idle tab,
+#: the script (and plotly's import) grew the server by 40 MB for tabs that never show a plot.
 PLOTS_PENDING_IDLE_S = 0.5
 
 
@@ -188,13 +188,11 @@ class Drawer:
             self.give_way(FIRST_VIEW_GIVE_WAY_S)
 
     def _plots_wait(self) -> float | None:
-        """Seconds until plotly's script is due (None: sent, or no first view yet). Counted from the last
-        redraw a person asked for, or the panel left without its plots: the pipeline's news (status,
-        progress, results) does not make a tab busy."""
-        if self._drawn_view is None or self.panel.plots:
+        """Seconds until plotly's script is due (None: sent, not asked for yet, or no first view),
+        counted from when the panel was shown without its plots."""
+        if self._drawn_view is None or self.panel.plots or not self._plots_pending:
             return None
-        idle = PLOTS_PENDING_IDLE_S if self._plots_pending else PLOTS_AFTER_IDLE_S
-        return self._asked_at + idle - time.monotonic()
+        return self._asked_at + PLOTS_PENDING_IDLE_S - time.monotonic()
 
     def _prepare_plots(self) -> None:
         """Send plotly's script; a panel that waits for its plots is shown again, with them."""

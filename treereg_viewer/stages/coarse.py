@@ -1,7 +1,7 @@
 """The Coarse stage: CoarseResult — the target moved by its coarse transform, tie residuals.
 
 The scan layer already shows every target at its coarse pose on this stage. Here: the chosen
-target's tie pairs after the transform, inliers green and outliers grey, and a histogram of the
+target's tie pairs after the transform, inliers magenta and outliers grey, and a histogram of the
 residuals with the inlier distance marked.
 """
 
@@ -25,7 +25,7 @@ from .base import AppStage, StageView, TargetControl, TourStep
 
 
 def residual_figure(c: CoarseResult) -> go.Figure:
-    """Histogram of tie residuals, inliers green and outliers grey, around the inlier distance
+    """Histogram of tie residuals, inliers magenta and outliers grey, around the inlier distance
     the inliers were chosen with (RANSAC's last, `c.inlier_m`).
 
     The x range is four times the inlier distance: the decision happens there. Farther residuals
@@ -61,7 +61,7 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
     plots = []
     text = item_message(c) or (
         f"{pair_label(snap, t)}: {c.n_inliers} of {c.n_ties} tie points agree with the transform "
-        f"(green lines in 3-D; outliers grey). Every target is shown at its coarse pose."
+        f"(magenta lines in 3-D; outliers grey). Every target is shown at its coarse pose."
     )
     if c.ok and match is not None and match.n_ties and len(c.residuals_m) == match.n_ties:
         ref = np.asarray(match.ref_xyz)
@@ -90,7 +90,7 @@ STAGE = AppStage(
         "coarse",
         explanation="The rigid transform that best maps the target's tie points onto the reference's, by SVD over all "
             "of them in the paper (2.1.4). Wrong matches cannot be avoided on binary images (4.1), so treereg by "
-            "default lets RANSAC keep the consistent ones (green lines; outliers grey), solving yaw and "
+            "default lets RANSAC keep the consistent ones (magenta lines; outliers grey), solving yaw and "
             "translation for levelled scanners. Projection loses detail, so trunks and branches are close but "
             "not yet aligned (paper Fig. 9). ⚠ marks a transform that cannot be right.",
     ),
@@ -101,7 +101,7 @@ STAGE = AppStage(
         TourStep(
             "coarse", "The coarse transform",
             "One rigid transform maps the target's tie points onto the reference's; treereg lets RANSAC keep the "
-            "consistent ties (green) and drop the wrong ones (grey). The trees now overlap, but projection loses "
+            "consistent ties (magenta) and drop the wrong ones (grey). The trees now overlap, but projection loses "
             "detail: stems are close, not yet aligned (paper Fig. 9).",
             "Zoom onto the trunk: each scan's skin of the stem lies a little apart from the others.",
             view={"panel": "stage"}),

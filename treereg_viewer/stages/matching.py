@@ -2,7 +2,7 @@
 
 The panel shows the similarity matrix of the reference's and the target's image sequences as a
 heatmap with the chosen pairs marked (the current one highlighted), and the current pair's two
-images side by side with their matches: kept in green, rejected by the β check in grey. In 3-D,
+images side by side with their matches: kept in magenta, rejected by the β check in grey. In 3-D,
 the tie points of each scan (each in its own frame, as the scans are shown on this stage) joined by
 lines.
 """
@@ -56,7 +56,7 @@ def similarity_figure(match: Any, angles_ref: tuple[float, ...], angles_tgt: tup
 
 def matches_image(pair: Any, img_ref: np.ndarray, img_tgt: np.ndarray, color_ref: tuple[int, int, int],
                   color_tgt: tuple[int, int, int]) -> np.ndarray:
-    """The pair's two images side by side (reference left) with kept (green) and rejected (grey) matches."""
+    """The pair's two images side by side (reference left) with kept (magenta) and rejected (grey) matches."""
     k = fit_factor(img_ref.shape[1] + img_tgt.shape[1] + 16)
     a, b = upscale(binary_to_rgb(img_ref, color_ref), k), upscale(binary_to_rgb(img_tgt, color_tgt), k)
     lay = hstack([a, b], gap=16)
@@ -88,10 +88,10 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
         img = matches_image(pair, seq_ref.images[pair.i], seq_tgt.images[pair.j], scan_color(0), scan_color(t + 1))
         n_kept = int(np.count_nonzero(pair.kept))
         if snap.params.matching.beta_check or n_kept < len(pair.kept):
-            verdict = (f"{n_kept} of {plural(len(pair.kept), 'match', 'matches')} kept (green), "
+            verdict = (f"{n_kept} of {plural(len(pair.kept), 'match', 'matches')} kept (magenta), "
                        f"{len(pair.kept) - n_kept} rejected by the β check (grey).")
         else:  # nothing is grey: say so, and where wrong matches are caught instead
-            verdict = (f"{plural(n_kept, 'match', 'matches')}, all kept (green): the β check is off "
+            verdict = (f"{plural(n_kept, 'match', 'matches')}, all kept (magenta): the β check is off "
                        "(matching.beta_check); 4 Coarse rejects wrong ties by RANSAC instead.")
         images.append((img, (
             f"Image pair {k + 1} of {len(m.pairs)}: {ref_name} at θ = {pair.angle_ref_deg:+.0f}° (left), "

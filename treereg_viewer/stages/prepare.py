@@ -74,10 +74,10 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
         step = scan.step
         how = "" if given or step is None or step.source == "given" else (" (grid)" if step.source == "grid" else f" (est., {step.confidence:.2f})")
         # Few columns, the counts stacked in one cell: the table fits a 330 px panel (1280 x 720).
-        counts = "<br>".join(f"{v} {what}" for v, what in ((f"{scan.n_points:,}", "read"), (kept, "kept"),
+        counts = "<br>".join(f"{v}&nbsp;{what}" for v, what in ((f"{scan.n_points:,}", "read"), (kept, "kept"),
                                                              (ground, "ground")) if v)
         if mixed:
-            counts += "<br>" + (f"mixed pixels {mixed}" if mixed in ("off", "not filtered") else f"{mixed} mixed pixels")
+            counts += "<br>" + (f"mixed pixels {mixed}" if mixed in ("off", "not filtered") else f"{mixed}&nbsp;mixed")
         rows.append((
             f"{i + 1}: {scan.name}{' (reference)' if i == 0 else ''}", counts, f"{phi:.3g} / {vphi:.3g}{how}", target,
         ))

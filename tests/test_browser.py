@@ -51,10 +51,6 @@ def served(tmp_path_factory):
         yield url, out, seconds, t0
 
 
-def _open(browser, url, scene=True):
-    return open_page(browser, url, scene=scene)
-
-
 class _Laps:
     """Seconds since the start of a test at named points (shown with `pytest -s`)."""
 
@@ -125,7 +121,7 @@ def test_walk_through_the_demo(served, browser):
     url, out_dir, url_seconds, t_start = served
     expect = playwright_api.expect
     lap = _Laps()
-    context, page, blocked = _open(browser, url)
+    context, page, blocked = open_page(browser, url)
     visible_seconds = time.perf_counter() - t_start
     lap("page open, scans drawn")
     close_toast(page)
@@ -260,7 +256,7 @@ def test_cross_section_and_fits_views(served, browser):
     view draws no giant rejected shapes."""
     url = served[0]
     expect = playwright_api.expect
-    context, page, _ = _open(browser, url)
+    context, page, _ = open_page(browser, url)
     close_toast(page)
     _wait_all_done(page)
     go(page, "9 Fine")
@@ -318,8 +314,8 @@ def test_two_tabs_keep_their_own_stage_and_follow_a_presenter(served, browser):
     url = served[0]
     expect = playwright_api.expect
     lap = _Laps()
-    ctx1, page1, _ = _open(browser, url, scene=False)
-    ctx2, page2, _ = _open(browser, url, scene=False)
+    ctx1, page1, _ = open_page(browser, url, scene=False)
+    ctx2, page2, _ = open_page(browser, url, scene=False)
     lap("two tabs open")
     go(page1, "4 Coarse")
     expect(page1.get_by_role("heading", name=re.compile("^4 Coarse"))).to_be_visible(timeout=60_000)
@@ -364,7 +360,7 @@ def test_the_tour_walks_the_stages(served, browser):
     """Teach tab → Start the tour: each step sets the stage and says why and what to try."""
     url = served[0]
     expect = playwright_api.expect
-    context, page, _ = _open(browser, url)
+    context, page, _ = open_page(browser, url)
     close_toast(page)
     _wait_all_done(page)
     # From the result, where the scans are drawn registered: the tour's first steps must show them
@@ -405,7 +401,7 @@ def test_wind_shows_the_stem_profile_and_the_crown_motion(windy, browser):
     """A pair scanned in wind: the Fine stage says how far the crown moved and plots the target's stem
     offset against height; Result colours what moved with the wind apart from what does not fit."""
     expect = playwright_api.expect
-    context, page, blocked = _open(browser, windy, scene=False)
+    context, page, blocked = open_page(browser, windy, scene=False)
     close_toast(page)
     page.wait_for_function(
         "() => [...document.querySelectorAll('p, div')].some(e => /✓ 13 Result/.test(e.textContent) && "

@@ -73,10 +73,11 @@ def verdict_warnings(snap: Snapshot) -> list[str]:
 
 
 def stage_warnings(snap: Snapshot) -> dict[str, list[str]]:
-    """Warnings by pipeline stage ("evaluation"), for the pairs that have results."""
+    """Warnings by pipeline stage ("evaluation"), for the pairs that have results, each line with its
+    mark: ✗ a registration far from the truth; a verdict's own (⚠ unverified, ✗ failed)."""
     found = {}
     if snap.output("evaluation") is not None and (w := truth_warnings(snap)):
-        found["evaluation"] = w
+        found["evaluation"] = [f"**✗** {line}" for line in w]
     if w := verdict_warnings(snap):
         found["graph"] = w
     return found

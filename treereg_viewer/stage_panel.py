@@ -169,8 +169,7 @@ class StagePanel:
             if failed:
                 why = snap.crashed.get(failed[0]) or snap.outputs[failed[0]].message
                 lines.append(f"**⚠ {label(failed[0])} failed:** {why}")
-        # A verdict line carries its own mark (⚠ unverified, ✗ failed); other warnings get ⚠.
-        lines += [w if w[:1] in VERDICT_MARKS.values() else f"**⚠** {w}" for ws in warned.values() for w in ws]
+        lines += [w for ws in warned.values() for w in ws]  # each with its mark (`checks.stage_warnings`)
         self.message_md.content = "\n\n".join(lines)
         if not snap.busy:
             # At rest the bar shows how much of the pipeline is up to date (a failure stops it there),

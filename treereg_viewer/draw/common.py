@@ -112,16 +112,11 @@ def title(name: str, snap: Snapshot | None = None, t: int | None = None) -> str:
 
 
 def pair_badges(snap: Snapshot, t: int) -> str:
-    """Short marks after a pair's name in every stage heading: the latest registration verdict a
-    stage result of this pair carries (an attribute `verdict`: "verified", "unverified",
-    "failed"), latest stage first. Empty when no result carries one."""
-    for name in reversed(("coarse", "fine", "verify")):
-        out = snap.output(name)
-        item = out.items[t] if out is not None and t < len(out.items) else None
-        verdict = getattr(item, "verdict", None)
-        if verdict:
-            return f"[{verdict_badge(str(verdict))}]"
-    return ""
+    """The mark after a pair's name in a heading: its verdict ("[✓ verified]"), once the Verify stage
+    has judged it; empty before."""
+    out = snap.output("verify")
+    verdict = getattr(out.items[t], "verdict", None) if out is not None and t < len(out.items) else None
+    return f"[{verdict_badge(str(verdict))}]" if verdict else ""
 
 
 def plural(n: int, word: str, many: str | None = None) -> str:

@@ -89,9 +89,9 @@ GHOST_STRIDE = 3
 GHOST_LIGHT = 0.55
 
 
-def _verdict_label(snap: Snapshot, view: ViewState, i: int, pts: np.ndarray) -> tuple[str, tuple[float, float, float]]:
-    """The 3-D label of a marked scan and where it goes (its own frame: above its tree)."""
-    mark = verdict_shown(snap, view, i)
+def _verdict_label(snap: Snapshot, view: ViewState, i: int, mark: str,
+                   over: np.ndarray) -> tuple[str, tuple[float, float, float]]:
+    """The 3-D label of scan i, marked `mark`, and where it goes: above the points `over`."""
     name = snap.scans[i].name
     if mark == "unverified":
         text = f"⚠ {name}: unverified, best guess"
@@ -99,7 +99,7 @@ def _verdict_label(snap: Snapshot, view: ViewState, i: int, pts: np.ndarray) -> 
         text = f"✗ {name}: failed, not placed"
     else:
         text = f"✗ {name}: failed (this stage's pose, for inspection)"
-    top = np.array([*np.median(pts[:, :2], axis=0), float(np.quantile(pts[:, 2], 0.99)) + 0.4 + 0.5 * i])
+    top = np.array([*np.median(over[:, :2], axis=0), float(np.quantile(over[:, 2], 0.99)) + 0.4 + 0.5 * i])
     return text, (float(top[0]), float(top[1]), float(top[2]))
 
 
@@ -155,15 +155,15 @@ def draw_scan_layer(scene: viser.SceneApi, snap: Snapshot, view: ViewState,
         visible = scan.name not in view.hidden_scans
         handles.append(scene.add_frame(node, show_axes=False, visible=visible))
         mark = verdict_shown(snap, view, i)
+        if mark == "failed" and stage_pose(view) == "final":
+            # Not placed: nothing to draw where the registered scans stand; the label stands above the
+            # reference's tree (in the reference frame, not under this scan's node).
+            ref_pts = prepared.items[0].scan.points if prepared is not None and prepared.items[0].ok else pts
+            text, where = _verdict_label(snap, view, i, mark, ref_pts[display_subset(len(ref_pts), 5000, seed=1)])
+            handles.append(scene.add_label(f"/scans/verdict{i}", text, position=where, anchor="bottom-center"))
+            continue
         if mark:
-            text, where = _verdict_label(snap, view, i, pts[idx])
-            if mark == "failed" and stage_pose(view) == "final":
-                # Not placed: nothing to draw where the registered scans stand; the label stands above
-                # the reference's tree.
-                ref_pts = prepared.items[0].scan.points if prepared is not None and prepared.items[0].ok else pts
-                text, where = _verdict_label(snap, view, i, ref_pts[display_subset(len(ref_pts), 5000, seed=1)])
-                handles.append(scene.add_label(f"/scans/verdict{i}", text, position=where, anchor="bottom-center"))
-                continue
+            text, where = _verdict_label(snap, view, i, mark, pts[idx])
             handles.append(scene.add_label(f"{node}/verdict", text, position=where, anchor="bottom-center"))
             # A best guess (or a failed pair at its own pose) is drawn ghosted: fewer, lighter points.
             full = np.broadcast_to(np.asarray(colors, dtype=float).reshape(-1, 3), (len(idx), 3))[::GHOST_STRIDE]

@@ -17,7 +17,7 @@ import plotly.graph_objects as go
 import trimesh
 import viser
 
-from ..checks import TRUTH_DISP_M, TRUTH_ROT_DEG, truth_rows, truth_warnings
+from ..checks import TRUTH_DISP_M, TRUTH_ROT_DEG, stage_warnings, truth_rows
 from ..controller import Snapshot
 from ..draw.common import Drawing, md_table, metrics_table, pair_label, pair_scans, target_index, title
 from ..draw.motion import motion_sentence, profile_figure
@@ -145,7 +145,7 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
              for pair, label, rot, disp, good in truth_rows(snap, names_only=True)])
     if notes:
         text += "\n\n" + "\n\n".join(notes)
-    text += "".join(f"\n\n**✗** {w}" for w in truth_warnings(snap))
+    text += "".join(f"\n\n{w}" for w in stage_warnings(snap).get("evaluation", []))
     if not report.ok and report.message:
         text += f"\n\n**Evaluation:** {report.message}"
     plots = []

@@ -46,8 +46,12 @@ from treereg_core.simulate.cases import CaseSpec, benchmark_cases, write_case  #
 
 SIZES = {"100k": 100_000, "300k": 300_000, "1M": 1_000_000, "3M": 3_000_000, "10M": 10_000_000}
 #: The trees, as indices into `benchmark_cases(24, 0)`: a plain leaning tree, the first awkward one
-#: (leaves and ground) and the most awkward one (bent, leaves, ground, tilted instruments).
-TREES = {"plain": 1, "awkward": 0, "awkward2": 6}
+#: (leaves and ground), the most awkward one (bent, leaves, ground, tilted instruments), and one each
+#: of the other awkward kinds (leaf-on, bent, ground; leaf-on and bent; leaves, ground and tilt).
+TREES = {"plain": 1, "awkward": 0, "awkward2": 6, "bent": 3, "ground": 9, "leafon": 12, "bent_ground": 15,
+         "leafon_bent": 18, "leafon_ground": 21}
+#: Held-out trees: the awkward ones of another seed (`benchmark_cases(24, 1)`), never tuned on.
+HELD_OUT = {f"held{k}": k for k in (0, 3, 6, 9, 12, 15, 18, 21)}
 #: The floor: what any tool has to pay before registering (start Python, import the numerical
 #: stack, read the files). PLY is read as the binary array it is; LAS/LAZ with laspy.
 FLOOR = r"""
@@ -94,7 +98,7 @@ def ensure_case(cache: Path, tree: str, size: str, fmt: str) -> Path:
     out = case_dir(cache, tree, size, fmt)
     if (out / TRUTH_NAME).is_file():
         return out
-    spec = benchmark_cases(24, 0)[TREES[tree]]
+    spec = benchmark_cases(24, 0)[TREES[tree]] if tree in TREES else benchmark_cases(24, 1)[HELD_OUT[tree]]
     # Points per scan scale as 1 / step^2: calibrate on the case at its own step.
     base = spec.build()
     n0 = float(np.mean([s.n_points for s in base.scans]))
@@ -290,7 +294,7 @@ def batch_section(rep: Report, cache: Path, n: int, dask: bool) -> None:
 def main() -> None:
     ap = parser(__doc__, 0)
     ap.add_argument("--sizes", nargs="*", default=list(SIZES), choices=list(SIZES))
-    ap.add_argument("--trees", nargs="*", default=["plain", "awkward"], choices=list(TREES))
+    ap.add_argument("--trees", nargs="*", default=["plain", "awkward"], choices=list(TREES) + list(HELD_OUT))
     ap.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "treereg_bench_scale")
     ap.add_argument("--format", default=".ply", choices=(".ply", ".las", ".laz"), help="scan file format")
     ap.add_argument("--repeats", type=int, default=1, help="register runs per case (median wall, max RSS)")

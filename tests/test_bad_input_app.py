@@ -181,7 +181,7 @@ def test_a_warning_is_one_line_without_its_source_or_dropped_when_it_is_library_
 
     parser = cli_main.build_parser
     try:
-        cli_main.build_parser = lambda: _Parser(warns)
+        cli_main.build_parser = lambda *argv: _Parser(warns)
         rc, err = cli(capsys, "anything")
     finally:
         cli_main.build_parser = parser

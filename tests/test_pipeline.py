@@ -164,14 +164,14 @@ def test_the_apps_running_stage_comes_from_the_pipelines_events(case, monkeypatc
     calls, started = [], []
     run = Pipeline.run
 
-    def spy(self, until, events=None):
+    def spy(self, until, events=None, between=None):
         calls.append(until)
 
         def tee(event):
             if isinstance(event, StageStarted):
                 started.append(event.stage)
             events(event)
-        return run(self, until, tee)
+        return run(self, until, tee, between)
 
     monkeypatch.setattr(Pipeline, "run", spy)
     ctl = Controller(case.scans[:2], Params(), case.truth())

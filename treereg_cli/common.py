@@ -6,12 +6,13 @@ import argparse
 import json
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 from treereg_core import params as P
 from treereg_core.errors import ConfigError
 from treereg_core.io.naming import scan_names
-from treereg_core.io.scans import read_records, record_to_scan
+from treereg_core.io.scans import deferred_warnings, read_records, record_to_scan, warn_all
+from treereg_core.parallel import Workers, default_workers
 from treereg_core.params import Params
 from treereg_core.scan import Scan
 
@@ -82,6 +83,28 @@ def add_set_arg(p: argparse.ArgumentParser) -> None:
                    f"Applied in this order: {ORDER}")
 
 
+#: The most workers a run may be given (more than any machine's cores this runs on; a typo beyond).
+MAX_WORKERS = 1024
+
+
+def add_workers_arg(p: argparse.ArgumentParser, what: str) -> None:
+    """--workers N: how many cores one registration uses."""
+    p.add_argument("--workers", type=int, default=None, metavar="N",
+                   help=f"{what} (default: all cores, here {_cores()}; the results are the same for any number)")
+
+
+def workers_of(args: argparse.Namespace) -> int | None:
+    """--workers, checked (None: all cores)."""
+    n = getattr(args, "workers", None)
+    if n is not None and not 1 <= n <= MAX_WORKERS:
+        raise ConfigError(f"--workers must be between 1 and {MAX_WORKERS}, got {n}")
+    return n
+
+
+def _cores() -> int:
+    return default_workers()
+
+
 def add_param_args(p: argparse.ArgumentParser) -> None:
     """--config, --preset, --set, --angular-step, ...: how every command that registers gets its parameters."""
     p.add_argument("--config", help="parameter JSON file (as saved by the app or `treereg params`)")
@@ -104,18 +127,41 @@ def read_scans(files: list[str], params: Params, scanner_positions: list[list[fl
     and returns; `scanner_positions` are given per scan, in order. Each scan is named by
     `io.naming.scan_names` (by folder where two files share a name: a/scan1.ply, b/scan1.ply), the
     name that keys the transforms."""
-    records = [(f, r, n) for f in files for r, n in _records(f)]
+    records = [(f, r, n) for rs in _side_by_side(_records, files) for f, r, n in rs]
     positions = [tuple(p) for p in (scanner_positions or [])]
     if positions and len(positions) != len(records):
         names = ", ".join(r.name for _, r, _ in records)
         raise ConfigError(f"--scanner-position was given {len(positions)} time(s) for {len(records)} scans ({names}); "
                           "give it once per scan, in order")
     names = scan_names([(f, r.name) for f, r, _ in records])
-    return [record_to_scan(replace(r, name=name), Path(f) if n == 1 else Path(f"{f}#{r.name}"),
-                           params.prepare.angular_step_deg, params.prepare.returns, positions[k] if positions else None)
-            for k, ((f, r, n), name) in enumerate(zip(records, names))]
+
+    def scan(k: int) -> Scan:
+        (f, r, n), name = records[k], names[k]
+        return record_to_scan(replace(r, name=name), Path(f) if n == 1 else Path(f"{f}#{r.name}"),
+                              params.prepare.angular_step_deg, params.prepare.returns,
+                              positions[k] if positions else None)
+    return _side_by_side(scan, list(range(len(records))))
 
 
 def _records(path: str) -> list[tuple]:
     records = read_records(path)
-    return [(r, len(records)) for r in records]
+    return [(path, r, len(records)) for r in records]
+
+
+def _side_by_side(fn: Callable[[Any], Any], items: list) -> list:
+    """`[fn(x) for x in items]` on the machine's cores (reading, checking and estimating each
+    scan's steps release the GIL), saying what each repaired and raising what it could not, as
+    a loop over the files in order would."""
+    def one(k: int) -> tuple[Any, BaseException | None, list[str]]:
+        with deferred_warnings() as said:
+            try:
+                return fn(items[k]), None, said
+            except Exception as e:  # noqa: BLE001 - raised below, in the files' order
+                return None, e, said
+    out = []
+    for value, error, said in Workers(min(default_workers(), max(len(items), 1))).each(one, len(items), lambda k: None):
+        warn_all(said)
+        if error is not None:
+            raise error
+        out.append(value)
+    return out

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import importlib
 import os
 import signal
 import sys
@@ -20,24 +21,34 @@ import warnings
 from typing import Any, Callable, Iterator
 
 from treereg_core._version import __version__
-from treereg_core.errors import ConfigError, OutputError, ScanError
-from treereg_core.io.scans import ScanWarning
+from treereg_core.errors import ConfigError, OutputError, ScanError, ScanWarning
 
-from . import batch, evaluate, params, progress, register, simulate, view
+from . import progress
 
-#: The subcommands, in the order `treereg --help` lists them.
-COMMANDS = (simulate, register, batch, evaluate, params, view)
+#: The subcommands (modules of this package), in the order `treereg --help` lists them.
+COMMANDS = ("simulate", "register", "batch", "evaluate", "params", "view")
 
 
-def build_parser() -> argparse.ArgumentParser:
+def command_in(argv: list[str]) -> str | None:
+    """The subcommand `argv` names (its first word not an option), when it is one of `COMMANDS`."""
+    word = next((a for a in argv if not a.startswith("-")), None)
+    return word if word in COMMANDS else None
+
+
+def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
+    """The command line's parser. Given `argv` that names a subcommand, only that subcommand's
+    module is imported (`treereg register` loads no app, batch or simulator code: a second less
+    to start); otherwise every one, for `--help` and for a mistyped command's error."""
     parser = argparse.ArgumentParser(
         prog="treereg",
         description="Marker-free registration of multi-station TLS scans of a single tree.",
     )
     parser.add_argument("--version", action="version", version=f"treereg {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for command in COMMANDS:
-        command.add(sub)
+    only = command_in(argv) if argv is not None else None
+    for name in COMMANDS:
+        if only is None or name == only:
+            importlib.import_module(f"{__package__}.{name}").add(sub)
     return parser
 
 
@@ -114,7 +125,8 @@ def _names_printable() -> None:
 
 def main(argv: list[str] | None = None) -> int:
     _names_printable()
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser(argv)
     args = parser.parse_args(argv)
     with warnings.catch_warnings(), sigterm_as_interrupt():
         warnings.simplefilter("always", ScanWarning)  # one per file, not one per line of code

@@ -5,8 +5,10 @@ from __future__ import annotations
 
 import sys
 import time
+from typing import TYPE_CHECKING
 
-from treereg_core.stage import Event, StageProgress
+if TYPE_CHECKING:  # the stage model loads the whole core: a command that only prints must not wait for it
+    from treereg_core.stage import Event
 
 #: Streams a bar has left mid-line (the next message must start on a fresh line).
 _open_lines: set[int] = set()
@@ -35,6 +37,8 @@ class ProgressBar:
 
     def on_event(self, event: Event) -> None:
         """A pipeline event: its progress moves the bar ("matching: scan2 -> scan1")."""
+        from treereg_core.stage import StageProgress  # loaded by the run that sends the event
+
         if isinstance(event, StageProgress):
             self(event.run_fraction, event.line)
 

@@ -23,7 +23,7 @@ from treereg_core.pipeline import register
 from treereg_core.stages import UNTIL
 from treereg_core.verify.report import motion_lines, quality_report, verdict_lines, verdict_text
 
-from .common import add_param_args, load_params, read_scans
+from .common import add_param_args, add_workers_arg, load_params, read_scans, workers_of
 from .progress import ProgressBar
 
 #: `--until` choice -> the last stage run ("fine" includes the verification and the joint placement).
@@ -47,6 +47,7 @@ def add(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--keep-unverified", action="store_true",
                    help="also write the best guesses of unverified scans into \"transforms\" (marked in \"quality\")")
     add_param_args(p)
+    add_workers_arg(p, "pairs and scans registered side by side")
     p.add_argument("--exports", action="store_true",
                    help="also write CloudCompare and PDAL matrix files beside --out, named after it "
                    "(<out>.<scan>.cloudcompare.txt, <out>.<scan>.pdal.txt), and <out>.registered.e57")
@@ -79,6 +80,7 @@ def run(args: argparse.Namespace) -> int:
         if extra is not None:
             check_output_file(extra)
     params = load_params(args)
+    workers = workers_of(args)
     scans = read_scans(args.scans, params, args.scanner_position)
     if len(scans) < 2:
         raise ConfigError("register needs at least two scans (the first is the reference); "
@@ -90,7 +92,8 @@ def run(args: argparse.Namespace) -> int:
             check_output_file(path)
     t0 = time.perf_counter()
     bar = ProgressBar("register")
-    reg = register(scans, params, until=UNTIL[args.until], events=bar.on_event)
+    # The command line runs no threads of its own: its GIL-bound stages may fork processes.
+    reg = register(scans, params, until=UNTIL[args.until], events=bar.on_event, workers=workers, fork=True)
     bar.finish()  # a run that stopped early left the bar short of full
     seconds = time.perf_counter() - t0
     pipe = reg.pipeline

@@ -13,7 +13,7 @@ from treereg_core.errors import ConfigError
 from treereg_core.io.atomic import check_output_dir
 from treereg_core.io.cases import read_truth, truth_beside
 
-from .common import add_param_args, load_params, read_scans
+from .common import add_param_args, add_workers_arg, load_params, read_scans, workers_of
 
 #: Largest scan file a browser may upload, unless --max-upload-mb says otherwise.
 DEFAULT_MAX_UPLOAD_MB = 1024.0
@@ -28,6 +28,7 @@ def add(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("scans", nargs="*", metavar="SCAN", help="scan files (first = reference); none = the demo")
     add_param_args(p)
+    add_workers_arg(p, "threads a registration uses")
     p.add_argument("--truth", help="truth.json with the true transforms (default: the one beside the scans, if any)")
     p.add_argument("--out", help="folder to also write exports to (besides the browser downloads)")
     p.add_argument("--port", type=int, default=8080, help="port (default 8080; 0 = any free port); a port in use is an error")
@@ -67,6 +68,7 @@ def run(args: argparse.Namespace) -> int:
     if not args.max_upload_mb > 0:
         raise ConfigError(f"--max-upload-mb: {args.max_upload_mb:g} must be a positive size in MB")
     params = load_params(args)
+    workers = workers_of(args)
     if args.scans:
         scans = read_scans(args.scans, params, args.scanner_position)
         truth_path = Path(args.truth) if args.truth else truth_beside([Path(f) for f in args.scans])
@@ -86,6 +88,6 @@ def run(args: argparse.Namespace) -> int:
         check_not_inputs(out_dir, file_names(s.name for s in scans),
                          [*args.scans, *(f for f in (args.config, args.truth) if f)])
 
-    serve(Controller(scans, params, truth), host=args.host, port=args.port, out_dir=out_dir,
+    serve(Controller(scans, params, truth, workers=workers), host=args.host, port=args.port, out_dir=out_dir,
           max_upload_bytes=int(args.max_upload_mb * 1e6))
     return 0

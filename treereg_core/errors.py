@@ -23,3 +23,7 @@ class OutputError(ValueError):
         self.path = path
         self.problem = problem
         super().__init__(f"{path}: {problem}")
+
+
+class ScanWarning(UserWarning):
+    """Something in a scan file was repaired (e.g. rows with NaN dropped); the message says what."""

@@ -11,10 +11,11 @@ from __future__ import annotations
 import time
 from collections import Counter
 from dataclasses import dataclass, field
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
+from . import parallel
 from .params import Params
 from .results import MetricRow, Progress
 from .scan import Scan
@@ -40,6 +41,12 @@ class Pipeline:
     runs: Counter[str] = field(default_factory=Counter, repr=False)
     #: Hypotheses picked by hand (the app): pair label "b -> a" -> candidate label.
     choices: dict[str, str] = field(default_factory=dict)
+    #: Workers of a run (`parallel.Workers`; None: the machine's cores). Results are the same for
+    #: any number.
+    workers: int | None = None
+    #: GIL-bound stages may fork processes (`Stage.processes`): only where this process runs no
+    #: other threads (the command line; the app's server has its own, and uses threads).
+    fork: bool = False
     _pairs_key: tuple[object, ...] | None = field(default=None, repr=False)
     _pairs_cache: tuple[tuple[int, int], ...] = field(default=(), repr=False)
 
@@ -125,14 +132,17 @@ class Pipeline:
                 for p in self.pairs]
 
     # ---- running -----------------------------------------------------------------------
-    def run(self, until: str = STAGE_NAMES[-1], events: Events | None = None) -> StageOutput | None:
+    def run(self, until: str = STAGE_NAMES[-1], events: Events | None = None,
+            between: Callable[[], None] | None = None) -> StageOutput | None:
         """Run every stage up to `until` (in run order) that has no cached output.
 
         A pair (or scan) that fails at one stage is skipped by the stages that depend on it, which
         go on with the others; the run stops when a per-scan stage fails or a stage has no
         successful item left. `events(event)` hears each stage computed start, progress, finish
         its items and finish (`stage.StageStarted` ...); cached stages are silent. Returns the
-        output of the last stage run (or cached), which may be a failure.
+        output of the last stage run (or cached), which may be a failure. `between()` is called by
+        every thread of the run before it starts an item (the app pauses its run there while a tab
+        opens: `parallel.Workers`).
         """
         emit = events or _no_events
         if len(self.scans) < 2:
@@ -140,30 +150,33 @@ class Pipeline:
         todo = STAGES[: STAGE_NAMES.index(stage(until).name) + 1]
         fresh = self.stale(until)  # what this run computes: the fraction of the run counts these
         last: StageOutput | None = None
-        for st in todo:
-            out = self._out.get(st.name)
-            if out is None:
-                out = self._run_stage(st, _stage_progress(st.name, fresh.index(st.name), len(fresh), emit), emit)
-                self._out[st.name] = out
-                self.runs[st.name] += 1
-                emit(StageFinished(out))
-            last = out
-            # A scan that cannot be prepared or projected is an input to fix: stop. A pair that
-            # fails later is skipped by the later stages while the other pairs go on.
-            if (st.stop_on_failure and not out.ok) or not any(it.ok for it in out.items):
-                break
+        budget = parallel.Workers(self.workers or parallel.default_workers(), may_fork=self.fork, between=between)
+        with parallel.using(budget) as workers:
+            for st in todo:
+                out = self._out.get(st.name)
+                if out is None:
+                    out = self._run_stage(st, _stage_progress(st.name, fresh.index(st.name), len(fresh), emit), emit,
+                                          workers)
+                    self._out[st.name] = out
+                    self.runs[st.name] += 1
+                    emit(StageFinished(out))
+                last = out
+                # A scan that cannot be prepared or projected is an input to fix: stop. A pair that
+                # fails later is skipped by the later stages while the other pairs go on.
+                if (st.stop_on_failure and not out.ok) or not any(it.ok for it in out.items):
+                    break
         return last
 
     def stale(self, until: str = STAGE_NAMES[-1]) -> list[str]:
         """The stages up to `until` that have no cached output: what `run(until)` would compute."""
         return [s for s in STAGE_NAMES[: STAGE_NAMES.index(stage(until).name) + 1] if s not in self._out]
 
-    def _run_stage(self, st: Stage, progress: Progress, emit: Events) -> StageOutput:
+    def _run_stage(self, st: Stage, progress: Progress, emit: Events, workers: parallel.Workers) -> StageOutput:
         n = len(self.scans) if st.per == "scan" else len(self.pairs)
         why = [self._blocked(st, k) for k in range(n)]
         emit(StageStarted(st.name, n))
         ctx = StageContext(tuple(self.scans), self.pairs, self.params, self.truth, dict(self._out),
-                           tuple(w is None for w in why), progress, dict(self.choices))
+                           tuple(w is None for w in why), progress, dict(self.choices), workers, st.processes)
         t0 = time.perf_counter()
         items = tuple(_item(st, it, w) for it, w in zip(st.run(ctx), why))
         seconds = time.perf_counter() - t0
@@ -304,12 +317,16 @@ def register(
     until: str = "graph",
     truth: dict[str, np.ndarray] | None = None,
     events: Events | None = None,
+    workers: int | None = None,
+    fork: bool = False,
 ) -> Registration:
     """One call: register every scan onto the first; `until` is a stage name (default "graph": fine
     registration, verification and the joint placement, so `pipeline.verdicts()` says which scans
     are verified; "coarse" or "fine" stop earlier, every scan then unverified; "evaluation" adds the
-    paper's evaluation and ICP); `events` hears the run (`Pipeline.run`)."""
-    pipe = Pipeline(list(scans), params or Params(), truth)
+    paper's evaluation and ICP); `events` hears the run (`Pipeline.run`); `workers` compute threads
+    (`parallel`; None: the machine's cores; the result is the same for any number), forking
+    processes for GIL-bound stages with `fork` (`Pipeline.fork`)."""
+    pipe = Pipeline(list(scans), params or Params(), truth, workers=workers, fork=fork)
     last = pipe.run(until, events)
     ok = last is not None and last.ok and last.stage == until
     return Registration(ok, last.message if last else "", pipe.transforms(), pipe)

@@ -18,6 +18,7 @@ from typing import Callable, Literal, Mapping, Protocol, TypeVar, Union
 
 import numpy as np
 
+from .parallel import SERIAL, Workers
 from .params import Params
 from .results import Metric, Progress
 from .scan import Scan
@@ -94,6 +95,10 @@ class StageContext:
     progress: Progress
     #: Hypotheses picked by hand: pair label ("scan2.ply -> scan1.ply") -> candidate label.
     choices: Mapping[str, str] = field(default_factory=dict)
+    #: The run's workers: `each` spreads the items over them.
+    workers: Workers = SERIAL
+    #: The stage's items hold the GIL (`Stage.processes`): forked processes, where the run may fork.
+    fork: bool = False
 
     def item(self, stage: str, k: int, kind: type[R]) -> R:
         """Item `k` of upstream `stage`, a `kind` (a hard dependency's items are, where live)."""
@@ -107,15 +112,18 @@ class StageContext:
         return out.item(k, kind)
 
     def each(self, fn: Callable[[int], T], label: Callable[[int], str]) -> list[T | None]:
-        """`fn(k)` for every live item k (None for the others, which the pipeline marks skipped)."""
+        """`fn(k)` for every live item k (None for the others, which the pipeline marks skipped),
+        side by side on the run's threads (`workers`); progress says which item started."""
         n = len(self.live)
-        out: list[T | None] = []
-        for k in range(n):
-            if not self.live[k]:
-                out.append(None)
-                continue
-            self.progress(k / max(n, 1), label(k))
-            out.append(fn(k))
+        live = [k for k in range(n) if self.live[k]]
+
+        def started(j: int) -> None:
+            self.progress(live[j] / max(n, 1), label(live[j]))
+
+        found = self.workers.each(lambda j: fn(live[j]), len(live), started, fork=self.fork)
+        out: list[T | None] = [None] * n
+        for k, item in zip(live, found):
+            out[k] = item
         return out
 
 
@@ -147,6 +155,9 @@ class Stage:
         `run(context) -> list` with one item per scan or pair (None where not live).
     stop_on_failure
         A failed item stops the whole run (a scan that cannot be prepared is an input to fix).
+    processes
+        Its items are mostly Python between small numpy calls (holding the GIL): side by side they
+        run in forked processes where the run may fork, not in threads (`parallel`).
     """
 
     name: str
@@ -159,6 +170,7 @@ class Stage:
     run: RunFunction = field(repr=False)
     uses: tuple[str, ...] = ()
     stop_on_failure: bool = False
+    processes: bool = False
 
     @property
     def upstream(self) -> tuple[str, ...]:

@@ -100,6 +100,7 @@ class _GiveWay:
     until: float = 0.0  # time.monotonic() until which a tab asked the worker to wait
     not_before: float = 0.0  # the worker ran too little since its last pause: no pause before this
     paused_s: float = 0.0  # total time paused (what giving way cost the runs)
+    since: float | None = None  # when the pause under way began (the run's threads share it)
 
 
 @dataclass
@@ -153,6 +154,9 @@ class Controller:
         True `T_ref_scan` per scan name, when known (the demo), for errors against truth.
     parse_upload
         How uploaded bytes become a Scan (tests may pass their own).
+    workers
+        Threads a run uses (None: the machine's cores). The app's server has threads of its own,
+        so the pipeline never forks here (`Pipeline.fork`).
     """
 
     def __init__(
@@ -161,11 +165,12 @@ class Controller:
         params: Params | None = None,
         truth: Mapping[str, np.ndarray] | None = None,
         parse_upload: ScanParser = parse_scan_upload,
+        workers: int | None = None,
     ) -> None:
         self._lock = threading.Lock()
         self._wake = threading.Condition(self._lock)
         self._idle = threading.Event()
-        self._pipeline = Pipeline(list(scans), params or Params(), dict(truth) if truth else None)
+        self._pipeline = Pipeline(list(scans), params or Params(), dict(truth) if truth else None, workers=workers)
         self._desired = self._pipeline.params
         self._req = _Requests()
         self._listeners: list[Listener] = []
@@ -382,7 +387,7 @@ class Controller:
         run = _Run(todo[0] if todo else None)
         self._publish(busy=True, running=run.stage, message="Running…" if todo else "")
         try:
-            last = pipe.run(until, events=lambda event: self._on_event(run, event))
+            last = pipe.run(until, events=lambda event: self._on_event(run, event), between=self._pause_for_tabs)
         except Exception as e:
             # The stage that raised is the one started and not finished (else the first still stale).
             stage = run.stage or next((s for s in todo if pipe.output(s) is None), until)
@@ -431,16 +436,23 @@ class Controller:
                 fn(event.run_fraction, event.line)
 
     def _pause_for_tabs(self) -> None:
-        """On the worker: wait while a tab asked it to give way (see GIVE_WAY_MAX_S)."""
+        """On the worker and the run's other threads (between two items): wait while a tab asked
+        the worker to give way (see GIVE_WAY_MAX_S). The threads that arrive during a pause wait
+        with it; the first to wake closes it."""
         with self._wake:
-            gw, start = self._give_way, time.monotonic()
-            if start < gw.not_before or start >= gw.until:
+            gw, now = self._give_way, time.monotonic()
+            if now < gw.not_before or now >= gw.until:
                 return
+            if gw.since is None:
+                gw.since = now
+            start = gw.since
             while not self._stopped and (left := min(gw.until, start + GIVE_WAY_MAX_S) - time.monotonic()) > 0:
                 self._wake.wait(timeout=left)
-            end = time.monotonic()
-            gw.paused_s += end - start
-            gw.not_before = end + GIVE_WAY_GAP_S
+            if gw.since is not None:
+                end = time.monotonic()
+                gw.paused_s += end - start
+                gw.not_before = end + GIVE_WAY_GAP_S
+                gw.since = None
 
     def _make_snapshot(self, busy: bool, running: str | None, message: str, error: bool) -> Snapshot:
         pipe = self._pipeline

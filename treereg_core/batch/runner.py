@@ -231,8 +231,11 @@ def run_batch(jobs: list[TreeJob], params: Params, out_dir: Path, *, until: str 
     if client is not None:
         _run_dask(todo, params, until, client, finished)
     elif (workers or os.cpu_count() or 1) <= 1 or len(todo) <= 1:
+        # One tree at a time, in this process: each registration uses every core itself (forking
+        # for its GIL-bound stages only from the main thread of a process that runs no other).
+        fork = threading.current_thread() is threading.main_thread()
         for job in todo:
-            finished(run_tree(job, params, until))
+            finished(run_tree(job, params, until, workers=None, fork=fork))
     else:
         _run_pool(todo, params, until, workers or os.cpu_count() or 1, finished)
     return [done[j.name] for j in jobs], len(todo)

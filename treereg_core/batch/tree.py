@@ -125,8 +125,10 @@ def apply_target(params: Params, xy: tuple[float, float]) -> Params:
     return params.with_value("target", "tree_at", xy)
 
 
-def run_tree(job: TreeJob, params: Params, until: str = "fine", picture: bool = True) -> TreeOutcome:
-    """Register one tree (never raises; see the module docstring)."""
+def run_tree(job: TreeJob, params: Params, until: str = "fine", picture: bool = True,
+             workers: int | None = 1, fork: bool = False) -> TreeOutcome:
+    """Register one tree (never raises; see the module docstring). `workers`, `fork`: the
+    registration's own (`pipeline.register`): one in a pool of trees, all cores when alone."""
     t0 = time.perf_counter()
     fp = fingerprint(job, params, until)
     seconds: dict[str, float] = {}
@@ -140,7 +142,7 @@ def run_tree(job: TreeJob, params: Params, until: str = "fine", picture: bool = 
         scans = [s if s.name == n else s.with_points(s.points, name=n) for s, n in zip(scans, names)]
         seconds["read"] = time.perf_counter() - t0
         t1 = time.perf_counter()
-        reg = register(scans, p, until=UNTIL[until])
+        reg = register(scans, p, until=UNTIL[until], workers=workers, fork=fork)
         seconds["register"] = time.perf_counter() - t1
     except (ScanError, ConfigError) as e:
         seconds["total"] = time.perf_counter() - t0

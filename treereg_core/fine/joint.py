@@ -34,6 +34,37 @@ def _basis_rows(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return e1, np.cross(a, e1)
 
 
+#: The adjustment stops once a step moves the pose by less than this share of its noise std.
+_CONVERGED_NOISE = float(__import__("os").environ.get("TREEREG_CONV", "0"))
+
+
+def section_gram(A: np.ndarray, w: np.ndarray, section: np.ndarray, starts: np.ndarray) -> np.ndarray:
+    """Per section k, the weighted Gram matrix sum_n w_n A_n A_n^T of its rows (K x Q x Q; w >= 0).
+
+    The rows of a section are contiguous (`starts`): they are laid out as a zero-padded K x L x Q
+    block and multiplied in one batched product, not summed from N outer products (N x Q x Q, most
+    of the adjustment's time and memory when it was so)."""
+    counts = np.diff(np.append(starts, len(A)))
+    K, L, Q = len(starts), int(counts.max()), A.shape[1]
+    flat = np.arange(len(A)) + (section * L - starts[section])  # row n -> its place in the K x L block
+    padded = np.zeros((K * L, Q))
+    padded[flat] = A * np.sqrt(w)[:, None]
+    padded = padded.reshape(K, L, Q)
+    # M^T M of one array (weights as square roots): numpy hands it to BLAS's symmetric product,
+    # which stays on this thread; a product of two arrays woke BLAS's threads for a few
+    # microseconds' work and cost five times as much.
+    return np.matmul(padded.transpose(0, 2, 1), padded)
+
+
+def _cross_rows(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Row-wise cross products of two N x 3 arrays (np.cross's generality costs more than the sums)."""
+    out = np.empty_like(u)
+    out[:, 0] = u[:, 1] * v[:, 2] - u[:, 2] * v[:, 1]
+    out[:, 1] = u[:, 2] * v[:, 0] - u[:, 0] * v[:, 2]
+    out[:, 2] = u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]
+    return out
+
+
 def _scales(n: int, lever_m: float) -> np.ndarray:
     """Per unknown of the update (rotation 3, translation 3, then any bend: 2), the factor that makes
     it metres: rotations times the lever arm, translations and the top's sway as they are."""
@@ -228,12 +259,15 @@ def adjust_joint(problem: JointProblem, *, joint: JointParams, loss: str = "soft
     def residuals(R_: np.ndarray, tau_: np.ndarray, c_: np.ndarray, a_: np.ndarray, r_: np.ndarray,
                   w_: np.ndarray = sway):
         cur = points.copy()
-        cur[mv] = base @ R_.T + centre + tau_
+        moved = base @ R_.T
+        moved += centre + tau_
         if nb:
-            cur[mv, :2] += fz[:, None] * w_[None, :]
+            moved[:, :2] += fz[:, None] * w_[None, :]
+        cur[mv] = moved
         d = cur - c_[section]
-        along = np.einsum("ij,ij->i", d, a_[section])
-        perp = d - along[:, None] * a_[section]
+        ax = a_[section]
+        along = np.einsum("ij,ij->i", d, ax)
+        perp = d - along[:, None] * ax
         nrm = np.sqrt(np.einsum("ij,ij->i", perp, perp))
         return cur, d, along, perp, nrm, nrm - r_[section]
 
@@ -249,20 +283,24 @@ def adjust_joint(problem: JointProblem, *, joint: JointParams, loss: str = "soft
         e1, e2 = _basis_rows(a)
         ne1 = np.einsum("ij,ij->i", n, e1[section])
         ne2 = np.einsum("ij,ij->i", n, e2[section])
-        Js = np.c_[-ne1, -ne2, -along * ne1, -along * ne2, -np.ones(len(res))]
-        Jp = np.zeros((len(res), 6 + nb))
-        # The bend is added after the rigid part, so a rotation turns the point without its bend.
-        Jp[mv, :3] = np.cross(cur[mv] - centre - (np.c_[fz[:, None] * sway[None, :], np.zeros(len(mv))] if nb else 0.0),
-                              n[mv])
-        Jp[mv, 3:6] = n[mv]
+        # The rows of [section unknowns (5) | pose unknowns (6, 8 with a bend) | residual], filled
+        # in place; one Gram matrix per section of them gives every block of the normal equations.
+        A = np.zeros((len(res), 12 + nb))
+        A[:, 0], A[:, 1] = -ne1, -ne2
+        A[:, 2], A[:, 3] = -along * ne1, -along * ne2
+        A[:, 4] = -1.0
+        nm = n[mv]
+        arm = cur[mv] - centre
+        if nb:  # the bend is added after the rigid part, so a rotation turns the point without its bend
+            arm[:, :2] -= fz[:, None] * sway[None, :]
+        A[mv, 5:8] = _cross_rows(arm, nm)
+        A[mv, 8:11] = nm
         if nb:
-            Jp[mv, 6:8] = fz[:, None] * n[mv, :2]
-        wJs, wJp = Js * w[:, None], Jp * w[:, None]
-        Hss = np.add.reduceat(np.einsum("ni,nj->nij", wJs, Js), starts, axis=0)
-        Hsp = np.add.reduceat(np.einsum("ni,nj->nij", wJs, Jp), starts, axis=0)
-        gs = np.add.reduceat(wJs * res[:, None], starts, axis=0)
-        Hpp_k = np.add.reduceat(np.einsum("ni,nj->nij", wJp, Jp), starts, axis=0)
-        gp_k = np.add.reduceat(wJp * res[:, None], starts, axis=0)
+            A[mv, 11:13] = fz[:, None] * nm[:, :2]
+        A[:, -1] = res
+        G = section_gram(A, w, section, starts)
+        P = 5 + 6 + nb
+        Hss, Hsp, gs, Hpp_k, gp_k = G[:, :5, :5], G[:, :5, 5:P], G[:, :5, P], G[:, 5:P, 5:P], G[:, 5:P, P]
         # Levenberg damping on the section blocks keeps near-degenerate sections (tiny arcs) finite.
         Hss = Hss + 1e-9 * eye5 + 1e-6 * np.einsum("kii->ki", Hss)[:, :, None] * eye5
         Hinv = np.linalg.inv(Hss)
@@ -300,9 +338,14 @@ def adjust_joint(problem: JointProblem, *, joint: JointParams, loss: str = "soft
             break
         R, tau, Rp, tp, sway, c, a, r = R_n, tau_n, Rp_n, tp_n, w_n, c_n, a_n, r_n
         cur, d, along, perp, nrm, res = out
-        # Converged when the cost stalls or the pose moves by less than about 10 micrometres.
+        # Converged when the cost stalls, the pose moves by less than about 10 micrometres, or the
+        # step is a small share of the pose's own noise (its Mahalanobis length under the sections'
+        # information): IRLS creeps along a weakly fixed direction for dozens of steps otherwise.
+        S_data = S - np.diag(prior)
+        noise_steps = float(np.sqrt(max(step * dp @ S_data @ (step * dp), 0.0))) / loss_scale_m
         converged = f - f_n <= 1e-7 * max(f, 1e-12) or (
-            np.linalg.norm(step * dp[:3]) * lever < 1e-5 and np.linalg.norm(step * dp[3:]) < 1e-5)
+            np.linalg.norm(step * dp[:3]) * lever < 1e-5 and np.linalg.norm(step * dp[3:]) < 1e-5) or (
+            noise_steps < _CONVERGED_NOISE)
         f = f_n
         if converged:
             break
@@ -350,8 +393,9 @@ def section_offsets(points: np.ndarray, section: np.ndarray, moving: np.ndarray,
         res = nrm - (radii[section] + x[section, 4])
         J = np.c_[-n, -m[:, None] * n, -np.ones(len(q))]
         w = robust_weight(res, loss_scale_m, "cauchy")
-        H = np.add.reduceat(np.einsum("ni,nj->nij", J * w[:, None], J), starts, axis=0) + 1e-9 * eye
-        g = np.add.reduceat(J * (w * res)[:, None], starts, axis=0)
+        G = section_gram(np.c_[J, res], w, section, starts)
+        H = G[:, :5, :5] + 1e-9 * eye
+        g = G[:, :5, 5]
         step = -np.linalg.solve(H, g[:, :, None])[:, :, 0]
         x += step
         if np.abs(step).max() < 1e-6:

@@ -69,7 +69,8 @@ from .stem import StemProfile, StemTrace, correction, stem_profile, trace_stem
 from ..prepare.ground import stem_position
 from .slicing import SliceResult, tree_extent
 from .surface import (
-    Surface, align_narrowing, mean_move, pose_update, refine_along, surface_fitness, surface_of, trimmed_residuals,
+    Surface, align_narrowing, mean_move, pose_update, refine_along, scan_surface, surface_fitness, surface_of,
+    trimmed_residuals,
 )
 
 #: Points of the target used to measure how far an update moves it (and for the acceptance measure).
@@ -595,8 +596,11 @@ def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, *, params: FineSec
     seen = tgt if bend is None else bend.warp(tgt, its.T)
     T, updates = its.T, list(its.updates_m)
     progress(fine.max_iterations / (fine.max_iterations + 1), "acceptance test")
-    ref_surf = surface_of(ref.points, surface.voxel_m)
-    tgt_surf = surface_of(seen.points, surface.voxel_m, _SAMPLE)
+    # The scans' surfaces (trees, normals) are shared with the hypotheses and verify stages and the
+    # scans' other pairs; the target unbent by the wind is its own.
+    ref_surf = scan_surface(ref, ref.points, surface.voxel_m)
+    tgt_surf = (scan_surface(tgt, tgt.points, surface.voxel_m, _SAMPLE) if seen is tgt
+                else surface_of(seen.points, surface.voxel_m, _SAMPLE))
     from_surface = 0
     if its.joint is not None and updates and surface.refine and bend is None:
         T, from_surface = _weak_from_surfaces(ref_surf, tgt_surf, T, its.joint, surface, joint.loss_scale_m)
@@ -732,8 +736,8 @@ def _with_bend(run: _Run, T0: np.ndarray, rigid: _Iterations, start: PoseFit, pr
     # The bend must explain the reference's surface better than the rigid pose does (more of the
     # target's points on it, the target unbent): a bend fitted to a stem traced onto the wrong
     # twigs, or to a crown that did not move, explains less.
-    ref_surf = surface_of(ref.points, DECIDE_VOXEL_M)
-    rigid_fit = surface_fitness(ref_surf, surface_of(tgt.points, DECIDE_VOXEL_M, _SAMPLE), rigid.T,
+    ref_surf = scan_surface(ref, ref.points, DECIDE_VOXEL_M)
+    rigid_fit = surface_fitness(ref_surf, scan_surface(tgt, tgt.points, DECIDE_VOXEL_M, _SAMPLE), rigid.T,
                                 DECIDE_GATE_M, DECIDE_TOLERANCE_M)
     bent_fit = surface_fitness(ref_surf, surface_of(bent.bend.warp(tgt, bent.T).points, DECIDE_VOXEL_M, _SAMPLE),
                                bent.T, DECIDE_GATE_M, DECIDE_TOLERANCE_M)

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import threading
 import weakref
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -43,15 +43,21 @@ class Surface:
     cloud: np.ndarray
     cloud_tree: cKDTree
     _normals: np.ndarray
+    #: The pairs computed side by side share a scan's surface: its normals are filled under this lock.
+    _lock: threading.Lock = field(default_factory=threading.Lock, compare=False, repr=False)
 
     def normals_at(self, idx: np.ndarray) -> np.ndarray:
         """Oriented unit normals of `points[idx]`."""
-        todo = np.unique(idx[np.isnan(self._normals[idx, 0])])
+        with self._lock:
+            todo = np.unique(idx[np.isnan(self._normals[idx, 0])])
         if len(todo):
+            # Outside the lock: two threads may compute the same normals, which are the same values.
             n = pca_normals(self.cloud, self.cloud_tree, self.points[todo], NORMAL_K)
             n *= np.where(np.einsum("ij,ij->i", n, self.points[todo]) > 0, -1.0, 1.0)[:, None]
-            self._normals[todo] = n
-        return self._normals[idx]
+            with self._lock:
+                self._normals[todo] = n
+        with self._lock:
+            return self._normals[idx]
 
 
 def surface_of(points: np.ndarray, voxel_m: float, max_points: int | None = None, seed: int = 0) -> Surface:

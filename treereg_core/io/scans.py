@@ -19,16 +19,18 @@ import gzip
 import io as _io
 import json
 import re
+import threading
 import warnings
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Mapping, TextIO
+from typing import Iterator, Mapping, TextIO
 
 import numpy as np
 
 from .atomic import write_atomic
 from .record import RETURNS, ScanRecord
-from ..errors import ScanError
+from ..errors import ScanError, ScanWarning
 from ..prepare.frames import far_from_origin, far_message, one_sided, to_scanner_frame
 from ..scan import MIN_POINTS, Scan
 
@@ -78,8 +80,33 @@ _LAS_CHUNK = 2_000_000
 _PLY_CHUNK = 2_000_000
 
 
-class ScanWarning(UserWarning):
-    """Something in a scan file was repaired (e.g. rows with NaN dropped); the message says what."""
+_deferred = threading.local()
+
+
+def _warn(text: str) -> None:
+    """A `ScanWarning` now, or kept for later when this thread reads under `deferred_warnings`."""
+    kept = getattr(_deferred, "kept", None)
+    if kept is not None:
+        kept.append(text)
+    else:
+        warnings.warn(text, ScanWarning, stacklevel=3)
+
+
+@contextmanager
+def deferred_warnings() -> Iterator[list[str]]:
+    """Inside, this thread's scan warnings are collected (the list yielded), not issued: files read
+    side by side say what they repaired in the order the files were given (`warn_all`)."""
+    _deferred.kept = []
+    try:
+        yield _deferred.kept
+    finally:
+        _deferred.kept = None
+
+
+def warn_all(texts: list[str]) -> None:
+    """Issue warnings collected by `deferred_warnings`, in order."""
+    for text in texts:
+        warnings.warn(text, ScanWarning, stacklevel=2)
 
 
 def extension(path: str | Path) -> str:
@@ -190,7 +217,8 @@ def read_records(path: str | Path, check_units: bool = True) -> list[ScanRecord]
         if check_units:
             # Points spread like a scene seen from the origin: their distance from it tells the unit
             # too. Far and close together (georeferenced) is `record_to_scan`'s to say.
-            check_metres(r.points, label, scanner_frame=_seen_from_origin(r.points))
+            size = _size(r.points)
+            check_metres(r.points, label, scanner_frame=_seen_from_origin(r.points, size), size=size)
         out.append(r)
     return out
 
@@ -260,14 +288,13 @@ def record_to_scan(
     scan = Scan.from_points(pts, name=record.name, source=source, angular_step_deg=angular_step_deg,
                             min_points=min_points, pose=pose, grid=record.grid)
     if scan.step.low and one_sided(pts):
-        warnings.warn(
+        _warn(
             f"{source}: the points show no regular angular grid (step estimate {scan.step.describe()}) and all lie on "
             "one side of the origin: if the scan is not in its scanner's frame, give --scanner-position X Y Z; "
-            "if it is, give the instrument's steps with --angular-step H V",
-            ScanWarning, stacklevel=2)
+            "if it is, give the instrument's steps with --angular-step H V")
     elif scan.step.low:
-        warnings.warn(f"{source}: the angular step estimate is unreliable ({scan.step.describe()}); "
-                      "give the instrument's steps with --angular-step H V", ScanWarning, stacklevel=2)
+        _warn(f"{source}: the angular step estimate is unreliable ({scan.step.describe()}); "
+              "give the instrument's steps with --angular-step H V")
     return scan
 
 
@@ -318,14 +345,16 @@ def _size(points: np.ndarray) -> tuple[float, float, float]:
     return extent, spread, rng
 
 
-def _seen_from_origin(points: np.ndarray) -> bool:
+def _seen_from_origin(points: np.ndarray, size: tuple[float, float, float] | None = None) -> bool:
     """True when the points spread like a scene seen from the origin (a scan in another unit), not
-    like a scan far from the origin with its points close together (georeferenced coordinates)."""
-    _, spread, rng = _size(points)
+    like a scan far from the origin with its points close together (georeferenced coordinates).
+    `size`: `_size(points)` when already known."""
+    _, spread, rng = size or _size(points)
     return spread >= MIN_SPREAD_TO_RANGE * rng
 
 
-def check_metres(points: np.ndarray, label: str, scanner_frame: bool = False) -> None:
+def check_metres(points: np.ndarray, label: str, scanner_frame: bool = False,
+                 size: tuple[float, float, float] | None = None) -> None:
     """Raise `ScanError`, naming the likely unit and its factor, when the points are not in metres.
 
     A tree cloud in metres spans `MIN_EXTENT_M` to `MAX_EXTENT_M` (and, seen from its scanner, lies
@@ -336,7 +365,7 @@ def check_metres(points: np.ndarray, label: str, scanner_frame: bool = False) ->
     """
     if len(points) == 0:
         return
-    extent, _, rng = _size(points)
+    extent, _, rng = size or _size(points)
     if MIN_EXTENT_M <= extent <= MAX_EXTENT_M and (not scanner_frame or rng <= MAX_RANGE_M):
         return
 
@@ -369,19 +398,28 @@ def _valid_rows(label: str, pts: np.ndarray) -> np.ndarray | None:
     a scan in centimetres. Raises `ScanError` when nothing is left or every point is the same.
     """
     n = len(pts)
-    keep = np.isfinite(pts).all(axis=1)
+    # The bounds first (two passes along the columns): in a clean file they show at once that no
+    # row is NaN, infinite or a no-data value, and, below, that none lies far out; only a file
+    # that has such rows pays for the row-by-row tests.
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    clean = bool(np.isfinite(lo).all() and np.isfinite(hi).all())
+    keep = np.ones(n, dtype=bool) if clean else np.isfinite(pts).all(axis=1)
     if not keep.any():
         raise ScanError(label, f"all {n} points have NaN or infinite coordinates; nothing is left")
     _warn_dropped(label, n, n - int(keep.sum()), "with NaN or infinite coordinates")
     x, y, z = pts[:, 0], pts[:, 1], pts[:, 2]
-    no_data = keep & (x == y) & (y == z) & np.isin(x, NO_DATA_VALUES)
+    no_data = np.zeros(n, dtype=bool)
+    if not (clean and lo[0] > max(NO_DATA_VALUES)):  # a no-data row's x is one of them
+        cand = np.flatnonzero(keep & (x == y))
+        cand = cand[(y[cand] == z[cand]) & np.isin(x[cand], NO_DATA_VALUES)]
+        no_data[cand] = True
     if no_data.any():
         v = float(x[np.flatnonzero(no_data)[0]])
         keep &= ~no_data
         if not keep.any():
             raise ScanError(label, f"all {n} points are the no-data row ({v:g}, {v:g}, {v:g}); the file holds no measurement")
         _warn_dropped(label, n, int(no_data.sum()), f"at ({v:g}, {v:g}, {v:g}) (a no-data value, not a measurement)")
-    far, reach, spread = _far_rows(pts, keep)
+    far, reach, spread = _far_rows(pts, keep, (lo, hi) if clean and not no_data.any() else None)
     if far.any():
         keep &= ~far
         _warn_dropped(label, n, int(far.sum()), f"lying far outside the scan (up to {reach:.3g} units from its median "
@@ -392,12 +430,15 @@ def _valid_rows(label: str, pts: np.ndarray) -> np.ndarray | None:
 
 def _warn_dropped(label: str, n: int, n_bad: int, why: str) -> None:
     if n_bad:
-        warnings.warn(f"{label}: dropped {n_bad} of {n} points {why}", ScanWarning, stacklevel=4)
+        _warn(f"{label}: dropped {n_bad} of {n} points {why}")
 
 
-def _far_rows(pts: np.ndarray, keep: np.ndarray) -> tuple[np.ndarray, float, float]:
+def _far_rows(pts: np.ndarray, keep: np.ndarray, bounds: tuple[np.ndarray, np.ndarray] | None = None
+              ) -> tuple[np.ndarray, float, float]:
     """Rows (among `keep`) farther than `OUTLIER_FACTOR` times the points' median spread from their
-    median point (largest coordinate difference), the farthest such distance, and the spread."""
+    median point (largest coordinate difference), the farthest such distance, and the spread.
+    `bounds`: the kept rows' lowest and highest coordinates, when known (no row is far when they
+    are near)."""
     sample = _kept_sample(pts, keep)
     centre = np.median(sample, axis=0)
     spread = float(np.median(np.abs(sample - centre).max(axis=1)))
@@ -405,9 +446,14 @@ def _far_rows(pts: np.ndarray, keep: np.ndarray) -> tuple[np.ndarray, float, flo
     if spread == 0.0:
         return far, 0.0, 0.0  # most points are one point: `_check_not_one_point` or the step estimate says so
     limit, reach = OUTLIER_FACTOR * spread, 0.0
+    if bounds is not None and max(float((bounds[1] - centre).max()), float((centre - bounds[0]).max())) <= limit:
+        return far, 0.0, spread
     with np.errstate(over="ignore", invalid="ignore"):  # 1e308 - -1e308 is inf: far, as it should be
         for a in range(0, len(pts), _PLY_CHUNK):
-            d = np.abs(pts[a:a + _PLY_CHUNK] - centre).max(axis=1)
+            chunk = pts[a:a + _PLY_CHUNK]
+            d = np.abs(chunk[:, 0] - centre[0])
+            for k in (1, 2):
+                np.maximum(d, np.abs(chunk[:, k] - centre[k]), out=d)
             hit = (d > limit) & keep[a:a + _PLY_CHUNK]
             if hit.any():
                 far[a:a + _PLY_CHUNK] = hit

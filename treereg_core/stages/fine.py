@@ -23,4 +23,5 @@ def run(ctx: StageContext) -> list[StageResult | None]:
 
 
 STAGE = Stage("fine", "Fine", "The fine transform from the corresponding sections, iterated and checked against the surfaces.",
-              "pair", FINE_SECTIONS, ("hypotheses",), FineResult, run, uses=("slices", "arcs", "sections"))
+              "pair", FINE_SECTIONS, ("hypotheses",), FineResult, run, uses=("slices", "arcs", "sections"),
+              processes=True)

@@ -38,7 +38,7 @@ def run(ctx: StageContext) -> list[StageResult | None]:
                 return straightened(ref, tgt, T, ctx.params.joint.loss_scale_m, stems)
         return score_hypotheses(image, ref_surf, surface(ctx, p.tgt, hp.polish_points), tgt.points, c.T_ref_target,
                                 list(c.modes), hypotheses=hp, choose=ctx.choices.get(pair_label(ctx, k)),
-                                axis_xy=_stem_xy(ctx, p.tgt), adjust=adjust)
+                                axis_xy=_stem_xy(ctx, p.tgt), adjust=adjust, tgt_wide=surface(ctx, p.tgt, hp.wide_points))
     return ctx.each(one, lambda k: pair_label(ctx, k))
 
 

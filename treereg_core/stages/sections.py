@@ -26,4 +26,4 @@ def run(ctx: StageContext) -> list[StageResult | None]:
 
 
 STAGE = Stage("sections", "Fits", "Circles and cylinders fitted to the arcs, and corresponding sections paired (2.2.3, 4.2).",
-              "pair", ("sections",), ("arcs",), SectionsResult, run)
+              "pair", ("sections",), ("arcs",), SectionsResult, run, processes=True)

@@ -18,7 +18,8 @@ from typing import Callable
 
 import numpy as np
 
-from ..fine.surface import Surface, align_narrowing
+from ..fine.surface import Surface, align_narrowing, pose_update, refine_along
+from .. import parallel
 from ..geometry.rigid import apply_transform, make_transform, rotation_angle_deg, rotation_z
 from ..params import HypothesesParams
 from ..results import Metric
@@ -123,14 +124,29 @@ def candidate_starts(T_best: np.ndarray, modes: list[tuple[np.ndarray, int]], tg
 # Ten parameters: the six inputs every candidate is judged on (the reference's view and surface, the
 # target's surface and points, RANSAC's pose and modes) and, by keyword, the section and three
 # optional modifiers (a hand-picked label, the stem to turn about, a start adjustment for wind).
+def polish_candidate(ref_surf: Surface, tgt_wide: Surface, tgt_surf: Surface, T0: np.ndarray,
+                     p: HypothesesParams) -> np.ndarray:
+    """A candidate's start aligned by the surfaces, the pairing gate narrowing: at the wide gates
+    (`POLISH_GATES_M`) with the target's small sample `tgt_wide` (finding the candidate's basin
+    needs no more points), at the final gate with `tgt_surf`."""
+    c = apply_transform(T0, tgt_surf.points).mean(axis=0)
+    T = align_narrowing(ref_surf, tgt_wide, T0, c, np.eye(6), POLISH_GATES_M[-1], p.polish_iterations, p.loss_scale_m,
+                        gates_m=POLISH_GATES_M[:-1], gate_iterations=p.polish_iterations)
+    gate = p.polish_gate_m
+    y = refine_along(ref_surf, tgt_surf, T, c, np.eye(6), gate, max(p.loss_scale_m, gate / 4), p.polish_iterations)
+    return pose_update(y, c) @ T
+
+
 def score_hypotheses(ref_image: RangeImage, ref_surf: Surface, tgt_surf: Surface, tgt_points: np.ndarray,
                      T_best: np.ndarray, modes: list[tuple[np.ndarray, int]], *,
                      hypotheses: HypothesesParams, choose: str | None = None,
                      axis_xy: np.ndarray | None = None,
-                     adjust: Callable[[np.ndarray], np.ndarray] | None = None) -> HypothesesResult:
+                     adjust: Callable[[np.ndarray], np.ndarray] | None = None,
+                     tgt_wide: Surface | None = None) -> HypothesesResult:
     """Polish every candidate with the surfaces and score it against the reference's view. `choose`
     names a candidate the user picked: it wins whatever the scores (and says so). `axis_xy`: the
-    target's stem (its frame), which the turned candidates turn about.
+    target's stem (its frame), which the turned candidates turn about. `tgt_wide`: the target's
+    smaller sample for the wide pairing gates (`polish_candidate`; default `tgt_surf`).
 
     A candidate keeps the better of its start and its polished pose: the cheap alignment can drift
     by a few centimetres on a pose that was right already, and must not cost it the comparison.
@@ -141,17 +157,19 @@ def score_hypotheses(ref_image: RangeImage, ref_surf: Surface, tgt_surf: Surface
     rng = np.random.default_rng(0)
     pts = tgt_points if len(tgt_points) <= SCORE_POINTS else tgt_points[rng.choice(len(tgt_points), SCORE_POINTS, replace=False)]
     centre = pts.mean(axis=0)
-    cands = []
-    for label, T0, n in candidate_starts(T_best, modes, pts, p, axis_xy):
+    wide = tgt_surf if tgt_wide is None else tgt_wide
+
+    def judged(start: tuple[str, np.ndarray, int]) -> Candidate:
+        label, T0, n = start
         T0 = T0 if adjust is None else adjust(T0)
-        c = apply_transform(T0, tgt_surf.points).mean(axis=0)
-        T = align_narrowing(ref_surf, tgt_surf, T0, c, np.eye(6), p.polish_gate_m, p.polish_iterations, p.loss_scale_m,
-                            gates_m=POLISH_GATES_M, gate_iterations=p.polish_iterations)
+        T = polish_candidate(ref_surf, wide, tgt_surf, T0, p)
         v0 = visibility(ref_image, pts, T0, p.tolerance_m)
         v1 = visibility(ref_image, pts, T, p.tolerance_m) if np.isfinite(T).all() else v0
         if _score(v0, p) >= _score(v1, p):
             T, v1 = T0, v0
-        cands.append(Candidate(label=label, T_start=T0, T_ref_target=T, support=n, visibility=v1, start_visibility=v0))
+        return Candidate(label=label, T_start=T0, T_ref_target=T, support=n, visibility=v1, start_visibility=v0)
+    # The candidates side by side on the run's free threads (each is judged on its own).
+    cands = parallel.map(judged, candidate_starts(T_best, modes, pts, p, axis_xy))
     # The most consistent hypothesis among those that agree with the reference's view in about as many
     # points as any: a pose that puts the target where the reference saw nothing (a small overlap)
     # proves nothing. (Points in the reference's free space are no overlap: a wrong pose has many.)

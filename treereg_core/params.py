@@ -162,6 +162,7 @@ class HypothesesParams:
     polish_iterations: int = _f(5, "", "iterations of that alignment at each pairing distance (10 cm, 5 cm, final)", lo=1, hi=200)
     polish_points: int = _f(4000, "points", "points of the target's surface used by that alignment at its final pairing distance", lo=100, hi=1_000_000)
     wide_points: int = _f(1000, "points", "...and at the wide pairing distances (10 and 5 cm), where it only has to find the candidate's basin", lo=100, hi=1_000_000)
+    finish_within: float = _f(0.15, "", "only candidates at most this much less consistent than the best after the wide pairing distances are aligned at the final one (1 = all)", lo=0.0, hi=1.0)
     tolerance_m: float = _f(0.02, "m", "free-space test: a target point agrees with the reference's view within this range difference (plus the cell's depth)", lo=0.001, hi=0.04, looser="higher")
     cell_steps: float = _f(2.0, "steps", "free-space test: the reference's range image has cells of this many angular steps", lo=1.0, hi=20.0)
     loss_scale_m: float = _f(0.005, "m", "residual scale of the robust loss of the alignment", lo=0.0001, hi=0.5)
@@ -299,6 +300,7 @@ class GraphParams:
     loss_scale_m: float = _f(0.005, "m", "joint solve of all poses: residual scale of the soft-L1 loss of its first pass", lo=0.0001, hi=1.0)
     refine_scale_m: float = _f(0.001, "m", "joint solve, second pass: residual scale of the Cauchy loss (pairs far from the consensus lose their pull)", lo=0.0001, hi=1.0)
     sample_points: int = _f(300, "points", "points per scan by which an edge's disagreement is measured", lo=10, hi=100_000)
+    coarse_weight: float = _f(0.05, "", "joint solve: a pair whose fine update was not kept (its coarse pose, several mm less certain) counts this much", lo=0.001, hi=1.0)
 
 
 @dataclass(frozen=True)

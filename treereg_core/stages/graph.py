@@ -10,7 +10,7 @@ from ..geometry.rigid import invert, mean_displacement, rotation_error_deg
 from ..results import Metric
 from ..stage import Stage, StageContext, StageResult
 from ..verify.evidence import VERIFIED, PairVerification
-from ..verify.graph import Edge, Placement, place_scans
+from ..verify.graph import Edge, Placement, edge_weight, place_scans
 from .common import scan_of
 
 
@@ -22,7 +22,7 @@ def run(ctx: StageContext) -> list[StageResult | None]:
         it = ver.items[k] if ver is not None else None
         if isinstance(it, PairVerification):
             edges.append(Edge(i=p.ref, j=p.tgt, T=it.T_ref_target, verdict=it.verdict, reasons=it.reasons, hint=it.hint,
-                              other_tree=it.other_tree, weight=float(max(it.evidence.seen_by_both, 1))))
+                              other_tree=it.other_tree, weight=edge_weight(it.evidence, ctx.params.graph)))
         else:  # the pair failed before verification: no transform
             edges.append(Edge(i=p.ref, j=p.tgt, T=np.eye(4), verdict="failed",
                               reasons=((it.message if it is not None else "") or "not registered",)))

@@ -30,7 +30,8 @@ def run(ctx: StageContext) -> list[StageResult | None]:
                           tgt_points=tgt.points, ref_plane=prepared(ctx, p.ref).plane, tgt_plane=prepared(ctx, p.tgt).plane,
                           ref_stem_xy=_ref_stem_xy(ctx, p.ref))
         found = PairResults(coarse=ctx.item("coarse", k, CoarseResult), hypotheses=ctx.item("hypotheses", k, HypothesesResult),
-                            T_ref_target=f.T_ref_target, bend=f.bend, profile=f.profile, turn_held=f.turn_held)
+                            T_ref_target=f.T_ref_target, bend=f.bend, profile=f.profile, turn_held=f.turn_held,
+                            fine_kept=f.accepted)
         e = gather_evidence(scene, found, verify=ctx.params.verify, hypotheses=hp, acceptance=ctx.params.acceptance,
                             wind=ctx.params.wind,
                             support_inlier_m=ctx.params.coarse.final_inlier_m or ctx.params.coarse.inlier_m)

@@ -87,6 +87,9 @@ class Evidence:
     #: evidence puts the heading (deg, a turn about the stem; its reach when the evidence is flat;
     #: NaN when not measured).
     heading_offset_deg: float = float("nan")
+    #: The fine stage kept its update; False: the pose is the coarse one, millimetres less certain
+    #: (what the joint placement weighs the pair by, not part of the verdict).
+    fine_kept: bool = True
 
     def as_dict(self) -> dict[str, float | int | str | None]:
         return dict(self.__dict__)
@@ -160,6 +163,7 @@ class PairResults:
     bend : the target's stem bent against the reference's (None in still air).
     profile : the stem profile at the pose.
     turn_held : the fine stage could not fix the turn about the stem.
+    fine_kept : the fine stage kept its update (False: the pose is the coarse one).
     """
 
     coarse: CoarseResult
@@ -168,6 +172,7 @@ class PairResults:
     bend: Bend | None = None
     profile: StemProfile | None = None
     turn_held: bool = False
+    fine_kept: bool = True
 
 
 def gather_evidence(scene: PairScene, results: PairResults, *, verify: VerifyParams, hypotheses: HypothesesParams,
@@ -243,7 +248,8 @@ def gather_evidence(scene: PairScene, results: PairResults, *, verify: VerifyPar
         sway_direction_deg=bend.sway_direction_deg if bend is not None else float("nan"),
         sway_std_m=bend.sway_std_m if bend is not None else float("nan"),
         stable_height_m=profile.stable_height_m(wind.stable_tolerance_m) if profile is not None else float("nan"),
-        motion_needed_m=needed, motion_m=motion, moved=vis.moved, heading_offset_deg=heading, **stem,
+        motion_needed_m=needed, motion_m=motion, moved=vis.moved, heading_offset_deg=heading,
+        fine_kept=results.fine_kept, **stem,
     )
 
 

@@ -25,7 +25,7 @@ from scipy.sparse.csgraph import minimum_spanning_tree
 from ..geometry.rigid import apply_transform, invert, make_transform, rotation_from_vector
 from ..params import GraphParams
 from ..results import Metric
-from .evidence import FAILED, UNVERIFIED, VERIFIED, joined_hints
+from .evidence import FAILED, UNVERIFIED, VERIFIED, Evidence, joined_hints
 
 
 def select_pairs(similarity: np.ndarray, extra: int) -> list[tuple[int, int]]:
@@ -107,6 +107,26 @@ class Placement:
         return self.T_ref_scan
 
 
+#: A pair's surface residual below this (m) is not believed: a few lucky pairs, not a better pose.
+_MIN_RESIDUAL_M = 1e-4
+
+
+def edge_weight(evidence: Evidence, graph: GraphParams) -> float:
+    """How much a verified pair counts in the joint placement: as a measurement's information,
+    the points both stations see over the square of the surfaces' residual at its pose (a pair
+    whose surfaces agree to 0.6 mm is measured better than one at 1.2 mm, and far better than one
+    seeing half as much), times `graph.coarse_weight` when its fine update was not kept (its pose
+    is the coarse one: several millimetres off where the fine ones are one).
+
+    With overlap alone, the loop of three stations let a pair whose fine stage had kept the coarse
+    pose (6.7 mm off) pull a pair 3 mm off to 7.3 mm; the residual alone cannot tell which pair of
+    a triangle is wrong, but it ranks them (benchmarks/RESULTS.md, issue 20)."""
+    residual = evidence.residual_m if np.isfinite(evidence.residual_m) else evidence.noise_m
+    residual = max(float(residual), _MIN_RESIDUAL_M) if np.isfinite(residual) else 1e-3
+    weight = max(evidence.seen_by_both, 1) / residual ** 2
+    return float(weight * (1.0 if evidence.fine_kept else graph.coarse_weight))
+
+
 def _chain(n: int, edges: list[Edge]) -> dict[int, np.ndarray]:
     """Poses by walking a spanning tree of the edges from scan 0 (breadth first)."""
     poses = {0: np.eye(4)}
@@ -130,8 +150,8 @@ def _solve(poses: dict[int, np.ndarray], edges: list[Edge], samples: dict[int, n
     """Joint poses of every scan in `poses` (scan 0 fixed) minimising, over the edges, how far each
     edge's measured transform and the poses' relative one put the sample points of scan j apart.
 
-    An edge counts by its weight (how much of the two scans overlaps: a pair of stations that see
-    the same surfaces is measured better than two opposite ones). Soft-L1 at `scale_m` first (safe
+    An edge counts by its weight (`edge_weight`: how much of the two scans overlaps and how well
+    their surfaces agree at its pose). Soft-L1 at `scale_m` first (safe
     from a chained start), then Cauchy at `refine_scale_m`: an edge that disagrees with the others
     by several times that (a pair the fine stage could not improve) loses its pull.
     """

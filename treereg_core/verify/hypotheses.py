@@ -121,22 +121,27 @@ def candidate_starts(T_best: np.ndarray, modes: list[tuple[np.ndarray, int]], tg
     return out
 
 
-# Ten parameters: the six inputs every candidate is judged on (the reference's view and surface, the
-# target's surface and points, RANSAC's pose and modes) and, by keyword, the section and three
-# optional modifiers (a hand-picked label, the stem to turn about, a start adjustment for wind).
-def polish_candidate(ref_surf: Surface, tgt_wide: Surface, tgt_surf: Surface, T0: np.ndarray,
-                     p: HypothesesParams) -> np.ndarray:
-    """A candidate's start aligned by the surfaces, the pairing gate narrowing: at the wide gates
-    (`POLISH_GATES_M`) with the target's small sample `tgt_wide` (finding the candidate's basin
-    needs no more points), at the final gate with `tgt_surf`."""
-    c = apply_transform(T0, tgt_surf.points).mean(axis=0)
-    T = align_narrowing(ref_surf, tgt_wide, T0, c, np.eye(6), POLISH_GATES_M[-1], p.polish_iterations, p.loss_scale_m,
-                        gates_m=POLISH_GATES_M[:-1], gate_iterations=p.polish_iterations)
+def polish_wide(ref_surf: Surface, tgt_wide: Surface, T0: np.ndarray, centre: np.ndarray,
+                p: HypothesesParams) -> np.ndarray:
+    """A candidate's start aligned by the surfaces at the wide pairing gates (`POLISH_GATES_M`, the
+    gate narrowing), with the target's small sample `tgt_wide`: finding the candidate's basin needs
+    no more points."""
+    return align_narrowing(ref_surf, tgt_wide, T0, centre, np.eye(6), POLISH_GATES_M[-1], p.polish_iterations,
+                           p.loss_scale_m, gates_m=POLISH_GATES_M[:-1], gate_iterations=p.polish_iterations)
+
+
+def polish_final(ref_surf: Surface, tgt_surf: Surface, T: np.ndarray, centre: np.ndarray,
+                 p: HypothesesParams) -> np.ndarray:
+    """...then at the final gate (`hypotheses.polish_gate_m`), with `tgt_surf`."""
     gate = p.polish_gate_m
-    y = refine_along(ref_surf, tgt_surf, T, c, np.eye(6), gate, max(p.loss_scale_m, gate / 4), p.polish_iterations)
-    return pose_update(y, c) @ T
+    y = refine_along(ref_surf, tgt_surf, T, centre, np.eye(6), gate, max(p.loss_scale_m, gate / 4), p.polish_iterations)
+    return pose_update(y, centre) @ T
 
 
+# Eleven parameters: the six inputs every candidate is judged on (the reference's view and surface,
+# the target's surface and points, RANSAC's pose and modes) and, by keyword, the section and four
+# optional modifiers (a hand-picked label, the stem to turn about, a start adjustment for wind, the
+# target's small sample for the wide gates).
 def score_hypotheses(ref_image: RangeImage, ref_surf: Surface, tgt_surf: Surface, tgt_points: np.ndarray,
                      T_best: np.ndarray, modes: list[tuple[np.ndarray, int]], *,
                      hypotheses: HypothesesParams, choose: str | None = None,
@@ -152,6 +157,12 @@ def score_hypotheses(ref_image: RangeImage, ref_surf: Surface, tgt_surf: Surface
     by a few centimetres on a pose that was right already, and must not cost it the comparison.
     `adjust` moves each candidate's start first (with wind: the stem profile's shift and tilt taken
     out, the rigid fit to a moving crown having tilted it).
+
+    Coarse first: every candidate is aligned at the wide gates and scored; only those within
+    `hypotheses.finish_within` of the best consistency (and RANSAC's own, and one picked by hand)
+    are aligned at the final gate and scored again. The others keep their wide alignment: the
+    final gate moves a pose by millimetres, which cannot bring a candidate that far behind to within
+    `verify.min_margin` of the best.
     """
     p = hypotheses
     rng = np.random.default_rng(0)
@@ -159,17 +170,34 @@ def score_hypotheses(ref_image: RangeImage, ref_surf: Surface, tgt_surf: Surface
     centre = pts.mean(axis=0)
     wide = tgt_surf if tgt_wide is None else tgt_wide
 
-    def judged(start: tuple[str, np.ndarray, int]) -> Candidate:
+    def better(T0: np.ndarray, v0: Visibility, T: np.ndarray) -> tuple[np.ndarray, Visibility, np.ndarray]:
+        """The better of a start and its alignment, and the alignment (to go on from)."""
+        if not np.isfinite(T).all():
+            return T0, v0, T0
+        v1 = visibility(ref_image, pts, T, p.tolerance_m)
+        return (T0, v0, T) if _score(v0, p) >= _score(v1, p) else (T, v1, T)
+
+    def coarse_step(start: tuple[str, np.ndarray, int]) -> tuple[Candidate, np.ndarray, np.ndarray]:
         label, T0, n = start
         T0 = T0 if adjust is None else adjust(T0)
-        T = polish_candidate(ref_surf, wide, tgt_surf, T0, p)
+        c = apply_transform(T0, tgt_surf.points).mean(axis=0)
         v0 = visibility(ref_image, pts, T0, p.tolerance_m)
-        v1 = visibility(ref_image, pts, T, p.tolerance_m) if np.isfinite(T).all() else v0
-        if _score(v0, p) >= _score(v1, p):
-            T, v1 = T0, v0
-        return Candidate(label=label, T_start=T0, T_ref_target=T, support=n, visibility=v1, start_visibility=v0)
+        T, v, aligned = better(T0, v0, polish_wide(ref_surf, wide, T0, c, p))
+        return Candidate(label=label, T_start=T0, T_ref_target=T, support=n, visibility=v, start_visibility=v0), aligned, c
+
+    def final_step(k: int) -> Candidate:
+        cand, aligned, c = first[k]
+        T, v, _ = better(cand.T_start, cand.start_visibility, polish_final(ref_surf, tgt_surf, aligned, c, p))
+        return Candidate(label=cand.label, T_start=cand.T_start, T_ref_target=T, support=cand.support, visibility=v,
+                         start_visibility=cand.start_visibility)
     # The candidates side by side on the run's free threads (each is judged on its own).
-    cands = parallel.map(judged, candidate_starts(T_best, modes, pts, p, axis_xy))
+    first = parallel.map(coarse_step, candidate_starts(T_best, modes, pts, p, axis_xy))
+    cons = [c.visibility.consistency for c, _, _ in first]
+    top = max((x for x in cons if np.isfinite(x)), default=float("nan"))
+    finish = [k for k, (c, _, _) in enumerate(first)
+              if c.label in ("coarse", choose) or (np.isfinite(cons[k]) and cons[k] >= top - p.finish_within)]
+    done = dict(zip(finish, parallel.map(final_step, finish)))
+    cands = [done.get(k, c) for k, (c, _, _) in enumerate(first)]
     # The most consistent hypothesis among those that agree with the reference's view in about as many
     # points as any: a pose that puts the target where the reference saw nothing (a small overlap)
     # proves nothing. (Points in the reference's free space are no overlap: a wrong pose has many.)

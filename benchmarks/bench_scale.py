@@ -84,8 +84,8 @@ def rss_run(cmd: list[str], cwd: Path | None = None, env: dict | None = None) ->
             usage.ru_utime + usage.ru_stime)
 
 
-def case_dir(cache: Path, tree: str, size: str, fmt: str) -> Path:
-    return cache / f"{tree}_{size}_{fmt.lstrip('.')}"
+def case_dir(cache: Path, tree: str, size: str, fmt: str, stations: int = 3) -> Path:
+    return cache / f"{tree}_{size}_{fmt.lstrip('.')}" if stations == 3 else cache / f"{tree}_{size}_{stations}st_{fmt.lstrip('.')}"
 
 
 def scan_files(folder: Path) -> list[Path]:
@@ -93,9 +93,10 @@ def scan_files(folder: Path) -> list[Path]:
     return [folder / n for n in names]
 
 
-def ensure_case(cache: Path, tree: str, size: str, fmt: str) -> Path:
-    """Simulate the tree at the step that gives ~`size` points per scan (once; cached)."""
-    out = case_dir(cache, tree, size, fmt)
+def ensure_case(cache: Path, tree: str, size: str, fmt: str, stations: int = 3) -> Path:
+    """Simulate the tree at the step that gives ~`size` points per scan (once; cached), from
+    `stations` stations (3: the benchmark case's own; more: evenly around the same tree)."""
+    out = case_dir(cache, tree, size, fmt, stations)
     if (out / TRUTH_NAME).is_file():
         return out
     spec = benchmark_cases(24, 0)[TREES[tree]] if tree in TREES else benchmark_cases(24, 1)[HELD_OUT[tree]]
@@ -103,7 +104,8 @@ def ensure_case(cache: Path, tree: str, size: str, fmt: str) -> Path:
     base = spec.build()
     n0 = float(np.mean([s.n_points for s in base.scans]))
     step = spec.angular_step_deg[0] * float(np.sqrt(n0 / SIZES[size]))
-    spec = CaseSpec(**{**spec.to_dict(), "angular_step_deg": (round(step, 5), round(step, 5))})
+    spec = CaseSpec(**{**spec.to_dict(), "angular_step_deg": (round(step, 5), round(step, 5)),
+                       **({"n_stations": stations} if stations != 3 else {})})
     print(f"  simulating {tree} at {size} points per scan (step {step:.4f} deg)", file=sys.stderr, flush=True)
     case = spec.build()
     tmp = Path(tempfile.mkdtemp(dir=cache))
@@ -127,6 +129,8 @@ def ensure_case(cache: Path, tree: str, size: str, fmt: str) -> Path:
 class Row:
     tree: str
     size: str
+    stations: int
+    workers: str
     points: list[int]
     floor_s: float
     floor_cpu_s: float
@@ -137,6 +141,7 @@ class Row:
     rot_deg: list[float]
     disp_m: list[float]
     note: str
+    stage_s: dict[str, float]
 
     @property
     def ratio(self) -> float:
@@ -184,27 +189,31 @@ def floor_time(files: list[Path], repeats: int) -> tuple[float, float]:
 
 
 def measure(tree: str, size: str, folder: Path, repeats: int, floor_repeats: int, extra: list[str],
-            root: Path = ROOT) -> Row:
+            root: Path = ROOT, workers: int | None = None) -> Row:
     files = scan_files(folder)
     truth = read_truth(folder / TRUTH_NAME)
     # Reference first, as truth.json lists them.
     floor, floor_cpu = floor_time(files, floor_repeats)
-    walls, cpus, rss, status, err = [], [], 0.0, 0, ""
+    walls, cpus, rss, status, err, stages = [], [], 0.0, 0, "", []
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "transforms.json"
         for _ in range(repeats):
             w, r, status, err, c = rss_run([sys.executable, "-m", "treereg_cli", "register", *map(str, files),
-                                            "--out", str(out), *extra], cwd=root)
+                                            "--out", str(out), *extra,
+                                            *(["--workers", str(workers)] if workers else [])], cwd=root)
             walls.append(w)
             cpus.append(c)
             rss = max(rss, r)
+            if out.is_file():
+                stages.append(json.loads(out.read_text()).get("stage_seconds", {}))
         if out.is_file():
             rot, disp, npts = accuracy(files, out, truth)
         else:
             rot, disp, npts = [], [], [0]
     note = "" if status == 0 else f"exit {status}: {err.strip().splitlines()[-1] if err.strip() else ''}"
-    return Row(tree, size, npts, floor, floor_cpu, statistics.median(walls), statistics.median(cpus), rss, status,
-               rot, disp, note)
+    stage_s = {k: statistics.median(st.get(k, 0.0) for st in stages) for k in (stages[0] if stages else {})}
+    return Row(tree, size, len(files), str(workers or "all"), npts, floor, floor_cpu, statistics.median(walls),
+               statistics.median(cpus), rss, status, rot, disp, note, stage_s)
 
 
 def fmt_list(v: list[float], scale: float, digits: int) -> str:
@@ -212,14 +221,30 @@ def fmt_list(v: list[float], scale: float, digits: int) -> str:
 
 
 def scale_table(rep: Report, rows: list[Row]) -> None:
-    rep.say("| tree | points per scan | floor wall (s) | register wall (s) | wall ratio | floor CPU (s) | register CPU (s) "
-            "| CPU ratio | peak RSS (GB) | rot err (deg) | mean disp (mm) | note |")
-    rep.say("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    rep.say("| tree | stations | workers | points per scan | floor wall (s) | register wall (s) | wall ratio | floor CPU (s) "
+            "| register CPU (s) | CPU ratio | peak RSS (GB) | rot err (deg) | mean disp (mm) | note |")
+    rep.say("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         pts = "/".join(f"{n / 1e6:.2f}M" if n >= 1e6 else f"{n / 1e3:.0f}k" for n in r.points)
-        rep.say(f"| {r.tree} | {pts} | {r.floor_s:.2f} | {r.wall_s:.1f} | {r.ratio:.1f} | {r.floor_cpu_s:.2f} | "
-                f"{r.cpu_s:.1f} | {r.cpu_ratio:.1f} | {r.rss / 1e9:.2f} | "
+        if len(r.points) > 3:  # six stations: the range
+            lo, hi = min(r.points), max(r.points)
+            pts = " to ".join(f"{n / 1e6:.2f}M" if n >= 1e6 else f"{n / 1e3:.0f}k" for n in (lo, hi))
+        rep.say(f"| {r.tree} | {r.stations} | {r.workers} | {pts} | {r.floor_s:.2f} | {r.wall_s:.1f} | {r.ratio:.1f} | "
+                f"{r.floor_cpu_s:.2f} | {r.cpu_s:.1f} | {r.cpu_ratio:.1f} | {r.rss / 1e9:.2f} | "
                 f"{fmt_list(r.rot_deg, 1, 3)} | {fmt_list(r.disp_m, 1000, 1)} | {r.note} |")
+
+
+def stage_table(rep: Report, rows: list[Row]) -> None:
+    """Wall seconds per stage of each run (from transforms.json's stage_seconds)."""
+    names = list(dict.fromkeys(k for r in rows for k in r.stage_s))
+    if not names:
+        return
+    rep.say("\nWall time per stage (s, `stage_seconds` of transforms.json; read = reading the files):\n")
+    rep.say("| tree | stations | workers | points | " + " | ".join(names) + " |")
+    rep.say("|---|---|---|---|" + "---|" * len(names))
+    for r in rows:
+        rep.say(f"| {r.tree} | {r.stations} | {r.workers} | {r.size} | " + " | ".join(
+            f"{r.stage_s[k]:.2f}" if k in r.stage_s else "-" for k in names) + " |")
 
 
 # ---- batch -------------------------------------------------------------------------------------
@@ -300,6 +325,9 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=1, help="register runs per case (median wall, max RSS)")
     ap.add_argument("--floor-repeats", type=int, default=3)
     ap.add_argument("--angular-step", action="store_true", help="give register the true angular step (else estimated)")
+    ap.add_argument("--stations", nargs="*", type=int, default=[3], help="stations per tree (e.g. 3 6)")
+    ap.add_argument("--workers", nargs="*", type=int, default=[0],
+                    help="register's --workers, one row each (0 = its default: all cores)")
     ap.add_argument("--root", type=Path, default=ROOT,
                     help="the treereg checkout whose `python3 -m treereg_cli` is timed (e.g. an export of an older commit)")
     ap.add_argument("--batch", type=int, default=0, metavar="N", help="also time `treereg batch` on N trees")
@@ -313,16 +341,21 @@ def main() -> None:
         rows = []
         for size in args.sizes:
             for tree in args.trees:
-                folder = ensure_case(args.cache, tree, size, args.format)
-                extra = []
-                if args.angular_step:
-                    step = json.loads((folder / TRUTH_NAME).read_text())["angular_step_deg"]
-                    extra = ["--angular-step", *map(str, step)]
-                row = measure(tree, size, folder, args.repeats, args.floor_repeats, extra, args.root)
-                rows.append(row)
-                print(f"  {tree} {size}: {row.wall_s:.1f} s, x{row.ratio:.1f} (CPU x{row.cpu_ratio:.1f}), {row.rss / 1e9:.2f} GB, "
-                      f"disp {fmt_list(row.disp_m, 1000, 1)} mm {row.note}", file=sys.stderr, flush=True)
+                for stations in args.stations:
+                    folder = ensure_case(args.cache, tree, size, args.format, stations)
+                    extra = []
+                    if args.angular_step:
+                        step = json.loads((folder / TRUTH_NAME).read_text())["angular_step_deg"]
+                        extra = ["--angular-step", *map(str, step)]
+                    for workers in args.workers:
+                        row = measure(tree, size, folder, args.repeats, args.floor_repeats, extra, args.root,
+                                      workers or None)
+                        rows.append(row)
+                        print(f"  {tree} {size} {stations} stations, workers {row.workers}: {row.wall_s:.1f} s, "
+                              f"x{row.ratio:.1f} (CPU x{row.cpu_ratio:.1f}), {row.rss / 1e9:.2f} GB, "
+                              f"disp {fmt_list(row.disp_m, 1000, 1)} mm {row.note}", file=sys.stderr, flush=True)
         scale_table(rep, rows)
+        stage_table(rep, rows)
         rep.say("\nfloor = a fresh `python3` importing numpy, scipy and cv2 and reading the three files (median of "
                 f"{args.floor_repeats}); register = `python3 -m treereg_cli register` as a subprocess; "
                 "peak RSS of that process (`wait4`); CPU = user + system time of each process, less disturbed than "

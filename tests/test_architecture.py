@@ -129,9 +129,9 @@ def test_the_public_api_is_one_import():
     assert set(T.__all__) >= {"register", "Pipeline", "Params", "Scan", "read_scan"}
 
 
-#: What `mypy --strict` must pass on: the stage model, the registry and its stage modules, the pipeline,
+#: What `mypy --strict` must pass on: the stage model, the registry and its stage modules, the pipeline and its workers,
 #: and the app's registry with the types of its stages' entry points (AppStage, RenderFn, the controls).
-TYPED = ("treereg_core/stage.py", "treereg_core/stages", "treereg_core/pipeline.py",
+TYPED = ("treereg_core/stage.py", "treereg_core/stages", "treereg_core/pipeline.py", "treereg_core/parallel.py",
          "treereg_viewer/stages/__init__.py", "treereg_viewer/stages/base.py")
 
 

@@ -81,7 +81,9 @@ def run(args: argparse.Namespace) -> int:
             check_output_file(extra)
     params = load_params(args)
     workers = workers_of(args)
+    t_read = time.perf_counter()
     scans = read_scans(args.scans, params, args.scanner_position)
+    read_s = time.perf_counter() - t_read
     if len(scans) < 2:
         raise ConfigError("register needs at least two scans (the first is the reference); "
                           f"{', '.join(args.scans)} hold(s) {len(scans)}")
@@ -105,7 +107,8 @@ def run(args: argparse.Namespace) -> int:
     tf = registration_file(scans, reg.transforms, params, stage=args.until, metrics=metrics, verdicts=verdicts,
                            quality=quality_report(scans, pipe.pairs, pipe.outputs), keep_unverified=args.keep_unverified,
                            sources={s.name: str(s.source.resolve()) if s.source.exists() else str(s.source) for s in scans},
-                           seconds=seconds)
+                           seconds=seconds,
+                           stage_seconds={"read": read_s, **{n: o.seconds for n, o in pipe.outputs.items()}})
     # One batch: the transform file, its matrices, the E57 and the merged cloud all land, or none.
     try:
         with atomic.batch():

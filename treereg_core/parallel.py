@@ -194,7 +194,7 @@ class Workers:
                 if kind == "error":
                     raise value  # type: ignore[misc]
                 # A child that died (killed for memory, a crash in a library): its item is computed here.
-                results[k] = value if kind == "ok" else one(k)  # type: ignore[assignment]
+                results[k] = value if kind == "ok" else one(k)
 
         try:
             while todo or running:
@@ -331,7 +331,7 @@ def one_blas_thread() -> Iterator[None]:
     7.7 s against 6.3 s on 3 x 300 k points, the wall time the same), and with the pairs already
     spread over the cores they only compete. Results do not depend on it (the same transforms to
     the last bit on the benchmark trees)."""
-    from threadpoolctl import threadpool_limits  # what it changes is global: only while a run lasts
+    from threadpoolctl import threadpool_limits  # type: ignore[import-untyped]  # global: only while a run lasts
 
     with threadpool_limits(limits=1, user_api="blas"):
         yield

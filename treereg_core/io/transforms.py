@@ -316,7 +316,8 @@ def write_exports(out_dir: str | Path, tf: TransformFile, name: str = DEFAULT_NA
 def registration_file(scans: Sequence[Scan], transforms: dict[str, np.ndarray], params: Params, *, stage: str,
                       metrics: dict[str, Any], verdicts: dict[str, tuple[str, tuple[str, ...], str]] | None = None,
                       quality: dict[str, Any] | None = None, keep_unverified: bool = False,
-                      sources: dict[str, str] | None = None, seconds: float | None = None) -> TransformFile:
+                      sources: dict[str, str] | None = None, seconds: float | None = None,
+                      stage_seconds: dict[str, float] | None = None) -> TransformFile:
     """The TransformFile of a registration (what `treereg register` writes and the app exports).
 
     "transforms" holds the reference and the verified scans (and, with `keep_unverified`, the best
@@ -331,7 +332,8 @@ def registration_file(scans: Sequence[Scan], transforms: dict[str, np.ndarray], 
     reference's points as its file gives them: T = pose_ref @ T_ref_scan @ inv(pose_scan). The poses
     are recorded under "poses" (only when one is not the identity). Besides the matrices it records
     the parameters used, the stage the transforms come from, every scan's angular steps (and how
-    they were found), the per-pair metrics and, when known, the source files and the time taken.
+    they were found), the per-pair metrics and, when known, the source files and the time taken
+    (in all, and per stage: `stage_seconds`, wall time, "read" for reading the files).
     """
     transforms = user_frame_transforms(scans, transforms)
     verdicts = verdicts or {name: ("verified", (), "") for name in transforms}
@@ -356,6 +358,8 @@ def registration_file(scans: Sequence[Scan], transforms: dict[str, np.ndarray], 
                      "coarse": "coarse (each scan's pair with the reference)"}.get(stage, stage)
     if seconds is not None:
         extra["seconds"] = round(float(seconds), 3)
+    if stage_seconds:
+        extra["stage_seconds"] = {k: round(float(v), 3) for k, v in stage_seconds.items()}
     extra["angular_step_deg"] = {s.name: list(s.angular_step_deg) for s in scans}
     extra["angular_step_source"] = {s.name: s.step.describe() for s in scans}
     if any(not np.allclose(s.pose, np.eye(4)) for s in scans):

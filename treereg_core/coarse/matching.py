@@ -17,6 +17,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from .. import parallel
 from ..params import MatchingParams, set_flag
 from ..results import Metric, Progress, no_progress
 from ..scan import Scan
@@ -34,17 +35,40 @@ _feature_cache: "weakref.WeakKeyDictionary[ImageSequence, dict]" = weakref.WeakK
 _feature_lock = threading.Lock()
 
 
+class _Pending:
+    """An image's features while one thread computes them (the others wait for them)."""
+
+    def __init__(self) -> None:
+        self.done = threading.Event()
+        self.value: ImageFeatures | None = None
+
+
 def sequence_features(seq: ImageSequence, index: int, p: MatchingParams) -> ImageFeatures:
-    """ORB features of image `index` of `seq`, computed once per (sequence, image, feature parameters)."""
+    """ORB features of image `index` of `seq`, computed once per (sequence, image, feature parameters):
+    pairs matched side by side that need the same image wait for the thread computing it."""
     key = (index,) + tuple(getattr(p, f) for f in _FEATURE_FIELDS)
     with _feature_lock:
-        found = _feature_cache.get(seq, {}).get(key)
-    if found is None:
-        # Detect outside the lock (it is the slow part); two threads may both compute it: harmless.
-        found = features.detect(seq.images[index], p)
+        per = _feature_cache.setdefault(seq, {})
+        found = per.get(key)
+        if found is None:
+            per[key] = mine = _Pending()
+    if isinstance(found, _Pending):
+        found.done.wait()
+        if found.value is not None:
+            return found.value
+        return sequence_features(seq, index, p)  # its thread failed: try here
+    if found is not None:
+        return found
+    try:
+        mine.value = features.detect(seq.images[index], p)  # outside the lock: the slow part
+    finally:
         with _feature_lock:
-            _feature_cache.setdefault(seq, {})[key] = found
-    return found
+            if mine.value is None:
+                per.pop(key, None)
+            else:
+                per[key] = mine.value
+        mine.done.set()
+    return mine.value
 
 
 @dataclass(frozen=True, eq=False, kw_only=True)
@@ -140,11 +164,12 @@ def match_sequences(
     t0 = time.perf_counter()
     sim = similarity.similarity_matrix(seq_ref, seq_tgt, p.similarity)
     chosen = similarity.most_similar_pairs(sim, p.n_pairs)
+    progress(0.0, f"ORB on {len(chosen)} image pairs")
+    # ORB releases the GIL: the images' features side by side on the run's free threads.
+    found = parallel.map(lambda ij: (sequence_features(seq_ref, ij[0], p), sequence_features(seq_tgt, ij[1], p)),
+                         list(chosen))
     pairs: list[PairMatches] = []
-    for n, (i, j) in enumerate(chosen):
-        progress(n / max(len(chosen), 1), f"ORB on image pair {n + 1} of {len(chosen)}")
-        fa = sequence_features(seq_ref, i, p)
-        fb = sequence_features(seq_tgt, j, p)
+    for (i, j), (fa, fb) in zip(chosen, found):
         ia, ib, ham = features.match(fa, fb, p.matches_per_pair)
         pairs.append(PairMatches(
             i=i, j=j, angle_ref_deg=seq_ref.angles_deg[i], angle_tgt_deg=seq_tgt.angles_deg[j],

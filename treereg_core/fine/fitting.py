@@ -393,16 +393,19 @@ def unfitted_section(n_points: int, slice_index: int, arc: int, height_m: float,
                    False, reason)
 
 
-def parts_below(sections: list[Section], gate_m: float) -> dict[int, int]:
+def parts_below(sections: list[Section], gate_m: float, level: int | None = None) -> dict[int, int]:
     """Paper 4.2's "part below": for each plausible section, the index of the plausible section of
     the next lower slice whose centre is nearest to this section's axis extended down to that
-    slice, when it lies within `gate_m` plus the radius (sections without one are left out)."""
+    slice, when it lies within `gate_m` plus the radius (sections without one are left out).
+    `level`: only the sections of that slice."""
     by_slice: dict[int, list[int]] = {}
     for i, s in enumerate(sections):
         by_slice.setdefault(s.slice_index, []).append(i)
     levels = sorted(by_slice)
     found: dict[int, int] = {}
     for lo_lvl, hi_lvl in zip(levels[:-1], levels[1:]):
+        if level is not None and hi_lvl != level:
+            continue
         below = [i for i in by_slice[lo_lvl] if sections[i].plausible]
         if not below:
             continue
@@ -432,10 +435,8 @@ def check_taper(sections: list[Section], tolerance: float, gate_m: float) -> lis
     levels = sorted({s.slice_index for s in out})
     for lvl in levels[1:]:
         # Only this level and the one below matter for this level's verdicts.
-        for i, j in parts_below(out, gate_m).items():
+        for i, j in parts_below(out, gate_m, lvl).items():
             s = out[i]
-            if s.slice_index != lvl:
-                continue
             if s.radius_m > out[j].radius_m * (1.0 + tolerance):
                 out[i] = replace(s, plausible=False,
                                  reason=f"radius {s.radius_m:.3g} m exceeds the part below "

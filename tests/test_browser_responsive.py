@@ -26,8 +26,13 @@ from treereg_viewer.app import TreeregApp  # noqa: E402
 from treereg_viewer.controller import Controller  # noqa: E402
 from treereg_viewer.labels import label  # noqa: E402
 
-#: What issue 18 asks (measured here: first view 2.0–2.6 s, Next 0.2–0.5 s).
+#: What issue 18 asks: the first view within 3 s, Next within 1 s (measured then: first view 2.0–2.6 s,
+#: Next 0.2–0.5 s). The first view's 3 s hold where an app that computes nothing shows its first
+#: view in ~2.5 s; on a slower machine the browser alone takes longer (2.6–3.6 s for an idle app on
+#: the 2-core machine of issue 20), so what a run may add to it is bounded instead: at most
+#: RUN_ADDS_S over the same page of an app at rest, measured in the same browser just before.
 FIRST_VIEW_S = 3.0
+RUN_ADDS_S = 1.0
 NEXT_S = 1.0
 #: Seconds a person looks at the first view before pressing Next.
 LOOK_S = 1.0
@@ -52,6 +57,7 @@ class FirstRun:
     first_view_s: float
     nexts: list[tuple[str, bool, float]] = field(default_factory=list)  # (stage asked, worker busy, seconds)
     received: list[float] = field(default_factory=list)  # time.perf_counter() of each websocket message
+    at_rest_s: float = 0.0  # the same page's first view from an app that is not computing
 
 
 def _next(page, asked: str) -> float:
@@ -63,8 +69,44 @@ def _next(page, asked: str) -> float:
     return time.perf_counter() - t0
 
 
+def _first_view(page, url: str, demo) -> float:
+    """Seconds from opening the page to a frame drawn with the scans in it."""
+    t0 = time.perf_counter()
+    page.goto(url)
+    nodes = " && ".join(f"!!m.nodeRefFromName['/scans/s{i}/points']" for i in range(len(demo.scans)))
+    page.wait_for_function(f"() => {{ const m = window.__viserMutable; return !!m && {nodes}; }}")
+    drawn = page.evaluate(FRAME)
+    page.wait_for_function(f"() => ({FRAME})() > {drawn}")  # a frame with the scans in it
+    return time.perf_counter() - t0
+
+
 @pytest.fixture(scope="module")
-def first_run(browser):
+def at_rest(browser):
+    """The same page of an app whose run has finished before the page opens (median of two): what
+    the browser and the app take to show the first view without any computation."""
+    demo = demo_case()
+    controller = Controller(list(demo.scans), truth=demo.truth)
+    server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    app = TreeregApp(server, controller, tabs="each")
+    times = []
+    try:
+        assert controller.wait_idle(120)
+        for _ in range(2):
+            context = browser.new_context(viewport={"width": 1600, "height": 1000})
+            offline(context)
+            page = context.new_page()
+            page.set_default_timeout(60_000)
+            times.append(_first_view(page, f"http://127.0.0.1:{server.get_port()}/", demo))
+            context.close()
+    finally:
+        app.close()
+        server.stop()
+    print(f"\n  first view of an app at rest: {', '.join(f'{t:.2f}' for t in times)} s")
+    return min(times)
+
+
+@pytest.fixture(scope="module")
+def first_run(browser, at_rest):
     """The demo's first run in a fresh app, the page opened as it starts: first view, then Next twice
     while the pipeline computes. Yields the measurements and the page (the run goes on)."""
     demo = demo_case()
@@ -77,14 +119,9 @@ def first_run(browser):
     server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
     app = TreeregApp(server, Controller(list(demo.scans), truth=demo.truth), tabs="each")
     try:
-        t0 = time.perf_counter()
-        page.goto(f"http://127.0.0.1:{server.get_port()}/")
-        nodes = " && ".join(f"!!m.nodeRefFromName['/scans/s{i}/points']" for i in range(len(demo.scans)))
-        page.wait_for_function(f"() => {{ const m = window.__viserMutable; return !!m && {nodes}; }}")
-        drawn = page.evaluate(FRAME)
-        page.wait_for_function(f"() => ({FRAME})() > {drawn}")  # a frame with the scans in it
-        run = FirstRun(page, blocked, time.perf_counter() - t0, received=received)
-        print(f"\n  first view {run.first_view_s:.2f} s")
+        run = FirstRun(page, blocked, _first_view(page, f"http://127.0.0.1:{server.get_port()}/", demo),
+                       received=received, at_rest_s=at_rest)
+        print(f"\n  first view {run.first_view_s:.2f} s (at rest {at_rest:.2f} s)")
         page.wait_for_timeout(int(LOOK_S * 1000))
         for stage in ("projection", "matching"):
             busy = app.controller.snapshot.busy
@@ -99,7 +136,10 @@ def first_run(browser):
 
 
 def test_the_first_view_is_drawn_within_3_s_while_the_run_starts(first_run):
-    assert first_run.first_view_s < FIRST_VIEW_S, f"the first view took {first_run.first_view_s:.2f} s"
+    """Within 3 s, or, where the browser alone takes longer, at most RUN_ADDS_S over an app at rest."""
+    limit = max(FIRST_VIEW_S, first_run.at_rest_s + RUN_ADDS_S)
+    assert first_run.first_view_s < limit, (f"the first view took {first_run.first_view_s:.2f} s (an app at rest "
+                                            f"{first_run.at_rest_s:.2f} s)")
     assert not first_run.blocked, f"the page tried to load {first_run.blocked}"
 
 

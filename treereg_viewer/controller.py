@@ -10,6 +10,7 @@ and exports read without locks. Every browser tab sees the same snapshot: one co
 from __future__ import annotations
 
 import logging
+import os
 import threading
 import time
 import warnings
@@ -91,6 +92,20 @@ class _Run:
     """The stage a run is computing, as the pipeline's events say (None between stages)."""
 
     stage: str | None
+
+
+#: The worker's (and its run's threads') nice value: the computation takes the cores the browser,
+#: the server and the tabs' drawers leave (on a 2-core machine the browser's own rendering needs one).
+COMPUTE_NICE = 10
+
+
+def _lower_priority() -> None:
+    """Lower this thread's scheduling priority (Linux: the nice value is per thread, and the threads
+    it starts inherit it); nothing where that is not possible."""
+    try:
+        os.setpriority(os.PRIO_PROCESS, 0, min(os.getpriority(os.PRIO_PROCESS, 0) + COMPUTE_NICE, 19))
+    except (AttributeError, OSError):
+        pass
 
 
 @dataclass
@@ -307,6 +322,7 @@ class Controller:
 
     # ---- the worker ------------------------------------------------------------------------
     def _loop(self) -> None:
+        _lower_priority()
         while True:
             with self._wake:
                 while not self._req.pending() and not self._stopped:

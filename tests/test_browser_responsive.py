@@ -29,10 +29,12 @@ from treereg_viewer.labels import label  # noqa: E402
 #: What issue 18 asks: the first view within 3 s, Next within 1 s (measured then: first view 2.0–2.6 s,
 #: Next 0.2–0.5 s). The first view's 3 s hold where an app that computes nothing shows its first
 #: view in ~2.5 s; on a slower machine the browser alone takes longer (2.6–3.6 s for an idle app on
-#: the 2-core machine of issue 20), so what a run may add to it is bounded instead: at most
-#: RUN_ADDS_S over the same page of an app at rest, measured in the same browser just before.
+#: the 2-core machine of issue 20, varying by half a second from page to page), so what a run may
+#: add to it is bounded instead: at most RUN_ADDS_S over the same page of an app at rest (the mean
+#: of two), measured in the same browser just before (a run that held the first view back for its
+#: stages would add several seconds).
 FIRST_VIEW_S = 3.0
-RUN_ADDS_S = 1.0
+RUN_ADDS_S = 1.5
 NEXT_S = 1.0
 #: Seconds a person looks at the first view before pressing Next.
 LOOK_S = 1.0
@@ -82,7 +84,7 @@ def _first_view(page, url: str, demo) -> float:
 
 @pytest.fixture(scope="module")
 def at_rest(browser):
-    """The same page of an app whose run has finished before the page opens (median of two): what
+    """The same page of an app whose run has finished before the page opens (mean of two): what
     the browser and the app take to show the first view without any computation."""
     demo = demo_case()
     controller = Controller(list(demo.scans), truth=demo.truth)
@@ -102,7 +104,7 @@ def at_rest(browser):
         app.close()
         server.stop()
     print(f"\n  first view of an app at rest: {', '.join(f'{t:.2f}' for t in times)} s")
-    return min(times)
+    return sum(times) / len(times)
 
 
 @pytest.fixture(scope="module")

@@ -11,8 +11,6 @@ from scipy.spatial import cKDTree
 
 #: Neighbours per normal, unless a caller needs fewer.
 NORMAL_K = 10
-#: Up to this many matrices, `smallest_eigenvectors` asks LAPACK.
-_FEW = 64
 
 
 def voxel_downsample(points: np.ndarray, voxel_m: float) -> np.ndarray:
@@ -51,13 +49,13 @@ def smallest_eigenvectors(C: np.ndarray) -> np.ndarray:
     vector as the longest cross product of two rows of C - lambda I): an order of magnitude faster
     than LAPACK's `eigh` over the tens of thousands of matrices a surface's normals are. Where
     the smallest eigenvalue is not separated from the next (a line, a single point: no plane to
-    speak of) LAPACK decides, as before.
+    speak of) LAPACK decides, as before. Each row's answer depends on that row alone, never on
+    how many were asked together (the pairs computed side by side fill a surface's normals in
+    batches that differ from run to run).
     """
     C = np.asarray(C, dtype=float)
     if len(C) == 0:
         return np.zeros((0, 3))
-    if len(C) <= _FEW:  # a handful (an arc's normals): LAPACK's call costs less than thirty of numpy's
-        return np.linalg.eigh(C)[1][:, :, 0]
     a, b, c = C[:, 0, 0], C[:, 1, 1], C[:, 2, 2]
     d, e, f = C[:, 0, 1], C[:, 0, 2], C[:, 1, 2]
     mean = (a + b + c) / 3.0

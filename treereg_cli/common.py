@@ -12,7 +12,7 @@ from treereg_core import params as P
 from treereg_core.errors import ConfigError
 from treereg_core.io.naming import scan_names
 from treereg_core.io.scans import deferred_warnings, read_records, record_to_scan, warn_all
-from treereg_core.parallel import Workers, default_workers
+from treereg_core.parallel import SIDE_BY_SIDE_BYTES, SIDE_BY_SIDE_POINTS, Workers, default_workers
 from treereg_core.params import Params
 from treereg_core.scan import Scan
 
@@ -127,7 +127,8 @@ def read_scans(files: list[str], params: Params, scanner_positions: list[list[fl
     and returns; `scanner_positions` are given per scan, in order. Each scan is named by
     `io.naming.scan_names` (by folder where two files share a name: a/scan1.ply, b/scan1.ply), the
     name that keys the transforms."""
-    records = [(f, r, n) for rs in _side_by_side(_records, files) for f, r, n in rs]
+    records = [(f, r, n) for rs in _side_by_side(_records, files, all(_file_size(f) <= SIDE_BY_SIDE_BYTES for f in files))
+               for f, r, n in rs]
     positions = [tuple(p) for p in (scanner_positions or [])]
     if positions and len(positions) != len(records):
         names = ", ".join(r.name for _, r, _ in records)
@@ -140,7 +141,8 @@ def read_scans(files: list[str], params: Params, scanner_positions: list[list[fl
         return record_to_scan(replace(r, name=name), Path(f) if n == 1 else Path(f"{f}#{r.name}"),
                               params.prepare.angular_step_deg, params.prepare.returns,
                               positions[k] if positions else None)
-    return _side_by_side(scan, list(range(len(records))))
+    return _side_by_side(scan, list(range(len(records))),
+                         all(len(r.points) <= SIDE_BY_SIDE_POINTS for _, r, _ in records))
 
 
 def _records(path: str) -> list[tuple]:
@@ -148,10 +150,18 @@ def _records(path: str) -> list[tuple]:
     return [(path, r, len(records)) for r in records]
 
 
-def _side_by_side(fn: Callable[[Any], Any], items: list) -> list:
+def _file_size(path: str) -> int:
+    try:
+        return Path(path).stat().st_size
+    except OSError:
+        return 0  # the reader says what is wrong with it
+
+
+def _side_by_side(fn: Callable[[Any], Any], items: list, small: bool) -> list:
     """`[fn(x) for x in items]` on the machine's cores (reading, checking and estimating each
-    scan's steps release the GIL), saying what each repaired and raising what it could not, as
-    a loop over the files in order would."""
+    scan's steps release the GIL) when the stations are `small` (else one at a time: a large
+    station's reading holds temporaries its own size), saying what each repaired and raising what
+    it could not, as a loop over the files in order would."""
     def one(k: int) -> tuple[Any, BaseException | None, list[str]]:
         with deferred_warnings() as said:
             try:
@@ -159,7 +169,8 @@ def _side_by_side(fn: Callable[[Any], Any], items: list) -> list:
             except Exception as e:  # noqa: BLE001 - raised below, in the files' order
                 return None, e, said
     out = []
-    for value, error, said in Workers(min(default_workers(), max(len(items), 1))).each(one, len(items), lambda k: None):
+    n = min(default_workers(), max(len(items), 1)) if small else 1
+    for value, error, said in Workers(n).each(one, len(items), lambda k: None):
         warn_all(said)
         if error is not None:
             raise error

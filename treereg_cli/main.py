@@ -125,6 +125,9 @@ def _names_printable() -> None:
 
 def main(argv: list[str] | None = None) -> int:
     _names_printable()
+    if threading.active_count() == 1:  # the process's own start, not a caller's (tests call main too)
+        from treereg_core.parallel import fewer_malloc_arenas
+        fewer_malloc_arenas()
     argv = sys.argv[1:] if argv is None else list(argv)
     parser = build_parser(argv)
     args = parser.parse_args(argv)

@@ -111,16 +111,18 @@ class StageContext:
             return None
         return out.item(k, kind)
 
-    def each(self, fn: Callable[[int], T], label: Callable[[int], str]) -> list[T | None]:
+    def each(self, fn: Callable[[int], T], label: Callable[[int], str], side_by_side: bool = True) -> list[T | None]:
         """`fn(k)` for every live item k (None for the others, which the pipeline marks skipped),
-        side by side on the run's threads (`workers`); progress says which item started."""
+        side by side on the run's threads (`workers`; one at a time when not `side_by_side`);
+        progress says which item started."""
         n = len(self.live)
         live = [k for k in range(n) if self.live[k]]
 
         def started(j: int) -> None:
             self.progress(live[j] / max(n, 1), label(live[j]))
 
-        found = self.workers.each(lambda j: fn(live[j]), len(live), started, fork=self.fork)
+        workers = self.workers if side_by_side else SERIAL
+        found = workers.each(lambda j: fn(live[j]), len(live), started, fork=self.fork)
         out: list[T | None] = [None] * n
         for k, item in zip(live, found):
             out[k] = item

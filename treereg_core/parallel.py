@@ -44,12 +44,10 @@ from typing import Callable, Iterator, Sequence, TypeVar
 T = TypeVar("T")
 R = TypeVar("R")
 
-#: Work on whole stations (reading, reducing to the working resolution) runs side by side only for
+#: Work on whole stations (reducing them to the working resolution) runs side by side only for
 #: stations up to this many points: its temporaries are the size of a station, and two at once cost
 #: more memory than they save time (three 3 M-point stations: peak 0.58 -> 0.68 GB).
 SIDE_BY_SIDE_POINTS = 1_500_000
-#: The same for a file, in bytes (a binary PLY of doubles holds 24-32 bytes a point).
-SIDE_BY_SIDE_BYTES = 48_000_000
 
 #: How often a thread waiting for others wakes (Ctrl-C reaches the main thread only between waits).
 _POLL_S = 0.1

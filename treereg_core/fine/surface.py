@@ -63,7 +63,12 @@ class Surface:
 def surface_of(points: np.ndarray, voxel_m: float, max_points: int | None = None, seed: int = 0) -> Surface:
     """Voxel-subsampled surface of a scan (at most `max_points` used, a seeded random subset)."""
     cloud = voxel_downsample(points, voxel_m)
-    cloud_tree = cKDTree(cloud)
+    return _sampled(cloud, cKDTree(cloud), max_points, seed)
+
+
+def _sampled(cloud: np.ndarray, cloud_tree: cKDTree, max_points: int | None, seed: int = 0) -> Surface:
+    """The surface of the voxel centroids `cloud` (indexed by `cloud_tree`), at most `max_points` of
+    them used (a seeded random subset)."""
     pts, tree = cloud, cloud_tree
     if max_points is not None and len(cloud) > max_points:
         pts = cloud[np.sort(np.random.default_rng(seed).choice(len(cloud), max_points, replace=False))]
@@ -83,7 +88,11 @@ def scan_surface(scan: object, points: np.ndarray, voxel_m: float, max_points: i
     with _cache_lock:
         found = _cache.get(scan, {}).get(key)
     if found is None:
-        found = surface_of(points, voxel_m, max_points)
+        # A sample shares the whole surface's voxel centroids and their tree (a few MB a scan, the
+        # same values surface_of would make again).
+        whole = scan_surface(scan, points, voxel_m) if max_points is not None else None
+        found = (_sampled(whole.cloud, whole.cloud_tree, max_points) if whole is not None
+                 else surface_of(points, voxel_m))
         with _cache_lock:
             _cache.setdefault(scan, {})[key] = found
     return found

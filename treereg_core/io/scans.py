@@ -19,12 +19,10 @@ import gzip
 import io as _io
 import json
 import re
-import threading
 import warnings
-from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator, Mapping, TextIO
+from typing import Mapping, TextIO
 
 import numpy as np
 
@@ -80,33 +78,9 @@ _LAS_CHUNK = 2_000_000
 _PLY_CHUNK = 2_000_000
 
 
-_deferred = threading.local()
-
-
 def _warn(text: str) -> None:
-    """A `ScanWarning` now, or kept for later when this thread reads under `deferred_warnings`."""
-    kept = getattr(_deferred, "kept", None)
-    if kept is not None:
-        kept.append(text)
-    else:
-        warnings.warn(text, ScanWarning, stacklevel=3)
-
-
-@contextmanager
-def deferred_warnings() -> Iterator[list[str]]:
-    """Inside, this thread's scan warnings are collected (the list yielded), not issued: files read
-    side by side say what they repaired in the order the files were given (`warn_all`)."""
-    _deferred.kept = []
-    try:
-        yield _deferred.kept
-    finally:
-        _deferred.kept = None
-
-
-def warn_all(texts: list[str]) -> None:
-    """Issue warnings collected by `deferred_warnings`, in order."""
-    for text in texts:
-        warnings.warn(text, ScanWarning, stacklevel=2)
+    """A `ScanWarning` (what was repaired in a file)."""
+    warnings.warn(text, ScanWarning, stacklevel=3)
 
 
 def extension(path: str | Path) -> str:

@@ -375,7 +375,10 @@ def _valid_rows(label: str, pts: np.ndarray) -> np.ndarray | None:
     # The bounds first (two passes along the columns): in a clean file they show at once that no
     # row is NaN, infinite or a no-data value, and, below, that none lies far out; only a file
     # that has such rows pays for the row-by-row tests.
-    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    # Column by column: a reduction along the long axis of an N x 3 array runs a 3-long inner loop
+    # N times (80 ms for 3 M points, ten times slower).
+    lo = np.array([pts[:, k].min() for k in range(3)])
+    hi = np.array([pts[:, k].max() for k in range(3)])
     clean = bool(np.isfinite(lo).all() and np.isfinite(hi).all())
     keep = np.ones(n, dtype=bool) if clean else np.isfinite(pts).all(axis=1)
     if not keep.any():
@@ -603,8 +606,9 @@ def _ply_count_message(path: Path, n: int, have: int, what: str = "points") -> S
 
 
 def _read_ply_binary(path: Path, header: _PlyHeader) -> np.ndarray:
-    """x, y, z of a binary PLY's vertices, memory-mapped and copied once, in chunks, into float64
-    (other properties are never loaded: one full-resolution copy of the scan, no more)."""
+    """x, y, z of a binary PLY's vertices: read straight into the scan's array when the file holds
+    nothing else, else memory-mapped and copied once, in chunks, into float64 (other properties are
+    never loaded: one full-resolution copy of the scan, no more)."""
     order = "<" if header.format == "binary_little_endian" else ">"
     vertex = header.elements[0]
     record = np.dtype([(name, order + _PLY_TYPES[t]) for name, t in vertex.props])
@@ -616,6 +620,13 @@ def _read_ply_binary(path: Path, header: _PlyHeader) -> np.ndarray:
     # With the vertices the only element, the file's size is known: more whole records is a wrong count.
     if have < n or (len(header.elements) == 1 and have > n):
         raise _ply_count_message(path, n, have)
+    names = [name for name, _ in vertex.props]
+    types = {t for _, t in vertex.props}
+    if names == ["x", "y", "z"] and len(types) == 1 and record[0].kind == "f":
+        # Only x, y, z of one float type (what scanners' exporters and treereg write): one read of
+        # the file into the array the scan keeps (floats converted once), as numpy reads a raw file.
+        flat = np.fromfile(path, dtype=record[0], count=3 * n, offset=header.offset)
+        return flat.reshape(n, 3).astype(np.float64, copy=False)
     vertices = np.memmap(path, dtype=record, mode="r", offset=header.offset, shape=(n,))
     out = np.empty((n, 3), dtype=np.float64)
     for a in range(0, n, _PLY_CHUNK):

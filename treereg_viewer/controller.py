@@ -94,9 +94,11 @@ class _Run:
     stage: str | None
 
 
-#: The worker's (and its run's threads') nice value: the computation takes the cores the browser,
-#: the server and the tabs' drawers leave (on a 2-core machine the browser's own rendering needs one).
-COMPUTE_NICE = 10
+#: The worker's (and its run's threads') nice value: the browser, the server and the tabs' drawers
+#: come first when they want the cores (on a 2-core machine the browser's own rendering needs one).
+#: Modest: at 10 the demo's verdicts came 0.8 s later while the page rendered, at 0 a Next took 1.05 s
+#: (benchmarks/RESULTS.md, issue 20).
+COMPUTE_NICE = 5
 
 
 def _lower_priority() -> None:

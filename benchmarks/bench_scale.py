@@ -1,12 +1,15 @@
 """Scale benchmark: `treereg register` end to end at real station sizes, and `treereg batch` on many trees.
 
 Prints markdown tables:
-1. per tree and size (3 scans of ~100 k / 300 k / 1 M / 3 M / 10 M points each; the seeded
-   simulated trees of `simulate.benchmark_cases` re-cast at finer angular steps): the wall time of
-   `python3 -m treereg_cli register` run as a subprocess, the peak RSS of that process, the accuracy
-   against the simulator's truth (rotation error, mean displacement of each target scan's points),
-   and the ratio of the wall time to the *floor*: a fresh Python that imports numpy, scipy and
-   OpenCV and reads the three files, measured in the same run just before;
+1. per tree, size (scans of ~100 k / 300 k / 1 M / 3 M / 10 M points each; the seeded simulated
+   trees of `simulate.benchmark_cases` re-cast at finer angular steps, `--trees`: plain, the awkward
+   kinds, and held-out awkward trees of another seed), stations (`--stations 3 6`) and workers
+   (`--workers 1 0`; 0 = register's default, all cores): the wall time of `python3 -m treereg_cli
+   register` run as a subprocess, the peak RSS of that process (and of the children it forked and
+   reaped), the accuracy against the simulator's truth (rotation error, mean displacement of each
+   target scan's points), and the ratio of the wall time to the *floor*: a fresh Python that imports
+   numpy, scipy and OpenCV and reads the files, measured in the same run just before; then each
+   run's wall time per stage (transforms.json's `stage_seconds`);
 2. (--batch N) `treereg batch` over N small simulated trees with 1 and with 2 workers (and, with
    --dask, on a local Dask cluster), the time ratio, and whether the transforms are identical.
 

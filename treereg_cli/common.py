@@ -90,7 +90,7 @@ MAX_WORKERS = 1024
 def add_workers_arg(p: argparse.ArgumentParser, what: str) -> None:
     """--workers N: how many cores one registration uses."""
     p.add_argument("--workers", type=int, default=None, metavar="N",
-                   help=f"{what} (default: all cores, here {_cores()}; the results are the same for any number)")
+                   help=f"{what} (default: all cores, here {default_workers()}; the results are the same for any number)")
 
 
 def workers_of(args: argparse.Namespace) -> int | None:
@@ -99,10 +99,6 @@ def workers_of(args: argparse.Namespace) -> int | None:
     if n is not None and not 1 <= n <= MAX_WORKERS:
         raise ConfigError(f"--workers must be between 1 and {MAX_WORKERS}, got {n}")
     return n
-
-
-def _cores() -> int:
-    return default_workers()
 
 
 def add_param_args(p: argparse.ArgumentParser) -> None:

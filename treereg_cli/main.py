@@ -37,8 +37,8 @@ def command_in(argv: list[str]) -> str | None:
 
 def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     """The command line's parser. Given `argv` that names a subcommand, only that subcommand's
-    module is imported (`treereg register` loads no app, batch or simulator code: a second less
-    to start); otherwise every one, for `--help` and for a mistyped command's error."""
+    module is imported (`treereg register` loads no app, batch or simulator code); otherwise every
+    one, for `--help` and for a mistyped command's error."""
     parser = argparse.ArgumentParser(
         prog="treereg",
         description="Marker-free registration of multi-station TLS scans of a single tree.",

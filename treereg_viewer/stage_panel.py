@@ -59,7 +59,6 @@ class StagePanel:
         # Set while this panel puts values into its own controls (on the thread doing so only: a
         # person's change arriving meanwhile on another thread is not swallowed).
         self._local = threading.local()
-        self.status_md = gui.add_markdown("")
         self.selector = gui.add_dropdown("Stage", [label(n) for n in STAGE_NAMES], initial_value=label(STAGE_NAMES[0]),
                                          hint="Pick a stage; its layers are shown, the others hidden (scans stay).")
         self.step = gui.add_button_group("Step", ("Previous", "Next"))
@@ -72,6 +71,9 @@ class StagePanel:
         self.frame_button.on_click(lambda _: app.frame_view())
         self.progress = gui.add_progress_bar(0.0, animated=False)
         self.progress_text = gui.add_markdown("")
+        # Below the buttons: the stages' status grows by a line as a run goes on (the verdicts), and
+        # above them it moved Next under a person's pointer (a click aimed at it missed).
+        self.status_md = gui.add_markdown("")
         self.message_md = gui.add_markdown("")
         self.selector.on_update(lambda _: self.quiet or app.select_stage(by_label(self.selector.value)))
         self.step.on_click(lambda e: app.step_stage(-1 if e.target.value == "Previous" else 1))

@@ -87,10 +87,11 @@ def add_set_arg(p: argparse.ArgumentParser) -> None:
 MAX_WORKERS = 1024
 
 
-def add_workers_arg(p: argparse.ArgumentParser, what: str) -> None:
-    """--workers N: how many cores one registration uses."""
+def add_workers_arg(p: argparse.ArgumentParser, what: str, spare: int = 0) -> None:
+    """--workers N: how many cores one registration uses (by default all but `spare`)."""
+    default = "all cores" if not spare else f"all cores but {spare}, left to the browser"
     p.add_argument("--workers", type=int, default=None, metavar="N",
-                   help=f"{what} (default: all cores, here {default_workers()}; the results are the same for any number)")
+                   help=f"{what} (default: {default}, here {default_workers(spare)}; the results are the same for any number)")
 
 
 def workers_of(args: argparse.Namespace) -> int | None:

@@ -12,6 +12,7 @@ from treereg_core.demo import DEMO_DIR, demo_case
 from treereg_core.errors import ConfigError
 from treereg_core.io.atomic import check_output_dir
 from treereg_core.io.cases import read_truth, truth_beside
+from treereg_core.parallel import APP_SPARE_CORES
 
 from .common import add_param_args, add_workers_arg, load_params, read_scans, workers_of
 
@@ -28,7 +29,7 @@ def add(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("scans", nargs="*", metavar="SCAN", help="scan files (first = reference); none = the demo")
     add_param_args(p)
-    add_workers_arg(p, "threads a registration uses")
+    add_workers_arg(p, "threads a registration uses", spare=APP_SPARE_CORES)
     p.add_argument("--truth", help="truth.json with the true transforms (default: the one beside the scans, if any)")
     p.add_argument("--out", help="folder to also write exports to (besides the browser downloads)")
     p.add_argument("--port", type=int, default=8080, help="port (default 8080; 0 = any free port); a port in use is an error")

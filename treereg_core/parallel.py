@@ -74,12 +74,21 @@ def fewer_malloc_arenas() -> None:
 _M_ARENA_MAX = -8
 
 
-def default_workers() -> int:
-    """The machine's cores available to this process (what `--workers` defaults to)."""
+#: Cores the app's run leaves to the browser that shows it (on the same machine, usually) and to
+#: the tabs' drawing (`treereg view`). On a 2-core machine (benchmarks/RESULTS.md, issue 20): with
+#: one worker the demo's verdicts came at 8.6 and 9.1 s, with two at 9.2 and 9.6 s, and Next
+#: answered as quickly or more so.
+APP_SPARE_CORES = 1
+
+
+def default_workers(spare: int = 0) -> int:
+    """The machine's cores available to this process (what `--workers` defaults to), less `spare`
+    left for other work (the app leaves one to the browser), at least one."""
     try:
-        return max(1, len(os.sched_getaffinity(0)))
+        cores = len(os.sched_getaffinity(0))
     except (AttributeError, OSError):  # not on Linux
-        return max(1, os.cpu_count() or 1)
+        cores = os.cpu_count() or 1
+    return max(1, cores - spare)
 
 
 class Workers:

@@ -22,6 +22,7 @@ import numpy as np
 
 from treereg_core.errors import ConfigError, ScanError
 from treereg_core.io.scans import read_scan
+from treereg_core.parallel import APP_SPARE_CORES, default_workers
 from treereg_core.params import Params
 from treereg_core.pipeline import Pipeline
 from treereg_core.scan import Scan
@@ -172,8 +173,8 @@ class Controller:
     parse_upload
         How uploaded bytes become a Scan (tests may pass their own).
     workers
-        Threads a run uses (None: the machine's cores). The app's server has threads of its own,
-        so the pipeline never forks here (`Pipeline.fork`).
+        Threads a run uses (None: one less than the machine's cores, at least one: APP_SPARE_CORES).
+        The app's server has threads of its own, so the pipeline never forks here (`Pipeline.fork`).
     """
 
     def __init__(
@@ -187,7 +188,8 @@ class Controller:
         self._lock = threading.Lock()
         self._wake = threading.Condition(self._lock)
         self._idle = threading.Event()
-        self._pipeline = Pipeline(list(scans), params or Params(), dict(truth) if truth else None, workers=workers)
+        self._pipeline = Pipeline(list(scans), params or Params(), dict(truth) if truth else None,
+                                  workers=workers or default_workers(spare=APP_SPARE_CORES))
         self._desired = self._pipeline.params
         self._req = _Requests()
         self._listeners: list[Listener] = []

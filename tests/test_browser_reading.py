@@ -44,7 +44,9 @@ def folders(tmp_path_factory):
         (root / folder).mkdir()
         shutil.copy(DEMO_DIR / name, root / folder / "scan1.ply")
     (root / "c").mkdir()
-    # Measured: at chance-level support, 0.30 and 0.61 consistent against the demo's stations 1 and 2.
+    # Measured: at chance-level support, 0.30 and 0.61 consistent against the demo's stations 1 and 2;
+    # on an AMD EPYC 0.91 and 0.73 (a pose between two different trees is arbitrary, and the last bits
+    # of the CPU's arithmetic pick it): at least one pair fails as another tree, and so does the scan.
     other = CaseSpec(seed=607, height_m=13.89, angular_step_deg=(0.0449, 0.0449)).build().scans[1]
     write_scan(root / "c" / "scan1.ply", other.points, dtype="float32")
     for url, _, _ in view(["a/scan1.ply", "b/scan1.ply", "c/scan1.ply"], cwd=root):
@@ -66,7 +68,7 @@ def test_every_stage_reads_at_1280x720(folders, browser):
     expect(page.get_by_text(re.compile(r"✓ 1 a/scan1\.ply · ✓ 2 b/scan1\.ply · ✗ 3 c/scan1\.ply"))).to_be_visible()
     canvas = page.locator("canvas").first.bounding_box()
     assert canvas["width"] >= W / 2, f"the 3-D view is {canvas['width']:.0f} px of a {W} px window"
-    problems = {}
+    problems, other_tree_of = {}, None
     for k, name in enumerate(STAGE_NAMES):
         if k:
             page.get_by_role("button", name="Next", exact=True).click()
@@ -91,18 +93,20 @@ def test_every_stage_reads_at_1280x720(folders, browser):
             assert re.search(r"✓\s*free-space consistency\s*verify\.min_consistency\s*0\.9\d+\s*≥ 0\.95",
                              text), text
         if name == "graph":  # the other tree: failed as not the same tree, not drawn registered
-            assert "does not show the same tree as a/scan1.ply" in text, text[:600]
+            found = re.search(r"does not show the same tree as ([ab]/scan1\.ply)", text)
+            assert found, text[:600]
+            other_tree_of = found.group(1)
             assert "✗ failed" in text
             # (its 3-D label, "✗ c/scan1.ply: failed, not placed", is drawn text: test_viewer checks it)
             page.wait_for_function("() => !window.__viserMutable.nodeRefFromName['/scans/s2/points']?.parent && "
                                    "!!window.__viserMutable.nodeRefFromName['/scans/s1/points']?.parent")
     # The other tree's own checks: its support and free space, at chance level, and no generic hint.
     go(page, label("verify"))
-    choose(page, "Pair", "c/scan1.ply → a/scan1.ply")
-    expect(page.get_by_role("heading", name=re.compile(r"^10 Verify: c\/scan1\.ply → a\/scan1\.ply"))).to_be_visible()
+    choose(page, "Pair", f"c/scan1.ply → {other_tree_of}")
+    expect(page.get_by_role("heading", name=f"10 Verify: c/scan1.ply → {other_tree_of}", exact=False)).to_be_visible()
     page.wait_for_timeout(300)
     text = _text(page)
-    assert "✗ failed" in text and "does not show the same tree as a/scan1.ply" in text, text[:600]
+    assert "✗ failed" in text and f"does not show the same tree as {other_tree_of}" in text, text[:600]
     assert "add a station" not in text and "pick another hypothesis" not in text
     if found := reading_problems(page):
         problems["10 Verify, c"] = found

@@ -200,6 +200,24 @@ def test_next_steps_through_every_stage_and_draws_its_layer(env, case):
     assert app.view.stage == STAGE_NAMES[-1]
 
 
+def test_the_pair_between_two_targets_can_be_chosen(env, case):
+    """With three stations the pipeline registers scan3 onto scan2 too (it may be the pair that
+    tells why a scan failed): every Pair list offers it, and choosing it shows that pair."""
+    server, app = env
+    names = [s.name for s in case.scans]
+    between = f"{names[2]} → {names[1]}"
+    app.select_stage("verify")
+    _idle(app)
+    dropdown = app.stages.control("verify", TargetControl).dropdown
+    assert list(dropdown.options) == [f"{names[1]} → {names[0]}", f"{names[2]} → {names[0]}", between]
+    dropdown.value = between  # the browser's choice
+    _idle(app)
+    assert app.view.target == 2 and app.panel.title.startswith(f"### 10 Verify: {between}"), app.panel.title
+    assert app.stages.control("coarse", TargetControl).dropdown.value == between  # every stage's list follows
+    dropdown.value = f"{names[1]} → {names[0]}"
+    _idle(app)
+
+
 def test_parameter_change_reruns_only_that_stage_and_later(env, case):
     server, app = env
     ctl = app.controller

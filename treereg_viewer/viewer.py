@@ -37,6 +37,7 @@ from .draw.fits import focus_rows
 from .scan_panel import ScanPanel
 from .stage_panel import StagePanel
 from .stages import STAGE_NAMES, registered, section_available
+from .stages.base import pair_labels
 from .tour import STEPS, TourPanel
 from .view_panel import ViewPanel
 from .view_state import ViewState
@@ -183,7 +184,7 @@ class Viewer:
 
     def select_target(self, label: str) -> None:
         snap = self.controller.snapshot
-        labels = [f"{s.name} → {snap.scans[0].name}" for s in snap.scans[1:]]
+        labels = pair_labels(snap)
         if label in labels:
             self.set_view(target=labels.index(label), match_pair=0)
             self.stages.show_target(label)

@@ -12,7 +12,7 @@ import viser
 
 from ..actions import AppActions
 from ..controller import Snapshot
-from ..draw.common import Drawing
+from ..draw.common import Drawing, pair_label
 from ..view_state import ViewState
 
 
@@ -84,8 +84,11 @@ ControlsFactory = Callable[[viser.GuiApi, ControlHost, str], StageControls]
 
 
 def pair_labels(snap: Snapshot) -> list[str]:
-    """What the "Pair" lists offer: 'scan2 → scan1', …"""
-    return [f"{s.name} → {snap.scans[0].name}" for s in snap.scans[1:]] or ["(no target scan)"]
+    """What the "Pair" lists offer, in the pipeline's order of pairs (a view's `target`): 'scan2 →
+    scan1', 'scan3 → scan1', …, then the pairs between other scans ('scan3 → scan2': with three or
+    more stations these are registered too, and may be the one that tells why a scan failed)."""
+    n = max(len(snap.pairs), len(snap.scans) - 1)
+    return [pair_label(snap, k) for k in range(n)] or ["(no target scan)"]
 
 
 class TargetControl(StageControls):

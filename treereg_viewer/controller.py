@@ -111,6 +111,10 @@ def _lower_priority() -> None:
         pass
 
 
+class _Closing(Exception):
+    """Raised on a run's threads between two items once the app is closing: the run ends there."""
+
+
 @dataclass
 class _GiveWay:
     """When the worker pauses for the tabs (guarded by the controller's lock)."""
@@ -313,7 +317,8 @@ class Controller:
         return False
 
     def close(self) -> None:
-        """Stop the worker (after the stage it is running, if any)."""
+        """Stop the worker: a run stops before its next item (a pair, a scan), not at its end
+        (`treereg view` stopped 8-11 s after SIGTERM while the demo's first run went on)."""
         with self._wake:
             self._stopped = True
             self._wake.notify_all()
@@ -408,6 +413,10 @@ class Controller:
         self._publish(busy=True, running=run.stage, message="Running…" if todo else "")
         try:
             last = pipe.run(until, events=lambda event: self._on_event(run, event), between=self._pause_for_tabs)
+        except _Closing:
+            if run.stage is not None:
+                pipe.invalidate(run.stage)  # started, not finished
+            return
         except Exception as e:
             # The stage that raised is the one started and not finished (else the first still stale).
             stage = run.stage or next((s for s in todo if pipe.output(s) is None), until)
@@ -458,7 +467,9 @@ class Controller:
     def _pause_for_tabs(self) -> None:
         """On the worker and the run's other threads (between two items): wait while a tab asked
         the worker to give way (see GIVE_WAY_MAX_S). The threads that arrive during a pause wait
-        with it; the first to wake closes it."""
+        with it; the first to wake closes it. Once the app is closing, ends the run (`_Closing`)."""
+        if self._stopped:
+            raise _Closing
         with self._wake:
             gw, now = self._give_way, time.monotonic()
             if now < gw.not_before or now >= gw.until:

@@ -188,5 +188,6 @@ def test_the_apps_running_stage_comes_from_the_pipelines_events(case, monkeypatc
     assert calls == ["coarse"] and started == upto
     assert seen == [(s, set(upto[:k])) for k, s in enumerate(upto)]
     assert ctl.snapshot.running is None and set(ctl.snapshot.outputs) == set(upto)
-    assert fractions[-1] == (1.0, "coarse: done") and [f for f, _ in fractions] == sorted(f for f, _ in fractions)
-    assert "matching: scan2.ply -> scan1.ply" in [t for _, t in fractions]
+    # The page's words: the stage's label and its arrow (the command line prints "matching: ... -> ...").
+    assert fractions[-1] == (1.0, "4 Coarse: done") and [f for f, _ in fractions] == sorted(f for f, _ in fractions)
+    assert "3 Matching: scan2.ply → scan1.ply" in [t for _, t in fractions]

@@ -461,8 +461,12 @@ class Controller:
         elif isinstance(event, StageFinished):
             run.stage = None
         elif isinstance(event, StageProgress):
+            # The stage as the page names it, and the page's arrow ("13 Result: scan3 → scan2"),
+            # not the command line's "evaluation: scan3 -> scan2".
+            text = event.text.replace(" -> ", " → ")
+            line = f"{label(event.stage)}: {text}" if text else label(event.stage)
             for fn in self._progress_listeners:
-                fn(event.run_fraction, event.line)
+                fn(event.run_fraction, line)
 
     def _pause_for_tabs(self) -> None:
         """On the worker and the run's other threads (between two items): wait while a tab asked

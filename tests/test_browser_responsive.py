@@ -31,8 +31,8 @@ from treereg_viewer.labels import label  # noqa: E402
 #: What issue 18 asks: the first view within 3 s, Next within 1 s (measured then: first view 2.0–2.6 s,
 #: Next 0.2–0.5 s). These hold where the browser alone is that quick; on a slower machine the same
 #: page of an app at rest (its run finished before the page opened, measured in the same browser
-#: just before) takes longer: 2.6–3.6 s for the first view on the 2-core machine of issue 20, 3.6–4.3 s
-#: and a Next of 0.25–0.7 s on a later one, varying by up to 0.9 s from page to page. There the run
+#: just before) takes longer: 2.6–3.6 s for the first view on the 2-core machine of issue 20, 3.1–5.3 s
+#: and a Next of 0.24–0.81 s on a later one, varying by up to 1.0 s from page to page. There the run
 #: may slow what the browser does at rest by at most RUN_SLOWS (it shares the two cores with the
 #: browser for as long as the browser works): against the slower of the idle app's attempts. A run
 #: that held the first view or a Next back for its stages would add several seconds.
@@ -98,11 +98,17 @@ def _first_view(page, url: str, demo) -> float:
     return time.perf_counter() - t0
 
 
-def _look_and_press(page, stages=("projection", "matching")) -> list[float]:
-    """Look at the view LOOK_S, press Next, for each stage: the seconds each Next took."""
+#: The stages Next is pressed to, in turn, after the first view.
+PRESSED = ("projection", "matching")
+
+
+def _look_and_press(page, before=lambda stage: None) -> list[float]:
+    """For each of PRESSED: look at the view LOOK_S, call `before(stage)`, press Next; the seconds
+    each Next took."""
     times = []
-    for stage in stages:
+    for stage in PRESSED:
         page.wait_for_timeout(int(LOOK_S * 1000))
+        before(stage)
         times.append(_next(page, label(stage)))
     return times
 
@@ -155,13 +161,15 @@ def first_run(browser, at_rest):
                        received=received, at_rest=at_rest)
         print(f"\n  first view {run.first_view_s:.2f} s")
         run.next_at.append(_next_top(page))
-        page.wait_for_timeout(int(LOOK_S * 1000))
-        for stage in ("projection", "matching"):
-            busy = app.controller.snapshot.busy
+        busy: list[bool] = []
+
+        def before(stage: str) -> None:
+            busy.append(app.controller.snapshot.busy)
             run.next_at.append(_next_top(page))
-            run.nexts.append((label(stage), busy, _next(page, label(stage))))
-            print(f"  Next to {label(stage)}: {run.nexts[-1][2]:.2f} s (worker computing: {busy})")
-            page.wait_for_timeout(int(LOOK_S * 1000))
+        times = _look_and_press(page, before)
+        run.nexts = [(label(stage), b, t) for stage, b, t in zip(PRESSED, busy, times)]
+        for stage, b, t in run.nexts:
+            print(f"  Next to {stage}: {t:.2f} s (worker computing: {b})")
         yield run
     finally:
         context.close()

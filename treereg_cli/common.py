@@ -11,7 +11,7 @@ from typing import Any
 from treereg_core import params as P
 from treereg_core.errors import ConfigError
 from treereg_core.io.naming import scan_names
-from treereg_core.io.scans import read_records, record_to_scan
+from treereg_core.io.scans import ScanRecord, read_records, record_to_scan
 from treereg_core.parallel import default_workers
 from treereg_core.params import Params
 from treereg_core.scan import Scan
@@ -124,7 +124,10 @@ def read_scans(files: list[str], params: Params, scanner_positions: list[list[fl
     and returns; `scanner_positions` are given per scan, in order. Each scan is named by
     `io.naming.scan_names` (by folder where two files share a name: a/scan1.ply, b/scan1.ply), the
     name that keys the transforms."""
-    records = [(f, r, n) for f in files for r, n in _records(f)]
+    records: list[tuple[str, ScanRecord, int]] = []  # (file, record, records in that file)
+    for f in files:
+        in_file = read_records(f)
+        records += [(f, r, len(in_file)) for r in in_file]
     positions = [tuple(p) for p in (scanner_positions or [])]
     if positions and len(positions) != len(records):
         names = ", ".join(r.name for _, r, _ in records)
@@ -137,7 +140,3 @@ def read_scans(files: list[str], params: Params, scanner_positions: list[list[fl
                            params.prepare.angular_step_deg, params.prepare.returns, positions[k] if positions else None)
             for k, ((f, r, n), name) in enumerate(zip(records, names))]
 
-
-def _records(path: str) -> list[tuple]:
-    records = read_records(path)
-    return [(r, len(records)) for r in records]

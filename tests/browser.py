@@ -97,9 +97,16 @@ def go(page, label: str) -> None:
 
 
 def choose(page, label: str, option: str) -> None:
-    """Pick `option` in the dropdown labelled `label`."""
-    page.get_by_label(label, exact=True).click()
-    page.get_by_role("option", name=option, exact=True).click()
+    """Pick `option` in the dropdown labelled `label`. A list the app re-rendered while it was open
+    closes (seen once in CI: the option detached for 90 s): opened again, as a person would."""
+    for attempt in range(3):
+        page.get_by_label(label, exact=True).click()
+        try:
+            page.get_by_role("option", name=option, exact=True).click(timeout=15_000)
+            return
+        except Exception:  # noqa: BLE001 - Playwright's TimeoutError; the last attempt raises it
+            if attempt == 2:
+                raise
 
 
 def wait_stages_done(page, timeout_ms: int = 240_000) -> None:

@@ -99,12 +99,14 @@ def go(page, label: str) -> None:
 def choose(page, label: str, option: str) -> None:
     """Pick `option` in the dropdown labelled `label`. A list the app re-rendered while it was open
     closes (seen once in CI: the option detached for 90 s): opened again, as a person would."""
+    from playwright.sync_api import TimeoutError as PlaywrightTimeout
+
     for attempt in range(3):
         page.get_by_label(label, exact=True).click()
         try:
             page.get_by_role("option", name=option, exact=True).click(timeout=15_000)
             return
-        except Exception:  # noqa: BLE001 - Playwright's TimeoutError; the last attempt raises it
+        except PlaywrightTimeout:  # the last attempt raises it
             if attempt == 2:
                 raise
 

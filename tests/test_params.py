@@ -125,7 +125,7 @@ def test_values_are_coerced_from_text():
         ({"coarse": {"estimator": "lsq"}}, r"coarse\.estimator: 'lsq' is not one of \['svd', 'ransac'\]"),
         ({"coarse": {"dof": 5}}, r"coarse\.dof: 5 is not one of \[4, 6\]"),
         ({"matching": {"beta_check": "maybe"}}, r"matching\.beta_check: 'maybe' is not a valid true/false value"),
-        ({"projection": {"border_px": [1, 2, 3]}}, r"projection\.border_px: needs 2 values, got 3"),
+        ({"projection": {"border_px": [1, 2, 3]}}, r"projection\.border_px: needs two numbers r1,r2, got 3"),
         ({"coarse": {"inlier_m": None}}, r"coarse\.inlier_m: a value is required"),
         ({"coarse": {"inlier_m": float("nan")}}, r"coarse\.inlier_m: nan is not a finite number"),
         ({"coarse": 3}, r"p\.json: section 'coarse' must be an object"),

@@ -40,7 +40,8 @@ def explain_line(section: str, f: dataclasses.Field, value: object) -> str:
     span = "" if lo is None and hi is None else \
         f" [{'' if lo is None else P.number_text(lo)} to {'' if hi is None else P.number_text(hi)}]"
     choices = f" {{{'|'.join(P.set_text(c) for c in f.metadata['choices'])}}}" if f.metadata["choices"] else ""
-    return f"  --set {section}.{f.name}={P.set_text(value)}{unit}{span}{choices} — {f.metadata['doc']}"
+    most = f" (at most {f.metadata['max_len']} values)" if f.metadata["max_len"] else ""
+    return f"  --set {section}.{f.name}={P.set_text(value)}{unit}{span}{most}{choices} — {f.metadata['doc']}"
 
 
 def run(args: argparse.Namespace) -> int:

@@ -26,21 +26,31 @@ from .errors import ConfigError
 ANGULAR_STEP_RANGE_DEG: tuple[float, float] = (0.001, 1.0)
 
 
+#: Most heights a quantile list may name: a slice or a branch search each (a million sat 230 s at 2.8 GB);
+#: 64 is a slice every 15 cm up a 10 m stem.
+MAX_QUANTILES = 64
+
+
 #: Whole numbers a random seed may be (numpy's legacy generators take 32 bits).
 SEED_RANGE: tuple[int, int] = (0, 2**32 - 1)
 
 
 def _f(default: Any, unit: str, doc: str, choices: tuple[Any, ...] | None = None,
-       lo: float | None = None, hi: float | None = None, looser: str | None = None) -> Any:
+       lo: float | None = None, hi: float | None = None, looser: str | None = None,
+       parts: tuple[str, ...] | None = None, one_for_all: bool = False, max_len: int | None = None) -> Any:
     """A parameter field: default plus metadata the CLI and the app render.
 
     `looser` marks a threshold of the verdict "verified": "lower" or "higher" values verify more.
     Its range stops where, measured on the benchmark's wrong scans, a looser value would verify one
     (`benchmarks/bench_verify.py --loosest`); `loosened` names the fields set looser than the default.
+    A fixed-length tuple names its `parts` (("x", "y")) for the message when a number is missing;
+    `one_for_all` lets one number stand for all of them (an angular step 0.05 is 0.05 x 0.05).
+    A list of any length has a `max_len`: each value is work (a slice, a branch height).
     """
     if looser not in (None, "lower", "higher"):
         raise ValueError(f"looser must be 'lower' or 'higher', not {looser!r}")
-    meta = {"unit": unit, "doc": doc, "choices": choices, "min": lo, "max": hi, "looser": looser}
+    meta = {"unit": unit, "doc": doc, "choices": choices, "min": lo, "max": hi, "looser": looser,
+            "parts": parts, "one_for_all": one_for_all, "max_len": max_len}
     if isinstance(default, (list, dict)):
         raise TypeError("use tuples for sequence defaults (sections are frozen)")
     return field(default=default, metadata=meta)
@@ -60,7 +70,7 @@ class PrepareParams:
 
     angular_step_deg: tuple[float, float] | None = _f(
         None, "deg", "instrument angular steps (horizontal phi, vertical varphi); None = estimate from the data",
-        lo=ANGULAR_STEP_RANGE_DEG[0], hi=ANGULAR_STEP_RANGE_DEG[1])
+        lo=ANGULAR_STEP_RANGE_DEG[0], hi=ANGULAR_STEP_RANGE_DEG[1], parts=("phi", "varphi"), one_for_all=True)
     remove_ground: bool = _f(True, "", "remove the ground before projection (robust plane through the lowest point of each cell)")
     ground_cell_m: float = _f(1.0, "m", "cell size of the lowest-point grid used to find the ground", lo=0.1, hi=10.0)
     ground_band_m: float = _f(0.3, "m", "points within this height above the ground plane are removed", lo=0.0, hi=5.0)
@@ -86,13 +96,16 @@ class TargetParams:
 
     select: str = _f("auto", "", "auto: when a station holds several stems, register the target tree and its surroundings; off: use every point",
                      choices=("auto", "off"))
-    tree_at: tuple[float, float] | None = _f(None, "m", "the target stem's x y in the reference scan's frame; None = the stem the stations surround")
+    tree_at: tuple[float, float] | None = _f(None, "m", "the target stem's x y in the reference scan's frame; None = the stem the stations surround",
+                                              parts=("x", "y"))
     radius_m: float = _f(5.0, "m", "keep points within this horizontal distance of the target stem (neighbours farther away swamp the coarse stage; nearer ones help it)", lo=0.5, hi=100.0)
     min_stems: int = _f(3, "stems", "auto selects a target only when a station holds at least this many stems (a scan cut to one tree is left as it is)", lo=2, hi=100)
-    stem_band_m: tuple[float, float] = _f((1.0, 1.6), "m", "stems are looked for in this band of heights above the ground (breast height; raise it over undergrowth)", lo=0.0, hi=20.0)
+    stem_band_m: tuple[float, float] = _f((1.0, 1.6), "m", "stems are looked for in this band of heights above the ground (breast height; raise it over undergrowth)", lo=0.0, hi=20.0,
+                                         parts=("lowest", "highest"))
     stem_cell_m: float = _f(0.05, "m", "grid cell of the stem search: a stem is a group of connected cells (one cell of dilation joins a far stem's sparse points)", lo=0.005, hi=1.0)
     stem_max_range_m: float = _f(60.0, "m", "stems are looked for within this horizontal range of the scanner", lo=1.0, hi=1000.0)
-    stem_radius_m: tuple[float, float] = _f((0.03, 0.8), "m", "plausible stem radii (smallest, largest)", lo=0.005, hi=5.0)
+    stem_radius_m: tuple[float, float] = _f((0.03, 0.8), "m", "plausible stem radii (smallest, largest)", lo=0.005, hi=5.0,
+                                           parts=("smallest", "largest"))
     stem_min_points: int = _f(15, "points", "a stem needs this many points in the band", lo=3, hi=100_000)
     stem_min_arc_deg: float = _f(40.0, "deg", "...and a fitted circle covering this much arc", lo=0.0, hi=360.0)
     match_gate_m: float = _f(0.35, "m", "stem maps: two stations' stems match when their centres are this close under the stem-map transform", lo=0.01, hi=10.0)
@@ -107,7 +120,7 @@ class ProjectionParams:
 
     pixel_factor: int = _f(2, "steps", "a pixel covers k*phi x k*varphi (paper: k = 2)", lo=1, hi=10)
     square_pixels: bool = _f(True, "", "steps differing by more than 1.5x (e.g. 0.622 x 0.048 deg) get square pixels of k times the finer step, the gaps between scan lines closed (paper: k*phi x k*varphi)")
-    border_px: tuple[int, int] = _f((10, 10), "px", "image borders r1, r2 (paper eq. 2)", lo=0, hi=1000)
+    border_px: tuple[int, int] = _f((10, 10), "px", "image borders r1, r2 (paper eq. 2)", lo=0, hi=1000, parts=("r1", "r2"))
     relative_azimuth: bool = _f(True, "", "measure azimuth from the scan centroid's azimuth, so a tree never straddles +-180 deg")
     theta_deg: float = _f(10.0, "deg", "rotation step of the image sequence (paper: 10)", lo=0.5, hi=90.0)
     span_deg: float | None = _f(None, "deg", "sequence covers [-span, +span]; None = 360/n, n = number of scans (paper)", lo=0.0, hi=180.0)
@@ -177,7 +190,8 @@ class SlicesParams:
     """horizontal slices of reference and target after coarse."""
 
     quantiles: tuple[float, ...] = _f(tuple(round(0.05 * k, 2) for k in range(1, 20)), "",
-                                      "slice heights as quantiles of tree height (paper: quartiles 0.25 0.5 0.75)", lo=0.0, hi=1.0)
+                                      "slice heights as quantiles of tree height (paper: quartiles 0.25 0.5 0.75)", lo=0.0, hi=1.0,
+                                      max_len=MAX_QUANTILES)
     thickness_m: float = _f(0.1, "m", "slice thickness (paper: 10 cm)", lo=0.01, hi=2.0)
 
 
@@ -322,7 +336,8 @@ class EvaluationParams:
     layers: int = _f(3, "", "layers per branch (bottom, middle, top)", lo=1, hi=20)
     layer_thickness_m: float = _f(0.1, "m", "thickness of an evaluation layer", lo=0.01, hi=2.0)
     layer_spacing_m: float = _f(0.15, "m", "height between a branch's layers", lo=0.01, hi=5.0)
-    quantiles: tuple[float, ...] = _f((0.2, 0.35, 0.5, 0.65, 0.8), "", "heights (quantiles of tree height) where branches are searched", lo=0.0, hi=1.0)
+    quantiles: tuple[float, ...] = _f((0.2, 0.35, 0.5, 0.65, 0.8), "", "heights (quantiles of tree height) where branches are searched", lo=0.0, hi=1.0,
+                                      max_len=MAX_QUANTILES)
     margin_m: float = _f(0.03, "m", "a layer takes the points within the branch radius plus this of its axis", lo=0.001, hi=1.0)
     min_arc_deg: float = _f(60.0, "deg", "evaluation fits covering less arc are not used", lo=0.0, hi=360.0)
     max_rms_m: float = _f(0.01, "m", "evaluation fits with a larger RMS residual are not used", lo=0.0001, hi=1.0)
@@ -512,6 +527,9 @@ def from_dict(data: dict[str, Any], base: Params | None = None, source: str = "p
     data = dict(data)
     preset = data.pop("preset", None)
     if preset is not None:
+        if not isinstance(preset, str):  # a list or object is unhashable: `in PRESETS` would raise TypeError
+            raise ConfigError(f"{source}: preset: {_shown(preset)} is not a preset name; "
+                              f"give one of {sorted(PRESETS)} as a string, e.g. \"preset\": \"paper\"")
         if preset not in PRESETS:
             raise ConfigError(f"{source}: unknown preset {preset!r}; choose one of {sorted(PRESETS)}")
         base = PRESETS[preset]
@@ -587,14 +605,17 @@ def _coerce(key: str, fld: dataclasses.Field, value: Any) -> Any:
             elem = typing.get_args(hint)
             seq = list(value)
             if len(elem) == 2 and elem[1] is Ellipsis:
-                out = tuple(_element(elem[0], v) for v in seq)
-                if not out:
+                if not seq:
                     raise ConfigError(f"{key}: needs at least one value")
+                if len(seq) > meta["max_len"]:  # before converting any: a million values is refused at once
+                    raise ConfigError(f"{key}: {len(seq):,} values given; at most {meta['max_len']} are allowed")
+                out = tuple(_element(elem[0], v) for v in seq)
             else:
-                if len(seq) == 1 and len(set(elem)) == 1:
+                if len(seq) == 1 and meta.get("one_for_all"):
                     seq = seq * len(elem)  # one value for all, as `--angular-step 0.05` means 0.05 x 0.05
                 if len(seq) != len(elem):
-                    raise ConfigError(f"{key}: needs {len(elem)} values, got {len(seq)}")
+                    raise ConfigError(f"{key}: needs {_count_text(len(elem))} numbers {','.join(meta['parts'])}, "
+                                      f"got {len(seq):,}")
                 out = tuple(_element(t, v) for t, v in zip(elem, seq))
             bad = [v for v in out if isinstance(v, float) and not math.isfinite(v)]
             if bad:
@@ -621,6 +642,11 @@ def _check_range(key: str, values: tuple[Any, ...], meta: Any) -> None:
             allowed = f"{number_text(lo)} to {number_text(hi)}{unit}" if lo is not None and hi is not None else \
                 f"at least {number_text(lo)}{unit}" if lo is not None else f"at most {number_text(hi)}{unit}"
             raise ConfigError(f"{key}: {number_text(v)}{unit} is outside the allowed range ({allowed})")
+
+
+def _count_text(n: int) -> str:
+    """"two" numbers, not "2" (a message reads as a sentence)."""
+    return {1: "one", 2: "two", 3: "three", 4: "four"}.get(n, str(n))
 
 
 def number_text(v: float) -> str:

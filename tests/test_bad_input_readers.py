@@ -257,3 +257,60 @@ def test_a_nan_scanner_position_is_one_line_without_a_python_warning(sandbox, ca
              r"scan1\.ply: the scanner position given for it, \(nan, 0, 0\), is not a point: give --scanner-position "
              r"X Y Z as three finite numbers$",
              "--scanner-position", "nan", "0", "0", "--scanner-position", "0", "0", "0")
+
+
+# ---- a binary PLY cut short, before or while it is read (issue 29) ---------------------------------------
+def _binary_ply(path: Path, pts: np.ndarray, extra: bool) -> Path:
+    """A binary PLY of x, y, z as float32, with an intensity after them when `extra` (another read path)."""
+    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")] + ([("intensity", "<u2")] if extra else [])
+    rec = np.zeros(len(pts), dtype=fields)
+    rec["x"], rec["y"], rec["z"] = pts.T
+    props = "".join(f"property {'ushort' if t == '<u2' else 'float'} {n}\n" for n, t in fields)
+    path.write_bytes(f"ply\nformat binary_little_endian 1.0\nelement vertex {len(pts)}\n{props}end_header\n".encode()
+                     + rec.tobytes())
+    return path
+
+
+@pytest.mark.parametrize("extra", [False, True], ids=["xyz", "extra_property"])
+def test_a_binary_ply_cut_short_is_named_truncated(sandbox, capsys, extra):
+    pts = _demo(sandbox)
+    bad = _binary_ply(sandbox / "cut.ply", pts, extra)
+    bad.write_bytes(bad.read_bytes()[:-(len(pts) // 2) * (14 if extra else 12)])
+    _refused(capsys, sandbox, bad, rf"cut\.ply: the PLY file is truncated: its header announces {len(pts)} points, "
+                                   rf"the file holds {len(pts) - len(pts) // 2}$")
+
+
+@pytest.mark.parametrize("extra", [False, True], ids=["xyz", "extra_property"])
+def test_a_binary_ply_that_shrinks_while_read_is_named_truncated(tmp_path, sandbox, capsys, monkeypatch, extra):
+    """The file is whole when its header is read and its size asked, then cut to a third (a copy being
+    overwritten, a shared drive): was `ValueError: cannot reshape` (x y z) or a bus error (memory-mapped)."""
+    import os
+    import pathlib
+
+    from treereg_core.io import scans
+
+    pts = _demo(sandbox)
+    bad = _binary_ply(tmp_path / "shrinks.ply", pts, extra)
+    size = bad.stat().st_size
+    armed = []
+    real_header, real_fstat, real_stat = scans._ply_header, os.fstat, pathlib.Path.stat
+
+    def header(path):
+        h = real_header(path)
+        if path == bad:  # the other scan is read alongside
+            armed.append(h.offset)
+        return h
+
+    def cut_after(st):
+        """The size a reader asked for, then the file cut under it (once, after the header was read)."""
+        if armed and st.st_size == size:
+            os.truncate(bad, armed.pop() + (len(pts) // 3) * (14 if extra else 12))
+        return st
+
+    monkeypatch.setattr(scans, "_ply_header", header)
+    monkeypatch.setattr(os, "fstat", lambda fd: cut_after(real_fstat(fd)))
+    monkeypatch.setattr(pathlib.Path, "stat", lambda self, **kw: cut_after(real_stat(self, **kw)))
+    rc, err = cli(capsys, "register", sandbox / "scans" / "scan1.ply", bad, "--out", tmp_path / "t.json")
+    assert rc == 2, err
+    one_line(err, rf"^treereg: error: .*shrinks\.ply: the PLY file is truncated: its header announces {len(pts)} "
+                  rf"points, the file holds {len(pts) // 3} \(it shrank while being read: read it again once it is complete\)$")

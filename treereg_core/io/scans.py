@@ -18,6 +18,7 @@ from __future__ import annotations
 import gzip
 import io as _io
 import json
+import os
 import re
 import warnings
 from dataclasses import dataclass
@@ -596,45 +597,68 @@ def _read_ply(path: Path) -> np.ndarray:
     return _as_xyz(path, np.asarray(vertices), "the vertex element")
 
 
-def _ply_count_message(path: Path, n: int, have: int, what: str = "points") -> ScanError:
+def _ply_count_message(path: Path, n: int, have: int, what: str = "points", shrank: bool = False) -> ScanError:
     """The header and the data disagree: too little data is a truncated file, too much a wrong count."""
     if have < n:
-        return ScanError(str(path), f"the PLY file is truncated: its header announces {n} {what}, the file holds {have}")
+        # A file that was whole when its size was checked and then came up short was cut while read
+        # (a copy or download still being written, a shared drive): reading it again later may work.
+        when = " (it shrank while being read: read it again once it is complete)" if shrank else ""
+        return ScanError(str(path), f"the PLY file is truncated: its header announces {n} {what}, the file holds {have}{when}")
     return ScanError(str(path), f"the PLY file holds more than its header announces: its header announces {n} "
                                 f"{what}, the file holds {have}; the file is damaged (fix the count in its header "
                                 "or export it again)")
 
 
+def _read_into(fh, buf: np.ndarray, path: Path, n: int, done: int, itemsize: int) -> None:
+    """Fill `buf` (whole records) from `fh`, or raise the truncation `ScanError`: the file can shrink
+    after its size was checked, and a short read must be named, not reshaped or used in part (`done`:
+    the points read before this buffer, for the count the message gives)."""
+    view = memoryview(buf).cast("B")
+    got = 0
+    while got < len(view):
+        k = fh.readinto(view[got:])
+        if not k:
+            raise _ply_count_message(path, n, done + got // itemsize, shrank=True)
+        got += k
+
+
 def _read_ply_binary(path: Path, header: _PlyHeader) -> np.ndarray:
     """x, y, z of a binary PLY's vertices: read straight into the scan's array when the file holds
-    nothing else, else memory-mapped and copied once, in chunks, into float64 (other properties are
-    never loaded: one full-resolution copy of the scan, no more)."""
+    nothing else, else read in chunks of records and copied into float64 (other properties are
+    never held whole: one full-resolution copy of the scan, no more). Every read is checked for
+    length and nothing is memory-mapped: a file that shrinks while read (a bus error under a map)
+    is named as truncated."""
     order = "<" if header.format == "binary_little_endian" else ">"
     vertex = header.elements[0]
     record = np.dtype([(name, order + _PLY_TYPES[t]) for name, t in vertex.props])
     n = vertex.count
     if n <= 0:
         raise ScanError(str(path), "the PLY file holds no points (its vertex element is empty)")
-    size = path.stat().st_size - header.offset
-    have = size // record.itemsize
-    # With the vertices the only element, the file's size is known: more whole records is a wrong count.
-    if have < n or (len(header.elements) == 1 and have > n):
-        raise _ply_count_message(path, n, have)
-    names = [name for name, _ in vertex.props]
-    types = {t for _, t in vertex.props}
-    if names == ["x", "y", "z"] and len(types) == 1 and record[0].kind == "f":
-        # Only x, y, z of one float type (what scanners' exporters and treereg write): one read of
-        # the file into the array the scan keeps (floats converted once), as numpy reads a raw file.
-        flat = np.fromfile(path, dtype=record[0], count=3 * n, offset=header.offset)
-        return flat.reshape(n, 3).astype(np.float64, copy=False)
-    vertices = np.memmap(path, dtype=record, mode="r", offset=header.offset, shape=(n,))
-    out = np.empty((n, 3), dtype=np.float64)
-    for a in range(0, n, _PLY_CHUNK):
-        chunk = vertices[a:a + _PLY_CHUNK]
-        for k, name in enumerate("xyz"):
-            out[a:a + len(chunk), k] = chunk[name]
-    del vertices
-    return out
+    try:
+        with open(path, "rb", buffering=0) as fh:
+            have = (os.fstat(fh.fileno()).st_size - header.offset) // record.itemsize
+            # With the vertices the only element, the file's size is known: more whole records is a wrong count.
+            if have < n or (len(header.elements) == 1 and have > n):
+                raise _ply_count_message(path, n, have)
+            fh.seek(header.offset)
+            names = [name for name, _ in vertex.props]
+            types = {t for _, t in vertex.props}
+            if names == ["x", "y", "z"] and len(types) == 1 and record[0].kind == "f":
+                # Only x, y, z of one float type (what scanners' exporters and treereg write): one
+                # read of the file into the array the scan keeps (floats converted once).
+                flat = np.empty((n, 3), dtype=record[0])
+                _read_into(fh, flat, path, n, 0, record.itemsize)
+                return flat.astype(np.float64, copy=False)
+            out = np.empty((n, 3), dtype=np.float64)
+            buf = np.empty(min(n, _PLY_CHUNK), dtype=record)
+            for a in range(0, n, _PLY_CHUNK):
+                chunk = buf[: min(_PLY_CHUNK, n - a)]
+                _read_into(fh, chunk, path, n, a, record.itemsize)
+                for k, name in enumerate("xyz"):
+                    out[a:a + len(chunk), k] = chunk[name]
+            return out
+    except OSError as e:
+        raise ScanError(str(path), f"cannot read the file ({e.strerror or e})") from None
 
 
 def _data_lines(path: Path, offset: int) -> int:

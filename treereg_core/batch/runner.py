@@ -297,13 +297,64 @@ def _run_pool(todo: list[TreeJob], params: Params, until: str, workers: int, fin
 
 def _dask_client(address: str):
     try:
+        from dask.utils import parse_timedelta
         from distributed import Client
+        from distributed.comm.addressing import parse_address, parse_host_port
     except ImportError:
         raise ConfigError("--dask needs Dask: pip install 'treereg[dask]'") from None
+    timeout_s = parse_timedelta(DASK_CONNECT_TIMEOUT)
     try:
+        scheme, location = parse_address(address)
+        if scheme == "tcp":  # tls, ucx, inproc: their own handshakes, bounded by the client's timeout alone
+            _probe_scheduler(address, parse_host_port(location), timeout_s)
         return Client(address, timeout=DASK_CONNECT_TIMEOUT)
+    except ConfigError:  # the probe's own words (a ConfigError is a ValueError)
+        raise
     except (OSError, TimeoutError, ValueError) as e:
         raise ConfigError(f"--dask {address}: cannot reach the Dask scheduler ({e})") from None
+
+
+#: The most bytes a scheduler's first message (its handshake, some 60 bytes) may announce.
+_MAX_HANDSHAKE_BYTES = 64 * 1024
+
+
+def _probe_scheduler(address: str, host_port: tuple[str, int], timeout_s: float) -> None:
+    """Refuse, within `timeout_s`, a peer at `host_port` that does not speak Dask's comm protocol.
+
+    distributed's own handshake waits without end on a peer that says nothing (an HTTP port), and
+    allocates whatever length the first 8 bytes of a garbage answer announce ("HTTP/1.1" is 3 EiB).
+    A scheduler writes its handshake first, unasked: a message of 8-byte lengths (the message's, the
+    frame count's and each frame's) that must agree, checked here before distributed reads it.
+    """
+    import socket
+    import struct
+
+    deadline = time.monotonic() + timeout_s
+    with socket.create_connection(host_port, timeout=timeout_s) as sock:
+        def read(n: int) -> bytes:
+            data = b""
+            while len(data) < n:
+                sock.settimeout(max(deadline - time.monotonic(), 0.001))
+                try:
+                    chunk = sock.recv(n - len(data))
+                except TimeoutError:
+                    raise ConfigError(
+                        f"--dask {address}: nothing answered as a Dask scheduler within {timeout_s:g} s (another "
+                        "service's port, e.g. the dashboard's or an HTTP server?); give the scheduler's own address, "
+                        "which it prints when it starts (tcp://HOST:8786 by default)") from None
+                if not chunk:
+                    raise ConfigError(f"--dask {address}: the peer closed the connection without answering as a "
+                                      "Dask scheduler; give the scheduler's own address (tcp://HOST:8786 by default)")
+                data += chunk
+            return data
+
+        total, = struct.unpack("=Q", read(8))
+        nframes = struct.unpack("=Q", read(8))[0] if 16 <= total <= _MAX_HANDSHAKE_BYTES else 0
+        sizes = struct.unpack(f"={nframes}Q", read(8 * nframes)) if 1 <= nframes <= (total - 8) // 8 else ()
+        if not sizes or 8 + 8 * nframes + sum(sizes) != total:
+            raise ConfigError(f"--dask {address}: the peer answered, but not in Dask's protocol (another service's "
+                              "port?); give the scheduler's own address, which it prints when it starts "
+                              "(tcp://HOST:8786 by default)")
 
 
 def _run_dask(todo: list[TreeJob], params: Params, until: str, client, finished) -> None:

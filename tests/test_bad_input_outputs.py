@@ -138,10 +138,13 @@ def test_a_scan_name_that_is_not_utf8_is_exported_without_a_traceback(sandbox):
     err = p.stderr.decode("utf-8", "replace")
     assert p.returncode == 0, err
     assert "Traceback" not in err
-    assert b"t.sc\\udcffan2.cloudcompare.txt" in p.stdout  # the name printed, escaped
-    assert odd.name in read_transforms(sandbox / "out" / "t.json").transforms
-    assert (sandbox / "out" / f"t.{Path(odd).stem}.pdal.txt").is_file()
-    assert [r.name for r in read_e57(sandbox / "out" / "t.registered.e57")] == ["scan1.ply", "sc\\xffan2.ply"]
+    # The name as shown (`text.shown`: the undecodable byte as \\udcff) everywhere: printed, the key of
+    # transforms.json, the E57's scan name; the files named after it made safe.
+    assert re.search(rb"^  sc\\udcffan2\.ply +verified$", p.stdout, re.M), p.stdout
+    assert b"t.sc_udcffan2.cloudcompare.txt" in p.stdout
+    assert "sc\\udcffan2.ply" in read_transforms(sandbox / "out" / "t.json").transforms
+    assert (sandbox / "out" / "t.sc_udcffan2.pdal.txt").is_file()
+    assert [r.name for r in read_e57(sandbox / "out" / "t.registered.e57")] == ["scan1.ply", "sc\\udcffan2.ply"]
     assert changed(before, fingerprint(sandbox), allowed=("out/",)) == []
 
 

@@ -15,6 +15,7 @@ from treereg_core.errors import ConfigError, OutputError
 from treereg_core.io.atomic import check_distinct
 from treereg_core.io.naming import scan_names
 from treereg_core.io.transforms import export_paths
+from treereg_core.text import shown
 
 from . import progress
 from .common import add_param_args, load_params
@@ -83,7 +84,7 @@ def _scan_names(job: TreeJob) -> list[str]:
 
 def _notice(text: str) -> None:
     progress.end_line()
-    print(f"  {text}", file=sys.stderr, flush=True)
+    print(f"  {shown(text)}", file=sys.stderr, flush=True)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -104,7 +105,7 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"{out}: cannot write the results there ({e.strerror or e})") from None
     t0 = time.perf_counter()
     where = f"Dask cluster {args.dask}" if args.dask else f"{args.workers or os.cpu_count()} worker(s)"
-    print(f"{len(jobs)} trees from {src}, {where}, results in {out}", file=sys.stderr)
+    print(f"{len(jobs)} trees from {shown(src)}, {shown(where)}, results in {shown(out)}", file=sys.stderr)
     outcomes, ran = run_batch(jobs, params, out, until=args.until, workers=args.workers, dask_address=args.dask,
                               redo=args.redo, progress=ProgressBar("batch"), notice=_notice)
     seconds = time.perf_counter() - t0
@@ -115,6 +116,6 @@ def run(args: argparse.Namespace) -> int:
           + ", ".join(f"{v} {k}" for k, v in counts.items() if v))
     for o in outcomes:
         if o.status != "ok":
-            print(f"  {o.tree}: {o.status}: {o.message}", file=sys.stderr)
-    print(f"wrote {', '.join(str(p) for p in paths)}")
+            print(f"  {shown(o.tree)}: {o.status}: {shown(o.message)}", file=sys.stderr)
+    print(f"wrote {', '.join(shown(p) for p in paths)}")
     return 0 if counts["ok"] == len(outcomes) else 1

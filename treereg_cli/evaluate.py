@@ -15,6 +15,7 @@ from treereg_core.io.scans import read_scan
 from treereg_core.io.transforms import TransformFile, check_transform, read_transforms
 from treereg_core.prepare.ground import prepare_scan
 from treereg_core.scan import Scan
+from treereg_core.text import shown
 
 from .common import add_set_arg, apply_sets
 from .progress import ProgressBar
@@ -97,8 +98,8 @@ def run(args: argparse.Namespace) -> int:
             ds = ", ".join(f"{x:.4f}" for x in b.distances_m)
             branch_rows.append(f"| {name} -> {names[0]} | {b.index} | {b.height_m:.2f} | {b.radius_m:.3f} | {ds} | {np.mean(b.distances_m):.4f} |")
     bar(1.0, "done")
-    print("\n".join(rows))
+    print("\n".join(shown(r) for r in rows))  # names are transforms.json's keys: text from outside
     if args.branches and branch_rows:
         print("\n| pair | branch | height (m) | radius (m) | d1..dn (m) | mean d (m) |\n|---|---|---|---|---|---|")
-        print("\n".join(branch_rows))
+        print("\n".join(shown(r) for r in branch_rows))
     return 0

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import errno
 import importlib
 import os
 import signal
@@ -22,6 +23,7 @@ from typing import Any, Callable, Iterator
 
 from treereg_core._version import __version__
 from treereg_core.errors import ConfigError, OutputError, ScanError, ScanWarning
+from treereg_core.text import shown
 
 from . import progress
 
@@ -53,9 +55,10 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
 
 
 def say(text: str) -> None:
-    """One line on stderr, starting on a fresh line (a progress bar may be half drawn)."""
+    """One line on stderr, starting on a fresh line (a progress bar may be half drawn); a file or scan
+    name in `text` cannot break the line or reach the terminal as a control (`text.shown`)."""
     progress.end_line()
-    print(f"treereg: {text}", file=sys.stderr, flush=True)
+    print(f"treereg: {shown(text)}", file=sys.stderr, flush=True)
 
 
 #: Warnings for a library's developers (an API to change), not about the user's input: not shown.
@@ -117,10 +120,22 @@ def _warning_printer() -> Callable[..., None]:
 
 def _names_printable() -> None:
     """A file name that is not UTF-8 (its bytes kept as lone surrogates) prints escaped, not as a
-    UnicodeEncodeError after the whole run (stdout is strict outside the C locale)."""
+    UnicodeEncodeError after the whole run (stdout is strict outside the C locale). Names are shown
+    through `text.shown`, which writes a lone surrogate as this does (`\\udcff`); this is the net
+    for any text that still reaches a stream unshown."""
     for stream in (sys.stdout, sys.stderr):
         if getattr(stream, "errors", None) == "strict" and hasattr(stream, "reconfigure"):
             stream.reconfigure(errors="backslashreplace")
+
+
+#: The errors of a write to a stream that cannot take more (a full disk or device, a quota, an I/O
+#: failure): one line and exit 2 rather than a traceback.
+OUTPUT_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EIO})
+
+
+def _quiet_stdout() -> None:
+    """Send the rest of stdout (and what its buffer holds) to /dev/null: nothing left to fail at exit."""
+    os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -135,7 +150,9 @@ def main(argv: list[str] | None = None) -> int:
         warnings.simplefilter("always", ScanWarning)  # one per file, not one per line of code
         warnings.showwarning = _warning_printer()
         try:
-            return int(args.func(args) or 0)
+            code = int(args.func(args) or 0)
+            sys.stdout.flush()  # here, where a full disk can still be said, not at exit
+            return code
         except (ScanError, ConfigError, OutputError) as e:
             say(f"error: {e}")
             return 2
@@ -146,8 +163,17 @@ def main(argv: list[str] | None = None) -> int:
             say("interrupted (Ctrl-C); no file was left half-written or replaced by a partial result")
             return 130
         except BrokenPipeError:  # `treereg params | head`: the reader has all it wanted
-            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # nothing left to flush at exit
+            _quiet_stdout()  # nothing left to flush at exit
             return 141  # as a shell reports a command ended by SIGPIPE
+        except OSError as e:
+            # Files are written through io.atomic (an OutputError); what is left is a stream:
+            # `treereg ... > /dev/full`, or a disk that filled under the redirected output.
+            if e.errno not in OUTPUT_ERRNOS:
+                raise
+            _quiet_stdout()
+            with contextlib.suppress(OSError):  # stderr may be the full one
+                say(f"error: cannot write the output ({e.strerror or e}); what was printed is incomplete")
+            return 2
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -8,6 +8,7 @@ import json
 
 from treereg_core import params as P
 from treereg_core.io.atomic import check_output_file
+from treereg_core.text import shown
 
 from .common import ORDER, add_set_arg, load_params
 
@@ -57,7 +58,7 @@ def run(args: argparse.Namespace) -> int:
         return 0
     if args.out:
         P.save(params, args.out)
-        print(f"wrote {args.out}")
+        print(f"wrote {shown(args.out)}")
     else:
         print(json.dumps(P.to_dict(params), indent=2))
     return 0

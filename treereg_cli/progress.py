@@ -7,6 +7,8 @@ import sys
 import time
 from typing import TYPE_CHECKING
 
+from treereg_core.text import shown
+
 if TYPE_CHECKING:  # the stage model loads the whole core: a command that only prints must not wait for it
     from treereg_core.stage import Event
 
@@ -55,7 +57,7 @@ class ProgressBar:
         self._last = now
         n = int(round(fraction * self.width))
         bar = "#" * n + "-" * (self.width - n)
-        line = f"\r{self.label} [{bar}] {fraction * 100:5.1f}% {now - self.t0:6.1f}s {text[:40]:<40}"
+        line = f"\r{self.label} [{bar}] {fraction * 100:5.1f}% {now - self.t0:6.1f}s {shown(text)[:40]:<40}"
         _open_lines.add(id(self.stream))  # before writing: Ctrl-C may land right after the write
         self.stream.write(line)
         if fraction >= 1.0:

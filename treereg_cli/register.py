@@ -17,11 +17,13 @@ from treereg_core.io.atomic import check_distinct, check_output_file
 from treereg_core.io.e57 import write_registered_e57
 from treereg_core.io.merged import write_merged
 from treereg_core.io.scans import WRITE_EXTENSIONS, extension
-from treereg_core.io.transforms import (export_paths, registered_e57_name, registration_file, write_exports,
-                                        write_transforms)
+from treereg_core.io.transforms import (export_paths, registered_e57_name, registration_file, stale_exports,
+                                        write_exports, write_transforms)
 from treereg_core.pipeline import register
 from treereg_core.stages import UNTIL
 from treereg_core.verify.report import motion_lines, quality_report, verdict_lines, verdict_text
+
+from treereg_core.text import shown
 
 from .common import add_param_args, add_workers_arg, load_params, read_scans, workers_of
 from .progress import ProgressBar
@@ -100,7 +102,7 @@ def run(args: argparse.Namespace) -> int:
     seconds = time.perf_counter() - t0
     pipe = reg.pipeline
     if len(reg.transforms) < 2:
-        print(f"treereg: registration failed: {reg.message}", file=sys.stderr)
+        print(f"treereg: registration failed: {shown(reg.message)}", file=sys.stderr)
         return 1
     verdicts = pipe.verdicts()
     metrics = pipe.pair_metrics()
@@ -109,10 +111,13 @@ def run(args: argparse.Namespace) -> int:
                            sources={s.name: str(s.source.resolve()) if s.source.exists() else str(s.source) for s in scans},
                            seconds=seconds,
                            stage_seconds={"read": read_s, **{n: o.seconds for n, o in pipe.outputs.items()}})
+    # An earlier --exports run's matrices of scans this run refuses go with this one's files.
+    stale = stale_exports(out.parent, tf, out.name, inputs) if args.exports else []
     # One batch: the transform file, its matrices, the E57 and the merged cloud all land, or none.
     try:
         with atomic.batch():
-            written = write_exports(out.parent, tf, name=out.name) if args.exports else [write_transforms(out, tf)]
+            written = (write_exports(out.parent, tf, name=out.name, inputs=inputs) if args.exports
+                       else [write_transforms(out, tf)])
             if e57 is not None:
                 written.append(write_registered_e57(e57, scans, tf))
             if args.merged:
@@ -131,7 +136,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"  {name:<30} {verdict_text(verdict, params, name == scans[0].name)}")
     for line in motion_lines(scans, pipe.pairs, pipe.outputs):
         print(f"  wind: {line}")
-    print(f"\nwrote {', '.join(str(w) for w in written)} in {seconds:.1f} s")
+    print(f"\nwrote {', '.join(shown(w) for w in written)} in {seconds:.1f} s")
+    if stale:
+        print(f"removed {', '.join(shown(p) for p in stale)}: an earlier run's matrices of scans this run does not place")
     lines = verdict_lines(verdicts)
     for line in lines:
         print(f"treereg: {line}", file=sys.stderr)

@@ -6,6 +6,7 @@ import argparse
 
 from treereg_core.io.atomic import check_distinct, check_output_dir, check_output_file
 from treereg_core.simulate.cases import CaseSpec, case_paths, write_case
+from treereg_core.text import shown
 
 from .common import angular_steps
 from .progress import ProgressBar
@@ -80,5 +81,5 @@ def run(args: argparse.Namespace) -> int:
     truth = write_case(case, args.out, dtype="float32" if args.float32 else "float64")
     for m in case.metrics:
         print(f"  {m.description:<24} {m.formatted()}")
-    print(f"wrote {', '.join(case.names)} and {truth.name} to {args.out}")
+    print(f"wrote {', '.join(case.names)} and {truth.name} to {shown(args.out)}")
     return 0

@@ -1,6 +1,13 @@
-"""Exceptions treereg raises for input a user has to fix."""
+"""Exceptions treereg raises for input a user has to fix.
+
+Their messages quote file names and scan names, which come from outside: each message is shown
+through `text.shown`, so a newline or an escape sequence in a name can neither forge another line
+of output nor drive the terminal (the attributes keep the raw values, for code).
+"""
 
 from __future__ import annotations
+
+from .text import shown
 
 
 class ScanError(ValueError):
@@ -9,11 +16,14 @@ class ScanError(ValueError):
     def __init__(self, source: str, problem: str) -> None:
         self.source = source
         self.problem = problem
-        super().__init__(f"{source}: {problem}")
+        super().__init__(shown(f"{source}: {problem}"))
 
 
 class ConfigError(ValueError):
     """A parameter file or value is invalid; the message names the key and the problem."""
+
+    def __str__(self) -> str:  # raised with a message built in many places, naming files: shown once here
+        return shown(super().__str__())
 
 
 class OutputError(ValueError):
@@ -22,7 +32,7 @@ class OutputError(ValueError):
     def __init__(self, path: str, problem: str) -> None:
         self.path = path
         self.problem = problem
-        super().__init__(f"{path}: {problem}")
+        super().__init__(shown(f"{path}: {problem}"))
 
 
 class ScanWarning(UserWarning):

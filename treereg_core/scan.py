@@ -22,6 +22,7 @@ import numpy as np
 from .prepare.angular_step import StepEstimate, estimate_steps, grid_steps
 from .errors import ScanError
 from .params import ANGULAR_STEP_RANGE_DEG
+from .text import shown
 
 #: Fewer points than this cannot be registered meaningfully (and cannot estimate a grid).
 MIN_POINTS = 100
@@ -55,6 +56,10 @@ class Scan:
     step: StepEstimate | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
+        # A name comes from a file name or a file's header: kept as it is shown (one line, controls as
+        # escapes), so every output keyed or labelled by it - the CLI's lines, transforms.json, the app -
+        # says the same and none can forge a line or drive a terminal.
+        object.__setattr__(self, "name", shown(self.name))
         pts = np.ascontiguousarray(self.points, dtype=np.float64)
         if pts.ndim != 2 or pts.shape[1] != 3:
             raise ScanError(self.label, f"points must be an N x 3 array, got shape {pts.shape}")

@@ -15,6 +15,8 @@ file and the line; a tree whose files are missing is still a job, and fails on i
 from __future__ import annotations
 
 import csv
+import os
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -46,6 +48,12 @@ class TreeJob:
 #: folder (`io.transforms.export_names`) and the summary beside them. Never read back as scans.
 MATRIX_SUFFIXES = (".cloudcompare.txt", ".pdal.txt")
 SUMMARY_NAMES = ("summary.csv", "scans.csv", "report.html")
+
+#: The longest file or folder name (bytes) nearly every file system takes (NAME_MAX): a tree's folder.
+MAX_NAME_BYTES = 255
+#: Characters no tree folder is named with: NUL cannot be in a path at all, the other controls would
+#: break the lines that name the tree.
+_CONTROL = re.compile("[\x00-\x1f\x7f]")
 
 
 def find_jobs(source: str | Path) -> list[TreeJob]:
@@ -126,8 +134,12 @@ def read_manifest(path: Path) -> list[TreeJob]:
         where = f"{path}, line {lineno}"
         cell = {h: (row[i].strip() if i < len(row) else "") for h, i in col.items()}
         name = cell["tree"]
-        if not name or "/" in name or "\\" in name or name in (".", ".."):
+        if not name or "/" in name or "\\" in name or name in (".", "..") or _CONTROL.search(name):
             raise ConfigError(f"{where}: the tree name {name!r} cannot name a folder")
+        size = len(os.fsencode(name))
+        if size > MAX_NAME_BYTES:
+            raise ConfigError(f"{where}: the tree name {name[:40]!r}... is {size} bytes long; it names the tree's "
+                              f"folder, which can have at most {MAX_NAME_BYTES}")
         if name in seen:
             raise ConfigError(f"{where}: tree {name!r} is listed twice")
         seen.add(name)

@@ -8,6 +8,7 @@ import base64
 import csv
 import html
 import io
+import re
 from pathlib import Path
 
 from ..io.atomic import write_text_atomic
@@ -43,11 +44,25 @@ def tree_row(o: TreeOutcome) -> dict[str, str]:
     }
 
 
+#: What a spreadsheet takes for the start of a formula (OWASP, CSV injection): a tree or scan name
+#: such as `=HYPERLINK(...)` would run as one when the summary is opened.
+_FORMULA_START = ("=", "+", "-", "@", "\t", "\r")
+_NUMBER = re.compile(r"[-+]?\d+(\.\d*)?([eE][-+]?\d+)?")
+
+
+def csv_cell(text: str) -> str:
+    """`text` as a CSV cell no spreadsheet runs: a cell starting as a formula does is prefixed with
+    a single quote (OWASP), unless it is a plain number (ours: a negative error stays a number)."""
+    if text.startswith(_FORMULA_START) and not _NUMBER.fullmatch(text):
+        return "'" + text
+    return text
+
+
 def _csv(columns: tuple[str, ...], rows: list[dict[str, str]]) -> str:
     buf = io.StringIO()
     w = csv.DictWriter(buf, fieldnames=columns, lineterminator="\n")
     w.writeheader()
-    w.writerows(rows)
+    w.writerows({k: csv_cell(v) for k, v in row.items()} for row in rows)
     return buf.getvalue()
 
 

@@ -12,6 +12,8 @@ atomically (a temporary file beside the target, renamed over it only when comple
 - `batch()` groups several writes (a case folder, a set of exports): every file is written to its
   temporary first, and only when all succeeded are they renamed, with Ctrl-C held off for those
   few microseconds. An interrupted or failed batch leaves every previous file as it was.
+- `remove_atomic` removes a file of ours that a new result makes stale, with the batch: only when
+  every write of the batch succeeded, right after its renames.
 - `check_distinct` refuses, before anything is read, an output that is one of the inputs (the same
   file, also through a symbolic or hard link) or two outputs that are one file.
 - Temporaries are named `.<target>.treereg<pid>.<random>.tmp`. A process killed mid-write (SIGKILL,
@@ -130,6 +132,12 @@ def _identity(path: str | Path) -> tuple:
     return ("inode", st.st_dev, st.st_ino)
 
 
+def is_one_of(path: str | Path, files: Iterable[str | Path]) -> bool:
+    """`path` is one of `files` (the same file, also through a symbolic or hard link)."""
+    key = _identity(path)
+    return any(_identity(f) == key for f in files)
+
+
 def check_distinct(outputs: Sequence[tuple[str, str | Path]], inputs: Iterable[str | Path] = (),
                    advice: str = "choose another name") -> None:
     """No output is an input and no two outputs are one file; else `OutputError` naming the output.
@@ -203,6 +211,7 @@ def remove_stale_temporaries(folder: str | Path) -> list[Path]:
 class _Batch:
     def __init__(self) -> None:
         self.pending: list[tuple[Path, Path]] = []  # (temporary, target)
+        self.removals: list[Path] = []  # stale files of ours, removed with the renames
 
 
 @contextlib.contextmanager
@@ -225,6 +234,8 @@ def batch() -> Iterator[None]:
     with _interrupts_held():
         for tmp, target in b.pending:
             os.replace(tmp, target)
+        for target in b.removals:
+            _unlink(target)
 
 
 @contextlib.contextmanager
@@ -279,6 +290,34 @@ def write_atomic(path: str | Path, write: Callable[[Path], None]) -> Path:
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+    return path
+
+
+def _unlink(path: Path) -> None:
+    try:
+        path.unlink(missing_ok=True)
+    except OSError as e:
+        raise OutputError(str(path), f"could not be removed ({_reason(e)})") from None
+
+
+def remove_atomic(path: str | Path) -> Path | None:
+    """Remove `path`, a file of ours a new result makes stale: inside `batch()` together with the
+    batch's renames (a failed or interrupted batch removes nothing), else now. Only a regular file
+    is removed, never a symbolic link (a link the user made is theirs), folder or other kind; its
+    folder must let us (`check_output_file`). Returns `path` when there was a file to remove."""
+    path = Path(path)
+    try:
+        st = os.lstat(path)
+    except OSError:  # nothing there (or nothing we can see): nothing to remove
+        return None
+    if not stat.S_ISREG(st.st_mode):
+        return None
+    check_output_file(path)  # read-only or in a folder we cannot write: said now, before any rename
+    b = getattr(_local, "batch", None)
+    if b is not None:
+        b.removals.append(path)
+    else:
+        _unlink(path)
     return path
 
 

@@ -8,7 +8,8 @@ scanners export - are named by the shortest folder suffix that tells each apart 
 multi-scan file by its file too (`north.e57#Station 1`, as its `Scan.source` reads). Names that do
 not clash are kept as they are.
 
-A name may hold "/": a file named after a scan takes `file_stem(name)`, never the name itself.
+A name may hold "/": a file named after a scan takes `file_stem(name)`, never the name itself. A
+name is given as `text.shown` shows it (a newline in a file name as `\\n`), as `Scan.name` keeps it.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from pathlib import Path, PurePath
 from typing import Sequence
 
 from ..errors import ConfigError
+from ..text import shown
 from .scans import READ_EXTENSIONS
 
 #: Characters a file name cannot hold on some system (separators, Windows' reserved, controls).
@@ -62,17 +64,18 @@ class _Where:
     def __init__(self, file: str | Path, name: str) -> None:
         self.given = str(file)
         self.parts = PurePath(os.path.abspath(file)).parts
-        self.inner = None if name == Path(file).name else name
+        self.inner = None if shown(name) == shown(Path(file).name) else name  # a Scan's name is already shown
         self.identity = (self.parts, self.inner)
         self.depth_max = len(self.parts) + (self.inner is not None)  # the whole path: deeper adds nothing
 
     def name(self, depth: int) -> str:
-        """The name from the last `depth` components (file and folders; the name inside the file is one)."""
+        """The name from the last `depth` components (file and folders; the name inside the file is
+        one), as it is shown: clashes are judged on what a reader sees."""
         if self.inner is None:
-            return PurePath(*self.parts[-depth:]).as_posix()
+            return shown(PurePath(*self.parts[-depth:]).as_posix())
         if depth == 1:
-            return self.inner
-        return f"{PurePath(*self.parts[-(depth - 1):]).as_posix()}#{self.inner}"
+            return shown(self.inner)
+        return shown(f"{PurePath(*self.parts[-(depth - 1):]).as_posix()}#{self.inner}")
 
 
 def file_safe(name: str) -> str:

@@ -293,13 +293,45 @@ def export_paths(out_dir: str | Path, names: Sequence[str], name: str = DEFAULT_
     return paths
 
 
-def write_exports(out_dir: str | Path, tf: TransformFile, name: str = DEFAULT_NAME) -> list[Path]:
+def refused_names(tf: TransformFile) -> list[str]:
+    """The scans of a registration that `tf` gives no transform: its unverified best guesses (unless
+    kept) and the scans it could not register."""
+    listed = [*(tf.extra.get("unverified") or {}), *(tf.extra.get("unregistered") or {})]
+    return [n for n in dict.fromkeys(listed) if n not in tf.transforms and n != tf.reference]
+
+
+def stale_exports(out_dir: str | Path, tf: TransformFile, name: str = DEFAULT_NAME,
+                  inputs: Sequence[str | Path] = ()) -> list[Path]:
+    """The matrix files in `out_dir` that an earlier export under `name` wrote for scans `tf` now
+    refuses (`refused_names`): left there, they would read as results beside a transform file that
+    says otherwise. Only the exact names `export_names` gives those scans (with every scan of the
+    run, or with the placed ones and that scan: the sets an earlier run may have exported), never
+    one written now nor one of `inputs`; only regular files that exist."""
+    refused = refused_names(tf)
+    placed = set(export_paths(out_dir, tf.names, name))
+    out = Path(out_dir)
+    found: list[Path] = []
+    for scan in refused:
+        for names in ([*tf.names, *refused], [*tf.names, scan]):
+            for file in export_names(names, name)[scan]:
+                p = out / file
+                # A link there was made by the user, not written by us (we write through links).
+                if (p not in placed and p not in found and p.is_file() and not p.is_symlink()
+                        and not atomic.is_one_of(p, inputs)):
+                    found.append(p)
+    return found
+
+
+def write_exports(out_dir: str | Path, tf: TransformFile, name: str = DEFAULT_NAME,
+                  inputs: Sequence[str | Path] = ()) -> list[Path]:
     """Write `name` (transforms.json) and, per scan, its CloudCompare and PDAL matrix files
-    (`export_names`: e.g. `transforms.scan2.cloudcompare.txt`) into `out_dir`.
+    (`export_names`: e.g. `transforms.scan2.cloudcompare.txt`) into `out_dir`, and remove the
+    matrix files an earlier export left for scans `tf` now refuses (`stale_exports`; never one of
+    `inputs`).
 
     The reference gets its (identity) files too, so every scan can be treated the same way.
-    The files are written as one batch: all of them or, on an error or Ctrl-C, none replace
-    what was there. Returns the written paths (`export_paths`), transforms.json first.
+    The files are written as one batch: all of them (and the removals) or, on an error or Ctrl-C,
+    none replace what was there. Returns the written paths (`export_paths`), transforms.json first.
     """
     paths = export_paths(out_dir, tf.names, name)
     with atomic.batch():
@@ -308,6 +340,8 @@ def write_exports(out_dir: str | Path, tf: TransformFile, name: str = DEFAULT_NA
             T = tf.matrix(scan)
             write_text_atomic(cc, cloudcompare_matrix_text(T))
             write_text_atomic(pdal, pdal_matrix_string(T) + "\n")
+        for stale in stale_exports(out_dir, tf, name, inputs):
+            atomic.remove_atomic(stale)
     return paths
 
 

@@ -9,16 +9,12 @@ from __future__ import annotations
 
 from .controller import Snapshot
 from .labels import verdict_badge
+from .text import md
 
 #: Errors against truth beyond these mean the registration failed (the fine stage aims at
 #: well under 0.5 deg and 3 cm).
 TRUTH_ROT_DEG = 1.0
 TRUTH_DISP_M = 0.05
-
-
-def _pair(snap: Snapshot, k: int) -> str:
-    i, j = snap.pairs[k].ref, snap.pairs[k].tgt
-    return f"{snap.scans[j].name} → {snap.scans[i].name}"
 
 
 def truth_rows(snap: Snapshot, names_only: bool = False) -> list[tuple[str, str, float, float, bool]]:
@@ -37,8 +33,8 @@ def truth_rows(snap: Snapshot, names_only: bool = False) -> list[tuple[str, str,
             if ev.rotation_error_deg is None or ev.mean_displacement_m is None:
                 continue
             rot, disp = float(ev.rotation_error_deg), float(ev.mean_displacement_m)
-            p = snap.pairs[k]
-            who = snap.scans[p.tgt].name if names_only and p.ref == 0 else _pair(snap, k)
+            p = snap.pair(k)
+            who = p.tgt_scan.name if names_only and p.ref == 0 else p.label
             rows.append((who, label, rot, disp, rot <= TRUTH_ROT_DEG and disp <= TRUTH_DISP_M))
     graph = snap.output("graph")
     for i, pl in enumerate(graph.items if graph is not None else ()):
@@ -74,10 +70,11 @@ def verdict_warnings(snap: Snapshot) -> list[str]:
 
 def stage_warnings(snap: Snapshot) -> dict[str, list[str]]:
     """Warnings by pipeline stage ("evaluation"), for the pairs that have results, each line with its
-    mark: ✗ a registration far from the truth; a verdict's own (⚠ unverified, ✗ failed)."""
+    mark: ✗ a registration far from the truth; a verdict's own (⚠ unverified, ✗ failed). Markdown,
+    the names and reasons in it escaped."""
     found = {}
     if snap.output("evaluation") is not None and (w := truth_warnings(snap)):
-        found["evaluation"] = [f"**✗** {line}" for line in w]
+        found["evaluation"] = [f"**✗** {md(line)}" for line in w]
     if w := verdict_warnings(snap):
-        found["graph"] = w
+        found["graph"] = [md(line) for line in w]
     return found

@@ -17,6 +17,7 @@ from . import export
 from .actions import AppActions
 from .checks import stage_warnings
 from .presets import ABOUT_SHORT, preset_note
+from .text import md
 from .uploads import discard
 
 #: A parameter file is a few kB.
@@ -29,7 +30,7 @@ class ExportPanel:
     def __init__(self, gui: viser.GuiApi, app: AppActions) -> None:
         self.app = app
         with gui.add_folder("Export"):
-            where = f" They are also written to `{app.out_dir}`." if app.out_dir else ""
+            where = f" They are also written to {md(app.out_dir)}." if app.out_dir else ""
             gui.add_markdown(
                 "The transforms `T_ref_scan` of the latest run: each scan's final placement (*11 Placement*: all scans solved together from the verified fine registrations; only coarse if that is all that ran), with the "
                 "parameters used; CloudCompare matrix text per scan; the PDAL matrix string; the merged "
@@ -77,10 +78,10 @@ class ExportPanel:
             # An export never replaces a loaded scan (merged.ply in the --out folder): not written, still downloaded.
             clash = export.input_clash(bundle, self.app.out_dir, loaded) if self.app.out_dir is not None else None
             if clash:
-                written = f" **⚠ Not written to `{self.app.out_dir}`:** {clash}; the download has every file."
+                written = f" ⚠ Not written to {self.app.out_dir}: {clash}; the download has every file."
             elif self.app.out_dir is not None:
                 paths = export.write_bundle(bundle, self.app.out_dir, loaded)
-                written = f" Written to `{self.app.out_dir}` ({len(paths)} files)."
+                written = f" Written to {self.app.out_dir} ({len(paths)} files)."
         except (export.ExportError, ConfigError, ScanError, OutputError, OSError) as e:
             self._failed(str(e))
             return
@@ -101,14 +102,14 @@ class ExportPanel:
         what = (f"Exported the transforms of {len(bundle.transforms)} scans"
                 + (f", {len(kept)} of them unverified best guesses ({', '.join(kept)})" if kept else "") + ".")
         if left_out:
-            what += (f" **Not exported: {', '.join(left_out)}** (not verified; see the Placement stage) — tick "
+            what += (f" Not exported: {', '.join(left_out)} (not verified; see the Placement stage) — tick "
                      "\"Include unverified best guesses\" to export them anyway.")
-        self.export_md.content = f"{what}{written}{caution}"
-        # The message at the top says so too: it replaces an "Export failed" from before.
+        # Plain text for the message at the top (it replaces an "Export failed" from before), escaped here.
+        self.export_md.content = f"{md(what + written)}{caution}"
         self.app.controller.note(f"{what}{written}", error=bool(clash))
 
     def _failed(self, why: str) -> None:
-        self.export_md.content = f"**⚠ Export failed:** {why}"
+        self.export_md.content = f"**⚠ Export failed:** {md(why)}"
         self.app.controller.note(f"Export failed: {why}", error=True)
 
     def _download_params(self, client: Any) -> None:

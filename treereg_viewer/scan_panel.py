@@ -11,6 +11,7 @@ from treereg_core.limits import format_bytes
 from .actions import AppActions
 from .controller import Snapshot
 from .palette import scan_color
+from .text import md
 
 #: File types treereg_core.io reads (the upload dialog's filter is only a hint: anything may come).
 SCAN_SUFFIXES = ".ply,.las,.laz,.xyz,.txt,.csv,.npy,.npz"
@@ -35,9 +36,11 @@ class ScanPanel:
         self._names: tuple[str, ...] = ()
         self.upload = gui.add_upload_button("Add a scan file", icon=viser.Icon.UPLOAD, mime_type="*/*",
                                             hint=f"Appends a scan ({SCAN_SUFFIXES}, up to "
-                                                 f"{format_bytes(app.max_upload_bytes)}); the first scan stays the reference.")
+                                                 f"{format_bytes(app.max_upload_bytes)} and {app.max_upload_points:,} "
+                                                 "points); the first scan stays the reference.")
         # Streamed to a temporary file on the server (see uploads.py), then read by the worker.
-        app.uploads.add(self.upload, app.controller.add_scan_file, app.max_upload_bytes, what="scan file")
+        app.uploads.add(self.upload, app.controller.add_scan_file, app.max_upload_bytes, what="scan file",
+                        max_points=app.max_upload_points)
         self.receiving = gui.add_markdown("")
         gui.add_markdown("Uploaded scans are registered onto scan 1. A file that cannot be read is "
                          "reported above and changes nothing.")
@@ -48,7 +51,7 @@ class ScanPanel:
 
     def show_receiving(self, text: str) -> None:
         """What is being uploaded, and how far (every tab sees it); "" when nothing is."""
-        self.receiving.content = f"*{text}*" if text else ""
+        self.receiving.content = f"*{md(text)}*" if text else ""
 
     def _remove(self) -> None:
         name = self.remove_choice.value

@@ -22,6 +22,7 @@ from .labels import VERDICT_MARKS
 from .param_widgets import SectionWidgets
 from .stages import STAGE_NAMES, by_label, label, stage_of
 from .stages.base import StageControls, TargetControl
+from .text import md
 from .view_state import ViewState
 
 C = TypeVar("C", bound=StageControls)
@@ -46,7 +47,7 @@ def verdict_line(snap: Snapshot) -> str:
     graph = snap.output("graph")
     if graph is None or len(graph.items) != len(snap.scans):
         return ""
-    return "\n\n**Scans:** " + " · ".join(f"{VERDICT_MARKS.get(pl.verdict, '?')} {i + 1} {s.name}"
+    return "\n\n**Scans:** " + " · ".join(f"{VERDICT_MARKS.get(pl.verdict, '?')} {i + 1} {md(s.name)}"
                                            for i, (s, pl) in enumerate(zip(snap.scans, graph.items)))
 
 
@@ -165,12 +166,12 @@ class StagePanel:
         self.run_button.disabled = snap.busy
         lines = []
         if snap.message:
-            lines.append(f"**⚠ {snap.message}**" if snap.error else snap.message)
+            lines.append(f"**⚠ {md(snap.message)}**" if snap.error else md(snap.message))
         elif not snap.busy:
             failed = [s for s in STAGE_NAMES if snap.status(s) == "failed"]
             if failed:
                 why = snap.crashed.get(failed[0]) or snap.outputs[failed[0]].message
-                lines.append(f"**⚠ {label(failed[0])} failed:** {why}")
+                lines.append(f"**⚠ {label(failed[0])} failed:** {md(why)}")
         lines += [w for ws in warned.values() for w in ws]  # each with its mark (`checks.stage_warnings`)
         self.message_md.content = "\n\n".join(lines)
         if not snap.busy:
@@ -194,7 +195,7 @@ class StagePanel:
 
     def show_progress(self, fraction: float, text: str) -> None:
         self.progress.value = float(min(max(fraction, 0.0), 1.0) * 100.0)
-        self.progress_text.content = f"*{text}*" if text else ""
+        self.progress_text.content = f"*{md(text)}*" if text else ""
 
     def flush_edits(self) -> None:
         """Apply parameter values still being typed (Run, an export: they must see what the user typed)."""

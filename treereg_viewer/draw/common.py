@@ -9,10 +9,17 @@ import numpy as np
 import viser
 import viser.transforms as vtf
 
+from treereg_core.coarse.estimate import CoarseResult
+from treereg_core.evaluate.icp import IcpResult
+from treereg_core.fine.pose import FineResult
 from treereg_core.results import Metric
+from treereg_core.verify.evidence import PairVerification
+from treereg_core.verify.graph import Placement
+from treereg_core.verify.hypotheses import HypothesesResult
 
 from ..controller import Snapshot
 from ..labels import STAGE_NAMES, label, verdict_badge
+from ..text import md
 from ..view_panel import PanelContent
 from ..view_state import ViewState
 
@@ -20,6 +27,9 @@ from ..view_state import ViewState
 Handles = list[viser.SceneNodeHandle]
 #: What a stage's renderer returns: its scene nodes and the docked panel's content.
 Drawing = tuple[Handles, PanelContent]
+#: The stages whose pair items place the target (`T_ref_target`), and their result types.
+POSED_BY: dict[str, type[CoarseResult | HypothesesResult | FineResult | IcpResult]] = {
+    "coarse": CoarseResult, "hypotheses": HypothesesResult, "fine": FineResult, "icp": IcpResult}
 
 
 def display_subset(n: int, max_points: int, seed: int = 0) -> np.ndarray:
@@ -39,17 +49,20 @@ def pose_kwargs(T: np.ndarray) -> dict[str, np.ndarray]:
 #: Where a long word may wrap in a narrow table column: after a '/', '_' or '.' followed by a letter
 #: (a scan named by its folder, "a/scan1.ply"; a parameter, "verify.min_consistency"), never inside
 #: a tag ("</small>": no letter before its '/').
-_BREAK_AFTER = re.compile(r"(?<=\w)([/_.])(?=[A-Za-z])")
+_BREAK_AFTER = re.compile(r"(?<=\w)(\\?[/_.])(?=[A-Za-z])")
 
 
 def breakable(text: str) -> str:
-    """`text` whose long words may wrap after their '/', '_' and '.' (an HTML <wbr>: nothing is
-    added to the text a person copies)."""
+    """`text` whose long words may wrap after their '/', '_' and '.', escaped (`md`) or not (an HTML
+    <wbr>: nothing is added to the text a person copies)."""
     return _BREAK_AFTER.sub("\\1<wbr>", text)
 
 
 def md_table(header: tuple[str, ...], rows: list[tuple[Any, ...]]) -> str:
-    """A markdown table; cells are str()-ed, '|' escaped, long words breakable (`breakable`)."""
+    """A markdown table; cells are str()-ed, '|' escaped, long words breakable (`breakable`).
+
+    A cell is markdown: text from outside in it (a scan name, a message) is escaped by the caller
+    (`md`); `metrics_table` and `names_cell` do it for theirs."""
     if not rows:
         return ""
 
@@ -79,7 +92,7 @@ def metric_text(m: Metric) -> str:
 def metrics_table(columns: dict[str, Iterable[Metric]]) -> str:
     """Metric rows side by side: one column per label (e.g. per target scan), one row per metric;
     at most COLUMNS_PER_TABLE columns per table."""
-    cols = {k: {m.description: metric_text(m) for m in v} for k, v in columns.items()}
+    cols = {md(k): {md(m.description): md(metric_text(m)) for m in v} for k, v in columns.items()}
     names: list[str] = []
     for c in cols.values():
         names += [n for n in c if n not in names]
@@ -108,15 +121,14 @@ def title(name: str, snap: Snapshot | None = None, t: int | None = None) -> str:
     # A verdict is the Verify stage's: shown from there on (an earlier stage's view is not redrawn
     # when a later stage re-runs, so a badge there could be stale).
     badges = pair_badges(snap, t) if STAGE_NAMES.index(name) >= STAGE_NAMES.index("verify") else ""
-    return f"{head}: {pair_label(snap, t)}" + (f" {badges}" if badges else "")
+    return f"{head}: {md(pair_label(snap, t))}" + (f" {badges}" if badges else "")
 
 
 def pair_badges(snap: Snapshot, t: int) -> str:
     """The mark after a pair's name in a heading: its verdict ("[✓ verified]"), once the Verify stage
     has judged it; empty before."""
-    out = snap.output("verify")
-    verdict = getattr(out.items[t], "verdict", None) if out is not None and t < len(out.items) else None
-    return f"[{verdict_badge(str(verdict))}]" if verdict else ""
+    v = snap.pair(t).item("verify", PairVerification)
+    return f"[{verdict_badge(v.verdict)}]" if v is not None and v.verdict else ""
 
 
 def plural(n: int, word: str, many: str | None = None) -> str:
@@ -124,18 +136,9 @@ def plural(n: int, word: str, many: str | None = None) -> str:
     return f"{n} {word if n == 1 else (many or word + 's')}"
 
 
-def pair_scans(snap: Snapshot, k: int) -> tuple[int, int]:
-    """(reference, target) scan indices of pair k: the pipeline's pairs, the reference's first
-    (pair k < n - 1 is scan k + 1 onto scan 1)."""
-    if k < len(snap.pairs):
-        return snap.pairs[k].ref, snap.pairs[k].tgt
-    return 0, k + 1
-
-
 def pair_label(snap: Snapshot, k: int) -> str:
-    """'scan2 → scan1' for pair k."""
-    i, j = pair_scans(snap, k)
-    return f"{snap.scans[j].name} → {snap.scans[i].name}"
+    """'scan2 → scan1' for pair k (`SnapshotPair.label`)."""
+    return snap.pair(k).label
 
 
 def not_ready_text(snap: Snapshot, name: str) -> str:
@@ -146,10 +149,10 @@ def not_ready_text(snap: Snapshot, name: str) -> str:
     if len(snap.scans) < 2:
         return "*Registration needs at least two scans: upload another scan (Scans tab).*"
     for s, why in snap.crashed.items():
-        return f"**{label(s)} failed:** {why}\n\nLater stages are stale until it succeeds."
+        return f"**{label(s)} failed:** {md(why)}\n\nLater stages are stale until it succeeds."
     for s, out in snap.outputs.items():
         if not out.ok:
-            return f"**{label(s)} failed:** {out.message}\n\nLater stages are stale until it succeeds."
+            return f"**{label(s)} failed:** {md(out.message)}\n\nLater stages are stale until it succeeds."
     return f"*{label(name)} has not run for the current scans and parameters: press **Run**.*"
 
 
@@ -157,23 +160,23 @@ def item_message(item: Any) -> str:
     """A failed item's message, as a line for the panel (empty when ok)."""
     if getattr(item, "ok", True):
         return ""
-    return f"**Failed:** {getattr(item, 'message', '')}"
+    return f"**Failed:** {md(getattr(item, 'message', ''))}"
 
 
 def target_pose(snap: Snapshot, pose: str | None, k: int) -> np.ndarray | None:
     """Pair `k`'s transform for a view's `pose` ("coarse", "hypothesis", "fine", "icp", "final"),
     falling back to the best earlier one that succeeded; None before registration or when none did.
-    "final" is the joint placement of scan k + 1 (the graph stage), k being its pair with the reference."""
-    if pose == "final":
-        graph = snap.output("graph")
-        item = graph.items[k + 1] if graph is not None and k + 1 < len(graph.items) else None
-        if item is not None and item.T_ref_scan is not None:
-            return np.asarray(item.T_ref_scan, dtype=np.float64)
+    "final" is the joint placement of the pair's target (the graph stage) when the pair is with the
+    reference (a placement maps onto the reference, not onto another target)."""
+    pair = snap.pair(k)
+    if pose == "final" and pair.ref == 0:
+        placed = pair.scan_items("graph", Placement)[1]
+        if placed is not None and placed.T_ref_scan is not None:
+            return np.asarray(placed.T_ref_scan, dtype=np.float64)
     order = {"coarse": ("coarse",), "hypothesis": ("hypotheses", "coarse"), "fine": ("fine", "hypotheses", "coarse"),
              "icp": ("icp", "fine", "coarse"), "final": ("fine", "hypotheses", "coarse")}.get(pose or "", ())
     for name in order:
-        out = snap.output(name)
-        item = out.items[k] if out is not None and k < len(out.items) else None
+        item = pair.item(name, POSED_BY[name])
         if item is not None and item.ok and getattr(item, "ran", True):
             return np.asarray(item.T_ref_target, dtype=np.float64)
     return None

@@ -25,6 +25,7 @@ from treereg_core.evaluate.cross_section import CrossSection, ScanCut
 from ..controller import Snapshot
 from ..palette import CATEGORICAL, GREY, hex_color, scan_color
 from ..view_panel import PanelContent
+from ..text import html, md, md_sentence
 from ..view_state import ViewState
 from .common import md_table, plural
 from .fits import within
@@ -132,8 +133,8 @@ def top_view_figure(cs: CrossSection, snap: Snapshot, layers: list[int], show_re
                 first = sc.scan not in shown_names
                 shown_names.add(sc.scan)
                 traces.append(dict(type="scattergl", x=uv[:, 0], y=uv[:, 1], mode="markers", xaxis=xa, yaxis=ya,
-                                   name=f"{sc.index + 1}: {sc.scan}", legendgroup=sc.scan, showlegend=first,
-                                   marker=dict(size=3, color=color), hovertemplate=f"{sc.scan}<extra></extra>"))
+                                   name=html(f"{sc.index + 1}: {sc.scan}"), legendgroup=sc.scan, showlegend=first,
+                                   marker=dict(size=3, color=color), hovertemplate=f"{html(sc.scan)}<extra></extra>"))
                 for k, s in enumerate(sc.sections):
                     if not drawable(cs, box, sc, k) or not (s.plausible or show_rejected):
                         continue
@@ -147,7 +148,7 @@ def top_view_figure(cs: CrossSection, snap: Snapshot, layers: list[int], show_re
                         traces.append(dict(type="scatter", x=[cu], y=[cv], mode="markers", xaxis=xa, yaxis=ya,
                                            legendgroup=sc.scan, showlegend=False,
                                            marker=dict(symbol="x-thin", size=11, color=color, line=dict(width=2, color=color)),
-                                           hovertemplate=f"{sc.scan}: centre, r = {s.radius_m * 100:.1f} cm<extra></extra>"))
+                                           hovertemplate=f"{html(sc.scan)}: centre, r = {s.radius_m * 100:.1f} cm<extra></extra>"))
             ax, ay = _axis(layout, xa), _axis(layout, ya)
             ax.update(range=[-half * f, half * f], zeroline=False, showgrid=True, gridcolor="#e8e8e8",
                       title=dict(text=f"x ({unit})") if r == rows - 1 else None)
@@ -181,7 +182,7 @@ def ring_figure(cs: CrossSection, layer: int) -> go.Figure | None:
             top = max(top, float(np.percentile(np.abs(d), 98)))
             traces.append(dict(type="scattergl", x=a, y=d * 1000.0, mode="markers", xaxis=xa, yaxis=ya, showlegend=False,
                                marker=dict(size=3, color=hex_color(scan_color(sc.index))),
-                               hovertemplate=f"{sc.scan}: %{{y:.1f}} mm<extra></extra>"))
+                               hovertemplate=f"{html(sc.scan)}: %{{y:.1f}} mm<extra></extra>"))
         _axis(layout, xa).update(range=[-180, 180], tickvals=[-180, -90, 0, 90, 180],
                                  title=dict(text="angle around scan 1's centre (°)") if c == (len(profiles) - 1) // 2 else None)
     lim = max(10.0, min(top * 1000.0 * 1.2, 100.0))
@@ -203,7 +204,7 @@ def raster_figure(cs: CrossSection, pose: str, layer: int) -> go.Figure | None:
     cuts = [sc for sc in pc.layers[layer].scans if len(sc.cells)]
     if not cuts:
         return None
-    layout, cells = _grid(1, len(cuts), [f"{sc.index + 1}: {sc.scan} · {plural(sc.n_arcs, 'arc')}" for sc in cuts],
+    layout, cells = _grid(1, len(cuts), [html(f"{sc.index + 1}: {sc.scan} · {plural(sc.n_arcs, 'arc')}") for sc in cuts],
                           hgap=0.05)
     traces: list[dict] = []
     for c, sc in enumerate(cuts):
@@ -241,7 +242,8 @@ def check_rows(cs: CrossSection, layer: int) -> list[tuple[str, ...]]:
             k = _main(sc)
             if k is None:
                 why = sc.sections[0].reason if sc.sections else "no arc"
-                rows.append((POSE_TITLES.get(pc.pose, pc.pose), sc.scan, str(sc.n_arcs), "–", "–", f"no plausible fit ({why})", "–"))
+                rows.append((POSE_TITLES.get(pc.pose, pc.pose), md(sc.scan), str(sc.n_arcs), "–", "–",
+                             f"no plausible fit ({md(why)})", "–"))
                 continue
             s = sc.sections[k]
             check = "no part below found"
@@ -252,7 +254,7 @@ def check_rows(cs: CrossSection, layer: int) -> list[tuple[str, ...]]:
                     rb = below.sections[j].radius_m
                     check = (f"kept: ≤ {rb * 100:.1f} cm below" if s.plausible else f"**dropped**: > {rb * 100:.1f} cm below")
             off = offsets.get(sc.scan)
-            rows.append((POSE_TITLES.get(pc.pose, pc.pose), sc.scan, str(sc.n_arcs), f"{s.radius_m * 100:.1f}",
+            rows.append((POSE_TITLES.get(pc.pose, pc.pose), md(sc.scan), str(sc.n_arcs), f"{s.radius_m * 100:.1f}",
                          f"{s.fit.rms_m * 1000:.1f}", check,
                          "reference" if sc.index == 0 else ("–" if off is None else f"{off * 1000:.1f}")))
         # The 4.2 verdicts of sections that were dropped (not the main one, which is plausible by choice).
@@ -270,7 +272,7 @@ def verdict(cs: CrossSection, layer: int) -> str:
             continue
         worst = max(off.values())
         shape = "one ring" if worst <= RING_M else "separate arcs"
-        listed = ", ".join(f"{v * 1000:.1f} mm ({k})" for k, v in off.items())
+        listed = ", ".join(f"{v * 1000:.1f} mm ({md(k)})" for k, v in off.items())
         parts.append(f"**{name}: {shape}** — the targets' centres lie {listed} from scan 1's.")
     return " ".join(parts)
 
@@ -282,7 +284,7 @@ def render(snap: Snapshot, view: ViewState, cs: CrossSection | None, branch: Any
                 if snap.output("coarse") is None else "*No such branch for this pair: pick the stem or another branch.*")
         return PanelContent("Cross-section", text=text)
     if not cs.ok:
-        return PanelContent("Cross-section", text=f"{cs.message[0].upper()}{cs.message[1:]}.")
+        return PanelContent("Cross-section", text=md_sentence(cs.message))
     if branch is None:
         layers = [1]  # layer 0 is the part below, for the 4.2 check
         head = f"Cross-section at z = {cs.heights_m[1]:.2f} m"

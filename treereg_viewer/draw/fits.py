@@ -14,23 +14,30 @@ import numpy as np
 import trimesh
 import viser
 
+from treereg_core.fine.arcs import SliceArcs
+from treereg_core.fine.pose import FineResult
 from treereg_core.fine.sections import SectionsResult
 from treereg_core.fine.slicing import SliceResult
 from treereg_core.geometry.rigid import apply_transform
+from treereg_core.scan import Scan
 
-from ..controller import Snapshot
+from ..controller import Snapshot, SnapshotPair
 from ..palette import GREY, HIGHLIGHT, scan_color
 from ..view_state import ALL_SLICES, ViewState
+from ..text import md
 from .common import md_table, plural, target_index
 
 #: With every slice shown, the fits table lists at most this many rows (a slice at a time lists all).
 MAX_ROWS = 40
 
 
-def fine_scans(snap: Snapshot, t: int) -> tuple[Any, Any]:
-    """The prepared reference and target scans of pair `t` (what the fine stages index into)."""
-    prep = snap.output("prepare")
-    return prep.items[0].scan, prep.items[t + 1].scan
+def fine_scans(snap: Snapshot, t: int) -> tuple[Scan, Scan]:
+    """The prepared reference and target scans of pair `t` (what the fine stages index into). The
+    fine stages' items exist only for pairs whose scans were prepared: anything else is a bug."""
+    scans = snap.pair(t).prepared()
+    if scans is None:
+        raise ValueError(f"{snap.pair(t).label}: its scans were not prepared")
+    return scans
 
 
 @dataclass(frozen=True)
@@ -59,16 +66,15 @@ def _box(points: np.ndarray) -> tuple[tuple[float, float], tuple[float, float]]:
 def busiest_slice(snap: Snapshot, t: int) -> int:
     """The slice of pair `t` with the most fitted sections of both scans (the most to look at; the
     arcs' count before the Fits stage has run, else the lowest slice)."""
-    sec = snap.output("sections")
-    item = sec.items[t] if sec is not None and t < len(sec.items) else None
+    pair = snap.pair(t)
+    item = pair.item("sections", SectionsResult)
     counts: dict[int, int] = {}
-    if item is not None and hasattr(item, "ref"):
+    if item is not None:
         for s in (*item.ref.sections, *item.tgt.sections):
             if s.plausible:
                 counts[s.slice_index] = counts.get(s.slice_index, 0) + 1
-    arcs = snap.output("arcs")
-    a = arcs.items[t] if not counts and arcs is not None and t < len(arcs.items) else None
-    if a is not None and hasattr(a, "ref"):
+    a = pair.item("arcs", SliceArcs) if not counts else None
+    if a is not None:
         for k, (r, g) in enumerate(zip(a.ref, a.tgt)):
             counts[k] = r.n_arcs + g.n_arcs
     return max(counts, key=lambda k: (counts[k], -k)) if counts else 0
@@ -104,8 +110,9 @@ def fit_rows(snap: Snapshot, t: int, sl: SliceResult, sec: SectionsResult, ref: 
 
     rows: list[FitRow] = []
     hidden = 0
+    pair = snap.pair(t)
     for plausible in (True, False):
-        for secs, i in ((sec.ref.sections, 0), (sec.tgt.sections, t + 1)):
+        for secs, i in ((sec.ref.sections, pair.ref), (sec.tgt.sections, pair.tgt)):
             mine = (s for s in secs if s.plausible == plausible and only_slice in (None, s.slice_index))
             for s in sorted(mine, key=lambda s: (s.slice_index, -s.radius_m)):
                 if not (s.fit.ok and np.isfinite(s.radius_m) and np.isfinite(s.centre_m).all()):
@@ -118,19 +125,19 @@ def fit_rows(snap: Snapshot, t: int, sl: SliceResult, sec: SectionsResult, ref: 
     return rows, hidden
 
 
-def slice_points(scene: viser.SceneApi, root: str, t: int, sl: SliceResult, T: np.ndarray, ref: Any, tgt: Any,
-                  size: float, only_slice: int | None = None) -> list[Any]:
-    """Every slice's points of both scans (or slice `only_slice`'s) in the reference frame, in the
-    scans' colours."""
+def slice_points(scene: viser.SceneApi, root: str, pair: SnapshotPair, sl: SliceResult, T: np.ndarray, ref: Any,
+                 tgt: Any, size: float, only_slice: int | None = None) -> list[Any]:
+    """Every slice's points of both scans of `pair` (or slice `only_slice`'s) in the reference frame,
+    in the scans' colours."""
     handles: list[Any] = []
     for k in range(sl.n_slices) if only_slice is None else (only_slice,):
         r_idx, t_idx = sl.ref_indices[k], sl.tgt_indices[k]
         if len(r_idx):
-            handles.append(scene.add_point_cloud(f"{root}/ref{k}", ref.points[r_idx], scan_color(0), point_size=size,
+            handles.append(scene.add_point_cloud(f"{root}/ref{k}", ref.points[r_idx], scan_color(pair.ref), point_size=size,
                                                  point_shape="circle", precision="float32"))
         if len(t_idx):
             handles.append(scene.add_point_cloud(f"{root}/tgt{k}", apply_transform(T, tgt.points[t_idx]),
-                                                 scan_color(t + 1), point_size=size, point_shape="circle",
+                                                 scan_color(pair.tgt), point_size=size, point_shape="circle",
                                                  precision="float32"))
     return handles
 
@@ -186,10 +193,11 @@ def draw_sections(scene: viser.SceneApi, root: str, snap: Snapshot, t: int, sl: 
     only = slice_shown(snap, t, view, sl.n_slices)
     # The scans are hidden on these stages (points on a fitted surface would hide it): the fitted
     # slices' points stay as context.
-    handles: list[Any] = slice_points(scene, root, t, sl, sec.T_ref_target, ref, tgt, view.point_size, only)
+    pair = snap.pair(t)
+    handles: list[Any] = slice_points(scene, root, pair, sl, sec.T_ref_target, ref, tgt, view.point_size, only)
     rows, hidden = fit_rows(snap, t, sl, sec, ref, tgt, view.show_rejected, only)
     shown = [r for r in rows if drawable(r)]
-    for who, i in (("ref", 0), ("tgt", t + 1)):
+    for who, i in (("ref", pair.ref), ("tgt", pair.tgt)):
         good = [r.section for r in shown if r.scan_index == i and r.section.plausible]
         bad = [r.section for r in shown if r.scan_index == i and not r.section.plausible]
         handles += _sections_meshes(scene, f"{root}/{who}_fits", good, scan_color(i), thick, 0.55)
@@ -202,9 +210,9 @@ def draw_sections(scene: viser.SceneApi, root: str, snap: Snapshot, t: int, sl: 
         segs = np.stack([sec.tie_points_ref[ties], sec.tie_points_tgt[ties]], axis=1).astype(np.float32)
         handles.append(scene.add_line_segments(f"{root}/correspondences", segs, HIGHLIGHT, thickness=3.0,
                                                thickness_units="screen"))
-        handles.append(scene.add_point_cloud(f"{root}/ties_ref", np.asarray(sec.tie_points_ref)[ties], scan_color(0),
+        handles.append(scene.add_point_cloud(f"{root}/ties_ref", np.asarray(sec.tie_points_ref)[ties], scan_color(pair.ref),
                                              point_size=0.05, point_shape="circle", precision="float32"))
-        handles.append(scene.add_point_cloud(f"{root}/ties_tgt", np.asarray(sec.tie_points_tgt)[ties], scan_color(t + 1),
+        handles.append(scene.add_point_cloud(f"{root}/ties_tgt", np.asarray(sec.tie_points_tgt)[ties], scan_color(pair.tgt),
                                              point_size=0.05, point_shape="circle", precision="float32"))
     # A plausible fit counts only when a section of the other scan corresponds to it.
     pairs = np.asarray(sec.correspondences.pairs, dtype=np.int64).reshape(-1, 2)
@@ -213,7 +221,7 @@ def draw_sections(scene: viser.SceneApi, root: str, snap: Snapshot, t: int, sl: 
     listed = rows if only is not None else rows[:MAX_ROWS]
     for r in listed:
         s, fit = r.section, r.section.fit
-        verdict = (("yes" if id(s) in paired else "no partner") if s.plausible else f"no: {s.reason}")
+        verdict = (("yes" if id(s) in paired else "no partner") if s.plausible else f"no: {md(s.reason)}")
         if not drawable(r):
             verdict += " (larger than its slice: not drawn)"
         mark = "▶ " if focus is r else ""
@@ -259,12 +267,13 @@ def focus_rows(snap: Snapshot, stage: str, view: ViewState) -> list[FitRow]:
     if out is None or not out.items:
         return []
     t = target_index(snap, stage, view)
-    item = out.items[t]
+    pair = snap.pair(t)
     if stage == "sections":
-        sl, sec = snap.output("slices").items[t], item
+        sl, sec = pair.item("slices", SliceResult), pair.item("sections", SectionsResult)
     else:
-        sl, sec = getattr(item, "slices", None), getattr(item, "sections", None)
-    if not getattr(sl, "ok", False) or sec is None or not hasattr(sec, "ref"):
+        fine = pair.item("fine", FineResult)
+        sl, sec = (fine.slices, fine.sections) if fine is not None else (None, None)
+    if sl is None or not sl.ok or sec is None:
         return []
     ref, tgt = fine_scans(snap, t)
     return fit_rows(snap, t, sl, sec, ref, tgt, view.show_rejected, slice_shown(snap, t, view, sl.n_slices))[0]

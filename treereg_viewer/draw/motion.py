@@ -16,6 +16,7 @@ import numpy as np
 import plotly.graph_objects as go
 
 from ..palette import hex_color, scan_color
+from ..text import html, md
 
 
 def profile_figure(f: Any, ref_name: str, tgt_name: str, colour_index: int, tolerance_m: float) -> go.Figure | None:
@@ -23,6 +24,7 @@ def profile_figure(f: Any, ref_name: str, tgt_name: str, colour_index: int, tole
     prof = getattr(f, "profile", None)
     if prof is None or not prof.n:
         return None
+    ref_name, tgt_name = html(ref_name), html(tgt_name)  # plotly renders HTML in its title
     z = prof.heights_m - prof.base_z_m
     off = np.hypot(*prof.offsets_m.T) * 1000.0
     fig = go.Figure()
@@ -61,6 +63,7 @@ def motion_sentence(f: Any, ref_name: str, tgt_name: str, tolerance_m: float) ->
     prof = getattr(f, "profile", None)
     bend = getattr(f, "bend", None)
     stable = prof.stable_height_m(tolerance_m) if prof is not None and prof.n else float("nan")
+    ref_name, tgt_name = md(ref_name), md(tgt_name)
     if bend is None:
         if prof is None or not prof.n:
             return ""

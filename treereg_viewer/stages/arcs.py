@@ -14,10 +14,11 @@ from treereg_core.fine.slicing import SliceResult
 from treereg_core.geometry.rigid import apply_transform
 
 from ..controller import Snapshot
-from ..draw.common import Drawing, md_table, metrics_table, pair_label, pair_scans, target_index, target_pose, title
+from ..draw.common import Drawing, md_table, metrics_table, pair_label, target_index, target_pose, title
 from ..draw.fits import fine_scans, slice_label, slice_shown
 from ..palette import categorical
 from ..view_panel import PanelContent
+from ..text import md
 from ..view_state import ViewState
 from .base import AppStage, StageView, TargetControl, TourStep
 from .slices import SliceControl
@@ -36,7 +37,7 @@ def _arc_points(scene: viser.SceneApi, root: str, ar: SliceArcs, T: np.ndarray, 
                 row.append("")
                 continue
             a = arcs[k]
-            row.append(f"{a.n_arcs}" + ("" if a.ok else f" ({a.message})"))
+            row.append(f"{a.n_arcs}" + ("" if a.ok else f" ({md(a.message)})"))
             if len(a.indices) == 0 or not drawn:
                 continue
             pts = scan.points[a.indices]
@@ -52,8 +53,9 @@ def _arc_points(scene: viser.SceneApi, root: str, ar: SliceArcs, T: np.ndarray, 
 
 def render_arcs(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> Drawing:
     t = target_index(snap, "arcs", view)
-    ar: SliceArcs = snap.output("arcs").items[t]
-    sl: SliceResult = snap.output("slices").items[t]
+    pair = snap.pair(t)
+    ar, sl = pair.item("arcs", SliceArcs), pair.item("slices", SliceResult)
+    assert ar is not None and sl is not None, pair.label  # the drawer draws a pair that was not skipped
     ref, tgt = fine_scans(snap, t)
     only = slice_shown(snap, t, view, sl.n_slices)
     handles, counts = _arc_points(scene, root, ar, target_pose(snap, "hypothesis", t), ref, tgt, 2.0 * view.point_size,
@@ -67,8 +69,7 @@ def render_arcs(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewStat
             f"slice to slice, and no arc has a scan's colour); grey points belong to arcs smaller than "
             f"{snap.params.arcs.min_points} points (arcs.min_points). The target is at the pose the fine stage starts "
             "from (5 Hypotheses).")
-    i, j = pair_scans(snap, t)
-    table = md_table(("slice", "height (m)", f"arcs, scan {i + 1}", f"arcs, scan {j + 1}"), rows)
+    table = md_table(("slice", "height (m)", f"arcs, scan {pair.ref + 1}", f"arcs, scan {pair.tgt + 1}"), rows)
     table += "\n\n" + metrics_table({pair_label(snap, t): ar.metrics})
     return handles, PanelContent(title("arcs", snap, t), text=text, table=table)
 

@@ -20,6 +20,7 @@ from ..controller import Snapshot
 from ..draw.common import Drawing, item_message, metrics_table, pair_label, plural, target_index, title
 from ..palette import KEPT, REJECTED, hex_color
 from ..view_panel import PanelContent
+from ..text import md
 from ..view_state import ViewState
 from .base import AppStage, StageView, TargetControl, TourStep
 
@@ -55,12 +56,13 @@ def residual_figure(c: CoarseResult) -> go.Figure:
 def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> Drawing:
     out = snap.output("coarse")
     t = target_index(snap, "coarse", view)
-    c = out.items[t]
+    c = snap.pair(t).item("coarse", CoarseResult)
+    assert out is not None and c is not None, t  # the drawer draws a pair that was not skipped
     match = c.match
     handles: list[Any] = []
     plots = []
     text = item_message(c) or (
-        f"{pair_label(snap, t)}: {c.n_inliers} of {c.n_ties} tie points agree with the transform "
+        f"{md(pair_label(snap, t))}: {c.n_inliers} of {c.n_ties} tie points agree with the transform "
         f"(magenta lines in 3-D; outliers grey). Every target is shown at its coarse pose."
     )
     if c.ok and match is not None and match.n_ties and len(c.residuals_m) == match.n_ties:

@@ -17,12 +17,15 @@ import plotly.graph_objects as go
 import trimesh
 import viser
 
+from treereg_core.fine.pose import FineResult
+
 from ..checks import TRUTH_DISP_M, TRUTH_ROT_DEG, stage_warnings, truth_rows
 from ..controller import Snapshot
-from ..draw.common import Drawing, md_table, metrics_table, pair_label, pair_scans, target_index, title
+from ..draw.common import Drawing, md_table, metrics_table, pair_label, target_index, title
 from ..draw.motion import motion_sentence, profile_figure
 from ..palette import HIGHLIGHT, residual_legend, scan_color
 from ..view_panel import PanelContent
+from ..text import html, md
 from ..view_state import ViewState
 from .base import AppStage, ControlHost, StageControls, StageView, TargetControl, TourStep
 
@@ -55,7 +58,7 @@ def branch_figure(evs: dict[str, Any], target: str) -> go.Figure | None:
     # Legend under the axis title: above the plot it printed over the title.
     fig.update_layout(barmode="group", margin=dict(l=50, r=10, t=30, b=70),
                       legend=dict(orientation="h", x=0.5, xanchor="center", y=-0.3, yanchor="top"),
-                      title=dict(text=f"{target}: mean centre distance per branch (eq. 8)", font=dict(size=12)),
+                      title=dict(text=f"{html(target)}: mean centre distance per branch (eq. 8)", font=dict(size=12)),
                       xaxis_title="branch (bottom to top)", yaxis_title="d̄ (mm)", xaxis_type="category")
     return fig
 
@@ -117,7 +120,7 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
     if fine is not None:
         for k, f in enumerate(fine.items):
             if f.ok and not f.accepted and f.message:
-                notes.append(f"{pair_label(snap, k)}: {f.message}.")
+                notes.append(f"{md(pair_label(snap, k))}: {md(f.message)}.")
     if snap.truth:
         text += "Errors against truth come from the case's `truth.json`."
     else:
@@ -141,21 +144,22 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
             # Short headers: the verdict column must fit the panel without scrolling sideways.
             ("target", "regis&shy;tration", f"within {TRUTH_ROT_DEG:g}°, {TRUTH_DISP_M * 100:g} cm", "rotation (°)",
              "mean displace&shy;ment (mm)"),
-            [(pair, label, "yes" if good else "**no**", f"{rot:.3f}", f"{disp * 1000:.1f}")
+            [(md(pair), label, "yes" if good else "**no**", f"{rot:.3f}", f"{disp * 1000:.1f}")
              for pair, label, rot, disp, good in truth_rows(snap, names_only=True)])
     if notes:
         text += "\n\n" + "\n\n".join(notes)
     text += "".join(f"\n\n{w}" for w in stage_warnings(snap).get("evaluation", []))
     if not report.ok and report.message:
-        text += f"\n\n**Evaluation:** {report.message}"
+        text += f"\n\n**Evaluation:** {md(report.message)}"
     plots = []
-    fine_item = fine.items[t] if fine is not None and t < len(fine.items) else None
-    i, j = pair_scans(snap, t)
+    pair = snap.pair(t)
+    fine_item = pair.item("fine", FineResult)
+    ref_name, tgt_name = pair.ref_scan.name, pair.tgt_scan.name
     tol = snap.params.wind.stable_tolerance_m
-    motion = motion_sentence(fine_item, snap.scans[i].name, snap.scans[j].name, tol) if fine_item is not None else ""
-    if motion and getattr(fine_item, "bend", None) is not None:
+    motion = motion_sentence(fine_item, ref_name, tgt_name, tol) if fine_item is not None else ""
+    if motion and fine_item is not None and fine_item.bend is not None:
         text += "\n\n" + motion
-        prof_fig = profile_figure(fine_item, snap.scans[i].name, snap.scans[j].name, j, tol)
+        prof_fig = profile_figure(fine_item, ref_name, tgt_name, pair.tgt, tol)
         if prof_fig is not None:
             plots.append((prof_fig, 1.2))
     fig = branch_figure(evs, pair_label(snap, t))
@@ -172,7 +176,7 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
     if rows:
         table += "\n\n" + md_table(("regis&shy;tration", "branch", "height (m)", "r (cm)", "d₁…dₙ (mm)", "d̄ (mm)"), rows)
     shown = evs.get(method)
-    handles = branch_rings(scene, root, shown, scan_color(t + 1)) if shown is not None else []
+    handles = branch_rings(scene, root, shown, scan_color(pair.tgt)) if shown is not None else []
     return handles, PanelContent(title("evaluation", snap, t), text=text, images=tuple(images), plots=tuple(plots),
                                  table=table)
 

@@ -9,30 +9,35 @@ from typing import Any
 import numpy as np
 import viser
 
+from treereg_core.fine.pose import FineResult
+from treereg_core.fine.sections import SectionsResult
+from treereg_core.fine.slicing import SliceResult
 from treereg_core.geometry.rigid import apply_transform, invert
 
 from ..controller import Snapshot
-from ..draw.common import Drawing, metrics_table, pair_label, pair_scans, plural, target_index, title
+from ..draw.common import Drawing, metrics_table, pair_label, plural, target_index, title
 from ..draw.fits import draw_sections, fine_scans, slice_shown, tie_mask
 from ..palette import OFFSET
 from ..draw.motion import motion_sentence, profile_figure
 from ..view_panel import PanelContent
+from ..text import md, md_sentence
 from ..view_state import ViewState
 from .slices import SliceControl
 from .base import AppStage, StageView, TargetControl, TourStep
 from .sections import FitControls
 
 
-def fine_status(snap: Snapshot, t: int, f: Any) -> str:
+def fine_status(snap: Snapshot, t: int, f: FineResult) -> str:
     """One sentence: was the fine update kept, after how many iterations, and why not."""
     n = f.iterations
+    pair = md(pair_label(snap, t))
     if f.accepted:
-        text = (f"{pair_label(snap, t)}: the fine update was **kept** after {plural(n, 'iteration')}." if n else
-                f"{pair_label(snap, t)}: the fine update was **kept**.")
+        text = (f"{pair}: the fine update was **kept** after {plural(n, 'iteration')}." if n else
+                f"{pair}: the fine update was **kept**.")
     else:
-        text = f"{pair_label(snap, t)}: the coarse transform **stands** ({plural(n, 'fine iteration')} tried)."
+        text = f"{pair}: the coarse transform **stands** ({plural(n, 'fine iteration')} tried)."
     if f.message:
-        text += f" {f.message[0].upper()}{f.message[1:]}."
+        text += f" {md_sentence(f.message)}"
     fp = snap.params.fine
     if f.stopped_at_limit:
         # Not converged: said, so that a capped run is not read as a settled one.
@@ -48,10 +53,9 @@ def fine_offsets(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewSta
     """Fine against Fits: a line from each of the target's tie points at the pose the Fits stage
     started from to where the fine pose puts it (of the slice in view), and a sentence with their
     mean length."""
-    sec_out, sl_out = snap.output("sections"), snap.output("slices")
-    sec = sec_out.items[t] if sec_out is not None and t < len(sec_out.items) else None
-    sl = sl_out.items[t] if sl_out is not None and t < len(sl_out.items) else None
-    if sec is None or sl is None or not hasattr(sec, "tie_points_tgt") or not len(sec.tie_points_tgt):
+    pair = snap.pair(t)
+    sec, sl = pair.item("sections", SectionsResult), pair.item("slices", SliceResult)
+    if sec is None or sl is None or not len(sec.tie_points_tgt):
         return [], ""
     keep = tie_mask(sec, sl, slice_shown(snap, t, view, sl.n_slices))
     start = np.asarray(sec.tie_points_tgt, dtype=float)[keep]
@@ -83,7 +87,9 @@ def magnification(mean_offset_m: float) -> float:
 
 def render_fine(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> Drawing:
     t = target_index(snap, "fine", view)
-    f = snap.output("fine").items[t]
+    pair = snap.pair(t)
+    f = pair.item("fine", FineResult)
+    assert f is not None, pair.label  # the drawer draws a pair that was not skipped
     text = fine_status(snap, t, f)
     handles: list[Any] = []
     table = ""
@@ -97,12 +103,11 @@ def render_fine(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewStat
                  f"coincide.{moved} The *Cross-section* view (left panel, top) shows the scans' stem arcs at the "
                  "coarse and the fine pose side by side.")
     table = metrics_table({pair_label(snap, t): f.metrics}) + ("\n\n" + table if table else "")
-    i, j = pair_scans(snap, t)
     tol = snap.params.wind.stable_tolerance_m
-    motion = motion_sentence(f, snap.scans[i].name, snap.scans[j].name, tol)
+    motion = motion_sentence(f, pair.ref_scan.name, pair.tgt_scan.name, tol)
     if motion:
         text += "\n\n" + motion
-    fig = profile_figure(f, snap.scans[i].name, snap.scans[j].name, j, tol)
+    fig = profile_figure(f, pair.ref_scan.name, pair.tgt_scan.name, pair.tgt, tol)
     plots = ((fig, 1.2),) if fig is not None else ()
     return handles, PanelContent(title("fine", snap, t), text=text, plots=plots, table=table)
 

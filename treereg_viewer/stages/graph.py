@@ -14,6 +14,7 @@ from ..controller import Snapshot
 from ..draw.common import Drawing, md_table, title
 from ..palette import hex_color, scan_color
 from ..view_panel import PanelContent
+from ..text import html, md
 from ..view_state import ViewState
 from .base import AppStage, StageView, TourStep
 from ..labels import VERDICT_LEGEND, verdict_badge
@@ -39,14 +40,14 @@ def graph_figure(snap: Snapshot) -> go.Figure | None:
         fig.add_trace(go.Scatter(x=[a[0], b[0]], y=[a[1], b[1]], mode="lines", hoverinfo="text",
                                  line=dict(color=EDGE_COLOR.get(e.verdict, "#888"), width=4 if e.used else 2,
                                            dash="solid" if e.used else "dot"),
-                                 text=f"{snap.scans[e.j].name} → {snap.scans[e.i].name}: {e.verdict}{loop}"
-                                      f"{'' if e.used else ' (not used)'}", showlegend=False))
+                                 text=html(f"{snap.scans[e.j].name} → {snap.scans[e.i].name}: {e.verdict}{loop}"
+                                           f"{'' if e.used else ' (not used)'}"), showlegend=False))
     xs = [pos[i][0] for i in pos]
     ys = [pos[i][1] for i in pos]
     fig.add_trace(go.Scatter(
         x=xs, y=ys, mode="markers+text", text=[f"{i + 1}" for i in pos], textposition="top center",
         marker=dict(size=14, color=[hex_color(scan_color(i)) for i in pos], line=dict(width=2, color="white")),
-        hovertext=[f"{snap.scans[i].name}: {graph.items[i].verdict}" for i in pos], hoverinfo="text", showlegend=False))
+        hovertext=[html(f"{snap.scans[i].name}: {graph.items[i].verdict}") for i in pos], hoverinfo="text", showlegend=False))
     fig.update_layout(margin=dict(l=40, r=10, t=30, b=40), title=dict(text="Stations (top view) and registered pairs",
                       font=dict(size=12)), xaxis_title="x (m, reference frame)", yaxis_title="y (m)",
                       yaxis=dict(scaleanchor="x", scaleratio=1))
@@ -58,10 +59,10 @@ def render_graph(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewSta
     rows, why = [], []
     for i, (s, pl) in enumerate(zip(snap.scans, graph.items)):
         via = ", ".join(str(v + 1) for v in pl.via) or "–"
-        rows.append((f"{i + 1}: {s.name}", verdict_badge(pl.verdict), via))
+        rows.append((f"{i + 1}: {md(s.name)}", verdict_badge(pl.verdict), via))
         if pl.verdict != "verified":
-            hint = f" Try: {pl.hint}." if pl.hint else ""
-            why.append(f"- **{verdict_badge(pl.verdict)} {s.name}:** " + "; ".join(pl.reasons) + "." + hint)
+            hint = f" Try: {md(pl.hint)}." if pl.hint else ""
+            why.append(f"- **{verdict_badge(pl.verdict)} {md(s.name)}:** " + md("; ".join(pl.reasons)) + "." + hint)
     n_ok = sum(pl.verdict == "verified" for pl in graph.items)
     text = (f"{n_ok} of {len(graph.items)} scans verified ({VERDICT_LEGEND}). Verified and unverified scans are drawn "
             "at their placement, an unverified one pale (fewer, lighter points) and labelled a best guess; a failed one is not "
@@ -85,7 +86,7 @@ def render_graph(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewSta
 
         table += "\n\n" + md_table(("pair", "verdict", f"loop error (mm, ≤ {limit * 1000:g}: verify.max_loop_m)",
                                      "used"), [
-            (f"{snap.scans[e.j].name} → {snap.scans[e.i].name}", verdict_badge(e.verdict), loop(e),
+            (md(f"{snap.scans[e.j].name} → {snap.scans[e.i].name}"), verdict_badge(e.verdict), loop(e),
              "yes" if e.used else "no") for e in edges])
     return [], PanelContent(title("graph"), text=text, plots=tuple(plots), table=table)
 

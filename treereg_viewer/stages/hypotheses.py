@@ -9,16 +9,18 @@ from typing import Any
 import viser
 
 from treereg_core.geometry.rigid import apply_transform
+from treereg_core.verify.hypotheses import Candidate, HypothesesResult
 
 from ..controller import Snapshot
 from ..draw.common import Drawing, display_subset, md_table, pair_label, plural, target_index, title
 from ..palette import GREY
 from ..view_panel import PanelContent
+from ..text import md, md_sentence
 from ..view_state import ViewState
 from .base import AppStage, ControlHost, StageControls, StageView, TargetControl, TourStep
 
 
-def rival_shown(h: Any, view: ViewState) -> Any | None:
+def rival_shown(h: HypothesesResult, view: ViewState) -> Candidate | None:
     """The rival drawn beside the chosen pose: the view's pick, else the best distinct rival (else the
     best other candidate)."""
     others = [c for c in h.candidates if c.label != h.chosen]
@@ -26,21 +28,24 @@ def rival_shown(h: Any, view: ViewState) -> Any | None:
     return by_label.get(view.rival or "") or by_label.get(h.runner_up) or (others[0] if others else None)
 
 
-def margin_sentence(snap: Snapshot, h: Any) -> str:
+def margin_sentence(snap: Snapshot, h: HypothesesResult) -> str:
     """The margin to the best distinct rival against the threshold the verdict holds it to."""
     need = snap.params.verify.min_margin
     if not h.runner_up:
         return "No distinct rival was scored: nothing else explains the scans."
     ok = h.margin >= need
     how = f"{h.margin:.3f} less consistent" if h.margin >= 0 else f"{-h.margin:.3f} more consistent"
-    return (f"The best distinct rival, {h.runner_up}, is {how}: margin {h.margin:.3f} "
+    return (f"The best distinct rival, {md(h.runner_up)}, is {how}: margin {h.margin:.3f} "
             f"{'≥' if ok else '<'} {need:g} (verify.min_margin) {'✓' if ok else '✗'}.")
 
 
 def render_hypotheses(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> Drawing:
-    t = target_index(snap, "hypotheses", view)
-    h = snap.output("hypotheses").items[t]
-    tgt = snap.output("prepare").items[t + 1].scan
+    pair = snap.pair(target_index(snap, "hypotheses", view))
+    t = pair.index
+    h, scans = pair.item("hypotheses", HypothesesResult), pair.prepared()
+    # The drawer draws a pair that was not skipped: its hypotheses ran on its prepared scans.
+    assert h is not None and scans is not None, pair.label
+    tgt = scans[1]
     idx = display_subset(tgt.n_points, min(view.max_points, 15_000), seed=t)
     handles: list[Any] = []
     rival = rival_shown(h, view)
@@ -54,7 +59,7 @@ def render_hypotheses(scene: viser.SceneApi, root: str, snap: Snapshot, view: Vi
     rows = []
     for c in h.candidates:
         v = c.visibility
-        name = f"**{c.label}** (chosen)" if c.label == h.chosen else c.label
+        name = f"**{md(c.label)}** (chosen)" if c.label == h.chosen else md(c.label)
         if rival is not None and c.label == rival.label:
             name += " · drawn grey"
         if c.label == h.chosen:
@@ -64,12 +69,12 @@ def render_hypotheses(scene: viser.SceneApi, root: str, snap: Snapshot, view: Vi
             margin = f"{m:.3f}" + ((" ✓" if m >= need else " ✗") if c.label == h.runner_up else "")
         rows.append((name, c.support or "", f"{v.consistency:.3f}", f"{v.violations:,} of {v.seen_by_both:,}", margin))
     if not h.candidates:
-        text = f"{pair_label(snap, t)}: {h.message[0].upper()}{h.message[1:]}."
+        text = f"{md(pair_label(snap, t))}: {md_sentence(h.message)}"
     else:
         hand = " (chosen by hand)" if h.chosen_by_hand else ""
-        drawn = (f" Grey: {rival.label} at its polished pose (pick another under *Rival shown*, Stage tab)."
+        drawn = (f" Grey: {md(rival.label)} at its polished pose (pick another under *Rival shown*, Stage tab)."
                  if rival is not None else "")
-        text = (f"{pair_label(snap, t)}: **{h.chosen}**{hand} is the most consistent pose. {margin_sentence(snap, h)}"
+        text = (f"{md(pair_label(snap, t))}: **{md(h.chosen)}**{hand} is the most consistent pose. {margin_sentence(snap, h)}"
                 f"{drawn} Consistency: the share of the points both stations see that lie where the reference saw a "
                 "surface, not in space its laser passed through; margin: the chosen pose's consistency minus the "
                 "row's.")
@@ -78,6 +83,14 @@ def render_hypotheses(scene: viser.SceneApi, root: str, snap: Snapshot, view: Vi
                      f"{snap.params.hypotheses.min_mode_support} agreeing ties (hypotheses.min_mode_support).")
     table = md_table(("hypothesis", "ties", "consis&shy;tency", "in free space", f"margin (≥ {need:g})"), rows)
     return handles, PanelContent(title("hypotheses", snap, t), text=text, table=table)
+
+
+def _shown_pair_item(snap: Snapshot, view: ViewState) -> HypothesesResult | None:
+    """The hypotheses of the pair in view (None before the stage ran, or for a skipped pair)."""
+    out = snap.output("hypotheses")
+    if out is None or not out.items:
+        return None
+    return snap.pair(target_index(snap, "hypotheses", view)).item("hypotheses", HypothesesResult)
 
 
 class RivalControl(StageControls):
@@ -97,14 +110,13 @@ class RivalControl(StageControls):
         self.show_snapshot(snap, view)
 
     def show_snapshot(self, snap: Snapshot, view: ViewState) -> None:
-        hyp = snap.output("hypotheses")
-        if hyp is None or not hyp.items:
+        h = _shown_pair_item(snap, view)
+        if h is None:
             return
-        h = hyp.items[min(view.target, len(hyp.items) - 1)]
-        options = tuple(c.label for c in getattr(h, "candidates", ()) if c.label != h.chosen) or ("(none)",)
+        options = tuple(c.label for c in h.candidates if c.label != h.chosen) or ("(none)",)
         if tuple(self.dropdown.options) != options:
             self.dropdown.options = options
-        r = rival_shown(h, view) if hasattr(h, "candidates") else None
+        r = rival_shown(h, view)
         want = r.label if r is not None else options[0]
         if self.dropdown.value != want:
             self.dropdown.value = want  # type: ignore[misc]
@@ -121,27 +133,22 @@ class HypothesisControl(StageControls):
 
     def _choose(self) -> None:
         snap = self.app.controller.snapshot
-        h = snap.output("hypotheses")
-        if h is None or not h.items or not snap.pairs:
+        if _shown_pair_item(snap, self.app.view) is None:
             return
-        t = min(self.app.view.target, len(h.items) - 1)
-        p = snap.pairs[t]
-        pair = f"{snap.scans[p.tgt].name} -> {snap.scans[p.ref].name}"
+        pair = snap.pair(target_index(snap, "hypotheses", self.app.view)).key
         wanted = None if self.dropdown.value == "automatic" else self.dropdown.value
         if snap.choices.get(pair) != wanted:
             self.app.controller.choose(pair, wanted)
 
     def show_snapshot(self, snap: Snapshot, view: ViewState) -> None:
         """The hypothesis list of the pair in view, and the choice in force for it."""
-        hyp = snap.output("hypotheses")
-        if hyp is None or not hyp.items or not snap.pairs:
+        h = _shown_pair_item(snap, view)
+        if h is None:
             return
-        t = min(view.target, len(hyp.items) - 1)
-        options = ("automatic",) + tuple(c.label for c in getattr(hyp.items[t], "candidates", ()))
+        options = ("automatic",) + tuple(c.label for c in h.candidates)
         if tuple(self.dropdown.options) != options:
             self.dropdown.options = options
-        p = snap.pairs[t]
-        current = snap.choices.get(f"{snap.scans[p.tgt].name} -> {snap.scans[p.ref].name}", "automatic")
+        current = snap.choices.get(snap.pair(target_index(snap, "hypotheses", view)).key, "automatic")
         if self.dropdown.value != current and current in options:
             self.dropdown.value = current
 

@@ -9,11 +9,13 @@ from __future__ import annotations
 
 import viser
 
+from treereg_core.evaluate.icp import IcpResult
 from treereg_core.geometry.rigid import mean_displacement, rotation_error_deg
 
 from ..controller import Snapshot
-from ..draw.common import Drawing, md_table, metrics_table, pair_label, pair_scans, target_index, target_pose, title
+from ..draw.common import Drawing, md_table, metrics_table, pair_label, target_index, target_pose, title
 from ..view_panel import PanelContent
+from ..text import md, md_sentence
 from ..view_state import ViewState
 from .base import AppStage, StageView, TargetControl, TourStep
 
@@ -21,23 +23,24 @@ from .base import AppStage, StageView, TargetControl, TourStep
 def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> Drawing:
     out = snap.output("icp")
     t = target_index(snap, "icp", view)
-    item = out.items[t]
+    item = snap.pair(t).item("icp", IcpResult)
+    assert out is not None and item is not None, t  # the drawer draws a pair that was not skipped
     if not item.ran:
-        return [], PanelContent(title("icp", snap, t), text=f"{item.message[0].upper()}{item.message[1:]}.")
-    text = (f"{pair_label(snap, t)}: ICP ({snap.params.icp.method.replace('_', '-')}) "
+        return [], PanelContent(title("icp", snap, t), text=md_sentence(item.message))
+    text = (f"{md(pair_label(snap, t))}: ICP ({snap.params.icp.method.replace('_', '-')}) "
             f"{'converged' if item.converged else 'stopped'} after {item.iterations} iterations"
-            f"{'' if item.ok else f' — {item.message}'}. Every target is shown at its ICP pose.")
+            f"{'' if item.ok else f' — {md(item.message)}'}. Every target is shown at its ICP pose.")
     rows = []
-    prep = snap.output("prepare")
-    for k, it in enumerate(out.items):
-        fine = target_pose(snap, "fine", k)
-        if not (it.ok and getattr(it, "ran", False)) or fine is None or prep is None:
+    for k in range(len(out.items)):
+        pair, fine = snap.pair(k), target_pose(snap, "fine", k)
+        it, scans = pair.item("icp", IcpResult), pair.prepared()
+        if it is None or not (it.ok and it.ran) or fine is None or scans is None:
             continue
-        if pair_scans(snap, k)[0] != 0:  # the ICP-vs-fine table is about the reference's pairs
+        if pair.ref != 0:  # the ICP-vs-fine table is about the reference's pairs
             continue
-        pts = prep.items[pair_scans(snap, k)[1]].scan.points
+        pts = scans[1].points
         gap = mean_displacement(it.T_ref_target, fine, pts)
-        rows.append((pair_label(snap, k), f"{rotation_error_deg(it.T_ref_target, fine):.3f}", f"{gap * 1000:.1f}"))
+        rows.append((md(pair_label(snap, k)), f"{rotation_error_deg(it.T_ref_target, fine):.3f}", f"{gap * 1000:.1f}"))
     table = md_table(("pair", "ICP vs fine: rotation (°)", "mean point distance (mm)"), rows)
     table += "\n\n" + metrics_table({pair_label(snap, k): it.metrics for k, it in enumerate(out.items)})
     return [], PanelContent(title("icp", snap, t), text=text, table=table)

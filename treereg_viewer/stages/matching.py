@@ -15,11 +15,15 @@ import numpy as np
 import plotly.graph_objects as go
 import viser
 
+from treereg_core.coarse.matching import MatchResult
+from treereg_core.coarse.sequences import ImageSequence
+
 from ..controller import Snapshot
 from ..draw.common import Drawing, item_message, metrics_table, pair_label, plural, target_index, title
 from ..draw.images import binary_to_rgb, display_xy, draw_lines, draw_markers, fit_factor, fit_width, hstack, upscale
 from ..palette import HIGHLIGHT, KEPT, REJECTED, scan_color
 from ..view_panel import PanelContent
+from ..text import html, md
 from ..view_state import ViewState
 from .base import AppStage, ControlHost, StageControls, StageView, TargetControl, TourStep
 
@@ -28,6 +32,7 @@ def similarity_figure(match: Any, angles_ref: tuple[float, ...], angles_tgt: tup
                       ref_name: str, tgt_name: str) -> go.Figure:
     """Heatmap of the similarity matrix (rows: reference images, columns: target images), chosen pairs marked."""
     sim = np.asarray(match.similarity, dtype=float)
+    ref_name, tgt_name = html(ref_name), html(tgt_name)  # plotly renders HTML in its texts
     fig = go.Figure(go.Heatmap(
         z=sim, x=list(angles_tgt)[: sim.shape[1]], y=list(angles_ref)[: sim.shape[0]], colorscale="Viridis",
         colorbar=dict(title=match.measure, thickness=12),
@@ -72,11 +77,13 @@ def matches_image(pair: Any, img_ref: np.ndarray, img_tgt: np.ndarray, color_ref
 
 
 def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> Drawing:
-    out, seqs = snap.output("matching"), snap.output("projection")
-    t = target_index(snap, "matching", view)
-    m = out.items[t]
-    ref_name, tgt_name = snap.scans[0].name, snap.scans[t + 1].name
-    seq_ref, seq_tgt = seqs.items[0], seqs.items[t + 1]
+    out = snap.output("matching")
+    p = snap.pair(target_index(snap, "matching", view))
+    t = p.index
+    m, (seq_ref, seq_tgt) = p.item("matching", MatchResult), p.scan_items("projection", ImageSequence)
+    # The drawer draws a pair that was not skipped: it was matched, so both scans were projected.
+    assert m is not None and seq_ref is not None and seq_tgt is not None and out is not None, p.label
+    ref_name, tgt_name = p.ref_scan.name, p.tgt_scan.name
     heading = title("matching", snap, t)
     texts = [item_message(m)] if not m.ok else []
     images, plots = [], []
@@ -85,7 +92,7 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
     if m.pairs:
         k = min(view.match_pair, len(m.pairs) - 1)
         pair = m.pairs[k]
-        img = matches_image(pair, seq_ref.images[pair.i], seq_tgt.images[pair.j], scan_color(0), scan_color(t + 1))
+        img = matches_image(pair, seq_ref.images[pair.i], seq_tgt.images[pair.j], scan_color(p.ref), scan_color(p.tgt))
         n_kept = int(np.count_nonzero(pair.kept))
         if snap.params.matching.beta_check or n_kept < len(pair.kept):
             verdict = (f"{n_kept} of {plural(len(pair.kept), 'match', 'matches')} kept (magenta), "
@@ -94,8 +101,8 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
             verdict = (f"{plural(n_kept, 'match', 'matches')}, all kept (magenta): the β check is off "
                        "(matching.beta_check); 4 Coarse rejects wrong ties by RANSAC instead.")
         images.append((img, (
-            f"Image pair {k + 1} of {len(m.pairs)}: {ref_name} at θ = {pair.angle_ref_deg:+.0f}° (left), "
-            f"{tgt_name} at θ = {pair.angle_tgt_deg:+.0f}° (right); {verdict}"
+            f"Image pair {k + 1} of {len(m.pairs)}: {md(ref_name)} at θ = {pair.angle_ref_deg:+.0f}° (left), "
+            f"{md(tgt_name)} at θ = {pair.angle_tgt_deg:+.0f}° (right); {verdict}"
         )))
     texts.append(f"{plural(m.n_ties, 'tie point')} from {plural(len(m.pairs), 'image pair')}. In 3-D: the tie points "
                  "of the pair shown below, each in its own scan's frame, joined to its partner (the scans are not "
@@ -109,9 +116,9 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
             segs = np.stack([ref_xyz, tgt_xyz], axis=1).astype(np.float32)
             handles.append(scene.add_line_segments(f"{root}/ties", segs, HIGHLIGHT, thickness=1.5,
                                                    thickness_units="screen"))
-            handles.append(scene.add_point_cloud(f"{root}/ties_ref", ref_xyz, scan_color(0), point_size=0.06,
+            handles.append(scene.add_point_cloud(f"{root}/ties_ref", ref_xyz, scan_color(p.ref), point_size=0.06,
                                                  point_shape="circle", precision="float32"))
-            handles.append(scene.add_point_cloud(f"{root}/ties_tgt", tgt_xyz, scan_color(t + 1), point_size=0.06,
+            handles.append(scene.add_point_cloud(f"{root}/ties_tgt", tgt_xyz, scan_color(p.tgt), point_size=0.06,
                                                  point_shape="circle", precision="float32"))
     table = metrics_table({pair_label(snap, i): it.metrics for i, it in enumerate(out.items)})
     return handles, PanelContent(heading, text="\n\n".join(x for x in texts if x), images=tuple(images),
@@ -133,8 +140,8 @@ class MatchPairControl(StageControls):
         match = snap.output("matching")
         if match is None or not match.items:
             return
-        t = min(view.target, len(match.items) - 1)
-        n = len(getattr(match.items[t], "pairs", ()) or ())
+        m = snap.pair(target_index(snap, "matching", view)).item("matching", MatchResult)
+        n = len(m.pairs) if m is not None else 0
         if n > 1 and self.slider.max != n:
             self.slider.max = n
         self.slider.disabled = n <= 1

@@ -13,6 +13,7 @@ from ..controller import Snapshot
 from ..draw.common import Drawing, md_table, not_ready_text, title
 from ..palette import GREY, scan_color
 from ..view_panel import PanelContent
+from ..text import md
 from ..view_state import ViewState
 from .base import AppStage, ControlHost, StageControls, StageView, TourStep
 
@@ -64,7 +65,7 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
             why = getattr(prep, "mixed_not_filtered", "")
             if why:
                 mixed = "not filtered"
-                stood_down.append(f"{scan.name}: mixed pixels {why}.")
+                stood_down.append(f"{md(scan.name)}: mixed pixels {md(why)}.")
             kept = f"{prep.scan.n_points:,}" if getattr(prep, "scan", None) is not None else ""
             if getattr(prep, "ground_mask", None) is not None:
                 ground = f"{int(np.count_nonzero(prep.ground_mask)):,}"
@@ -79,13 +80,13 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
         if mixed:
             counts += "<br>" + (f"mixed pixels {mixed}" if mixed in ("off", "not filtered") else f"{mixed}&nbsp;mixed")
         rows.append((
-            f"{i + 1}: {scan.name}{' (reference)' if i == 0 else ''}", counts, f"{phi:.3g} / {vphi:.3g}{how}", target,
+            f"{i + 1}: {md(scan.name)}{' (reference)' if i == 0 else ''}", counts, f"{phi:.3g} / {vphi:.3g}{how}", target,
         ))
     table = md_table(("scan", "points", "φ / ϕ (deg)", "tree taken (x, y in m)"), rows)
     text = not_ready_text(snap, "prepare")
     if prepared is not None:
-        bad = [f"**{snap.scans[i].name}:** {it.message}" for i, it in enumerate(prepared.items) if not it.ok]
-        notes = [f"{snap.scans[i].name}: {it.message}" for i, it in enumerate(prepared.items) if it.ok and it.message]
+        bad = [f"**{md(snap.scans[i].name)}:** {md(it.message)}" for i, it in enumerate(prepared.items) if not it.ok]
+        notes = [f"{md(snap.scans[i].name)}: {md(it.message)}" for i, it in enumerate(prepared.items) if it.ok and it.message]
         notes += stood_down
         text = "\n\n".join(bad + notes) or "Grey points were removed as ground; light grey were cropped."
         if snap.params.prepare.mixed_pixels:
@@ -93,7 +94,7 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
                      "straddled it), removed before anything else; the free-space test is blind where they were.")
         chosen = getattr(prepared.items[0], "target", "") if prepared.items else ""
         if chosen and getattr(prepared.items[0], "stem_xy", None) is not None:
-            text += (f"\n\n**Target tree:** {chosen}. The tall line marks it in every scan, grey lines the other stems; "
+            text += (f"\n\n**Target tree:** {md(chosen)}. The tall line marks it in every scan, grey lines the other stems; "
                      "to take another tree, type its stem's x, y (reference scan's frame) into *tree at* below.")
     if snap.truth:
         text += "\n\nTruth is known for this case (`truth.json`): the Result stage reports errors against it."

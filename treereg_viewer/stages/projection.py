@@ -17,6 +17,7 @@ from ..draw.common import Drawing, display_subset, metrics_table, pose_kwargs, t
 from ..draw.images import binary_to_rgb, fit_factor, fit_width, hstack, upscale, vstack
 from ..palette import scan_color
 from ..view_panel import PanelContent
+from ..text import md
 from ..view_state import ViewState
 from .base import AppStage, ControlHost, StageControls, StageView, TourStep
 
@@ -36,7 +37,7 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
             continue
         k = step_index(seq, view.projection_step)
         tiles.append(binary_to_rgb(seq.images[k], scan_color(i)))
-        names.append(f"{seq.scan_name} ({seq.angles_deg[k]:+.0f}°)")
+        names.append(f"{md(seq.scan_name)} ({seq.angles_deg[k]:+.0f}°)")
         if view.projection_3d and prepared is not None:
             pts = prepared.items[i].scan.points
             idx = display_subset(len(pts), view.max_points, seed=100 + i)
@@ -68,7 +69,7 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
         f"A pixel covers {pp.pixel_factor:g} angular steps each way (projection.pixel_factor). Black in the paper, "
         "here each scan's colour: pixels holding points; white: empty pixels. Shown upright, as seen from the scanner."
     )
-    bad = [f"**{snap.scans[i].name}:** {it.message}" for i, it in enumerate(seqs) if not getattr(it, "ok", True)]
+    bad = [f"**{md(snap.scans[i].name)}:** {md(it.message)}" for i, it in enumerate(seqs) if not getattr(it, "ok", True)]
     if bad:
         text += "\n\n" + "\n\n".join(bad)
     table = metrics_table({s.scan_name: s.metrics for s in seqs})

@@ -14,6 +14,7 @@ from ..controller import Snapshot
 from ..draw.common import Drawing, metrics_table, pair_label, plural, target_index, title
 from ..draw.fits import draw_sections, fine_scans, focus_rows
 from ..view_panel import PanelContent
+from ..text import md_sentence
 from ..view_state import ViewState
 from .slices import SliceControl
 from .base import AppStage, ControlHost, StageControls, StageView, TargetControl, TourStep
@@ -30,15 +31,16 @@ def sections_sentence(n_pairs: int, n_ties: int, pose: str) -> str:
 
 def render_sections(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> Drawing:
     t = target_index(snap, "sections", view)
-    sec: SectionsResult = snap.output("sections").items[t]
-    sl: SliceResult = snap.output("slices").items[t]
+    pair = snap.pair(t)
+    sec, sl = pair.item("sections", SectionsResult), pair.item("slices", SliceResult)
+    assert sec is not None and sl is not None, pair.label  # the drawer draws a pair that was not skipped
     ref, tgt = fine_scans(snap, t)
     handles, table, _ = draw_sections(scene, root, snap, t, sl, sec, ref, tgt, view)
     text = (sections_sentence(sec.n_pairs, len(sec.tie_points_ref), "starting") + " Only accepted fits are drawn, in "
             "their scan's colour; only the sliced points are shown with them. Pick a row under *Frame a fit* (Stage "
             "tab) or click a fit in 3-D to look at it closely.")
     if sec.message:
-        text += f"\n\n{sec.message[0].upper()}{sec.message[1:]}."
+        text += f"\n\n{md_sentence(sec.message)}"
     table += "\n\n" + metrics_table({pair_label(snap, t): sec.metrics})
     return handles, PanelContent(title("sections", snap, t), text=text, table=table)
 

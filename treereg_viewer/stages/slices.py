@@ -13,6 +13,7 @@ from ..controller import Snapshot
 from ..draw.common import Drawing, md_table, metrics_table, target_index, target_pose, title
 from ..draw.fits import fine_scans, slice_label, slice_points, slice_shown
 from ..view_panel import PanelContent
+from ..text import md
 from ..view_state import ALL_SLICES, ViewState
 from .base import AppStage, ControlHost, StageControls, StageView, TargetControl, TourStep
 
@@ -34,8 +35,8 @@ class SliceControl(StageControls):
 
     def _options(self, snap: Snapshot, view: ViewState) -> tuple[str, ...]:
         sl = snap.output("slices")
-        t = target_index(snap, "slices", view)
-        heights = sl.items[t].heights_m if sl is not None and t < len(sl.items) and sl.items[t].ok else ()
+        item = snap.pair(target_index(snap, "slices", view)).item("slices", SliceResult) if sl is not None else None
+        heights = item.heights_m if item is not None and item.ok else ()
         return (EVERY_SLICE, *(slice_label(k, heights) for k in range(len(heights))))
 
     def _picked(self) -> None:
@@ -68,16 +69,18 @@ def _slice_text(snap: Snapshot, sl: SliceResult) -> str:
     text = (f"Slices {sl.thickness_m * 100:.0f} cm thick at {where} of the tree's height "
             f"({sl.z_extent_m[0]:.2f} to {sl.z_extent_m[1]:.2f} m, reference frame), the target at its coarse pose.")
     if not sl.ok:
-        text += f"\n\n**Slicing failed:** {sl.message}"
+        text += f"\n\n**Slicing failed:** {md(sl.message)}"
     return text
 
 
 def render_slices(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> Drawing:
     t = target_index(snap, "slices", view)
-    sl: SliceResult = snap.output("slices").items[t]
+    pair = snap.pair(t)
+    sl = pair.item("slices", SliceResult)
+    assert sl is not None, pair.label  # the drawer draws a pair that was not skipped
     ref, tgt = fine_scans(snap, t)
     T = target_pose(snap, "hypothesis", t)
-    handles = slice_points(scene, root, t, sl, T, ref, tgt, 2.0 * view.point_size)
+    handles = slice_points(scene, root, pair, sl, T, ref, tgt, 2.0 * view.point_size)
     rows = []
     for k, h in enumerate(sl.heights_m):
         r_idx, t_idx = sl.ref_indices[k], sl.tgt_indices[k]
@@ -85,7 +88,7 @@ def render_slices(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewSt
         handles.append(scene.add_label(f"{root}/label{k}", f"z = {h:.2f} m", position=(anchor[0], anchor[1], h),
                                        anchor="center-left"))
         rows.append((k + 1, f"{h:.2f}", f"{len(r_idx):,}", f"{len(t_idx):,}"))
-    table = md_table(("slice", "height (m)", f"{snap.scans[0].name} points", f"{snap.scans[t + 1].name} points"), rows)
+    table = md_table(("slice", "height (m)", f"{md(pair.ref_scan.name)} points", f"{md(pair.tgt_scan.name)} points"), rows)
     table += "\n\n" + metrics_table({"slices": sl.metrics})
     return handles, PanelContent(title("slices", snap, t), text=_slice_text(snap, sl), table=table)
 

@@ -9,10 +9,12 @@ import numpy as np
 import viser
 
 from treereg_core.params import loosened, loosened_text
+from treereg_core.verify.evidence import PairVerification
 
 from ..controller import Snapshot
 from ..draw.common import Drawing, breakable, md_table, metrics_table, pair_label, target_index, title
 from ..labels import verdict_badge
+from ..text import md, md_sentence
 from ..view_panel import PanelContent
 from ..view_state import ViewState
 from .base import AppStage, StageView, TargetControl, TourStep
@@ -27,16 +29,16 @@ def checks_table(checks: Any) -> str:
     sets the threshold), the measured value, the threshold."""
     rows = []
     for c in checks:
-        what = f"{c.what}<br><small>{breakable(c.parameter)}</small>" if c.parameter else c.what
-        rows.append((CHECK_MARK.get(c.passed, "–"), what, c.value_text(), c.limit_text() or "–"))
+        what = f"{md(c.what)}<br><small>{breakable(md(c.parameter))}</small>" if c.parameter else md(c.what)
+        rows.append((CHECK_MARK.get(c.passed, "–"), what, md(c.value_text()), md(c.limit_text() or "–")))
     return md_table(("", "check (set by)", "measured", "threshold"), rows)
 
 
 def render_verify(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> Drawing:
-    out = snap.output("verify")
     t = target_index(snap, "verify", view)
-    v = out.items[t]
-    text = f"{pair_label(snap, t)}: **{verdict_badge(v.verdict)}**.{loosened_note(snap, v.verdict)}"
+    v = snap.pair(t).item("verify", PairVerification)
+    assert v is not None, t  # the drawer draws a pair that was not skipped
+    text = f"{md(pair_label(snap, t))}: **{verdict_badge(v.verdict)}**.{loosened_note(snap, v.verdict)}"
     e = getattr(v, "evidence", None)
     if e is not None and e.sway_m > 0:
         stable = f"; the stems agree up to {e.stable_height_m:.1f} m above the base" if np.isfinite(e.stable_height_m) else ""
@@ -45,9 +47,9 @@ def render_verify(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewSt
                  f"through lie within {e.motion_m * 100:.0f} cm of a surface the reference saw and count as moved "
                  "(small branches in the wind), not against the pose.")
     if v.reasons:
-        text += "\n\n" + "\n\n".join(f"- {r[0].upper()}{r[1:]}." for r in v.reasons)
+        text += "\n\n" + "\n\n".join(f"- {md_sentence(r)}" for r in v.reasons)
         if v.hint:
-            text += f"\n\nTry: {v.hint}."
+            text += f"\n\nTry: {md(v.hint)}."
     checks = tuple(getattr(v, "checks", ()))
     if checks:
         text += ("\n\nEach check's measured value against its threshold (✓ passed, ✗ failed, – not judged); the "
@@ -62,7 +64,7 @@ def loosened_note(snap: Snapshot, verdict: str) -> str:
     """" ⚠ Verified under loosened thresholds (…)." when a verified verdict rests on a threshold set looser
     than its default; the same words as transforms.json and the command line."""
     text = loosened_text(loosened(snap.params)) if verdict == "verified" else ""
-    return f" ⚠ {text[0].upper()}{text[1:]}." if text else ""
+    return f" ⚠ {md_sentence(text)}" if text else ""
 
 
 STAGE = AppStage(

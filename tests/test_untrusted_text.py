@@ -162,6 +162,20 @@ def test_a_rerun_removes_the_exports_of_a_scan_it_no_longer_places(case_dir, tmp
          *(p.name for p in theirs)])
 
 
+def test_a_batch_rerun_removes_the_matrices_its_tree_no_longer_has(case_dir, tmp_path, capsys):
+    tree, out = tmp_path / "camp" / "tree1", tmp_path / "out"
+    tree.mkdir(parents=True)
+    for name in ("scan1.ply", "scan2.ply", "scan3.ply"):
+        shutil.copy(case_dir / name, tree / name)
+    run = ["batch", str(tmp_path / "camp"), "--out", str(out), "--workers", "1"]
+    assert main(run) == 0
+    gone = [out / "tree1" / "transforms.scan3.cloudcompare.txt", out / "tree1" / "transforms.scan3.pdal.txt"]
+    assert all(p.is_file() for p in gone)
+    (tree / "scan3.ply").unlink()
+    assert main([*run, "--redo"]) == 0  # as good a result: it replaces the earlier one's files
+    assert not any(p.exists() for p in gone) and (out / "tree1" / "transforms.scan2.pdal.txt").is_file()
+
+
 def test_a_removal_waits_for_its_batch_and_a_failed_batch_removes_nothing(tmp_path):
     stale = tmp_path / "t.scan2.pdal.txt"
     stale.write_text("old\n")

@@ -165,10 +165,10 @@ def write_tree(outcome: TreeOutcome, out_dir: Path) -> TreeOutcome:
         if outcome.picture_png is not None:
             files.append(write_bytes_atomic(d / PICTURE_NAME, outcome.picture_png).name)
         write_text_atomic(d / RESULT_NAME, _result_json(outcome, files))
-    if files:
-        for old in _ours(d):
-            if old.name not in files:
-                old.unlink(missing_ok=True)
+        if files:  # removed with the batch's renames: an interrupted write removes nothing either
+            for old in _ours(d):
+                if old.name not in files:
+                    atomic.remove_atomic(old)
     return without_payload(outcome)
 
 

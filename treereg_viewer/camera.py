@@ -13,6 +13,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from treereg_core.fine.sections import SectionsResult
+from treereg_core.fine.slicing import SliceResult
+
 from .controller import Snapshot
 from .draw.common import display_subset
 from .stages import registered
@@ -53,22 +56,23 @@ def _slice_points(snap: Snapshot, view: ViewState) -> np.ndarray | None:
     from .draw.common import target_index
     from .draw.fits import slice_shown
 
-    sl_out, prep = snap.output("slices"), snap.output("prepare")
-    t = target_index(snap, "slices", view)
-    if sl_out is None or prep is None or t >= len(sl_out.items) or not sl_out.items[t].ok:
+    if snap.output("slices") is None:
         return None
-    sl = sl_out.items[t]
+    t = target_index(snap, "slices", view)
+    pair = snap.pair(t)
+    sl, scans = pair.item("slices", SliceResult), pair.prepared()
+    if sl is None or not sl.ok or scans is None:
+        return None
     k = slice_shown(snap, t, view, sl.n_slices)
     if k is None or not len(sl.ref_indices[k]):
         return None
-    sec_out = snap.output("sections") if view.stage != "arcs" else None
-    sec = sec_out.items[t] if sec_out is not None and t < len(sec_out.items) else None
-    fits = [s for s in getattr(getattr(sec, "ref", None), "sections", ()) if s.slice_index == k and s.plausible
+    sec = pair.item("sections", SectionsResult) if view.stage != "arcs" else None
+    fits = [s for s in (sec.ref.sections if sec is not None else ()) if s.slice_index == k and s.plausible
             and np.isfinite(s.radius_m) and s.radius_m < 2.0]
     if fits:
         rim = np.array([[np.cos(a), np.sin(a), 0.0] for a in np.linspace(0, 2 * np.pi, 8, endpoint=False)])
         return np.concatenate([np.asarray(s.centre_m) + 2.0 * s.radius_m * rim for s in fits])
-    return np.asarray(prep.items[0].scan.points[sl.ref_indices[k]])
+    return np.asarray(scans[0].points[sl.ref_indices[k]])
 
 
 def frame(snap: Snapshot, stage: str, view: ViewState | None = None) -> CameraPose | None:

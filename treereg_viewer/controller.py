@@ -14,9 +14,9 @@ import os
 import threading
 import time
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence, TypeVar
 
 import numpy as np
 
@@ -26,8 +26,10 @@ from treereg_core.parallel import APP_SPARE_CORES, default_workers
 from treereg_core.params import Params
 from treereg_core.pipeline import Pipeline
 from treereg_core.scan import Scan
-from treereg_core.stage import Event, Pair, StageFinished, StageOutput, StageProgress, StageStarted
+from treereg_core.prepare.ground import PreparedScan
+from treereg_core.stage import Event, Pair, StageFinished, StageOutput, StageProgress, StageResult, StageStarted
 from treereg_core.stages import STAGE_NAMES as STAGES
+from treereg_core.stages import stage as core_stage
 
 from .labels import label
 from .uploads import discard
@@ -41,6 +43,60 @@ log = logging.getLogger(__name__)
 #: another slow a run at most two-fold.
 GIVE_WAY_MAX_S = 2.5
 GIVE_WAY_GAP_S = 2.5
+
+R = TypeVar("R", bound=StageResult)
+
+
+@dataclass(frozen=True)
+class SnapshotPair:
+    """Pair `index` of a snapshot as the app draws it: which scans it joins (`tgt` mapped onto `ref`,
+    indices into the scans), the scans themselves, its label and its stage results, read by type.
+    Renderers and controls read a pair only through this (`Snapshot.pair`): its scans are never
+    derived from its index (pair 2 of three scans joins scans 2 and 3, not 1 and 3)."""
+
+    index: int
+    ref: int
+    tgt: int
+    ref_scan: Scan
+    tgt_scan: Scan
+    outputs: Mapping[str, StageOutput] = field(repr=False, compare=False)
+
+    @property
+    def label(self) -> str:
+        """How the app names the pair everywhere: 'scan3 → scan2' (target onto reference)."""
+        return f"{self.tgt_scan.name} → {self.ref_scan.name}"
+
+    @property
+    def key(self) -> str:
+        """The pipeline's name of the pair ('scan3 -> scan2'): what `Pipeline.choose` and its choices are keyed by."""
+        return f"{self.tgt_scan.name} -> {self.ref_scan.name}"
+
+    def item(self, stage: str, kind: type[R]) -> R | None:
+        """The pair's item of per-pair `stage` as a `kind`; None when the stage has no output for it
+        or the item is not one (a `Skipped` pair)."""
+        if core_stage(stage).per != "pair":
+            raise ValueError(f"{stage} is a per-scan stage: read it with scan_items")
+        return _item_as(self.outputs.get(stage), self.index, kind)
+
+    def scan_items(self, stage: str, kind: type[R]) -> tuple[R | None, R | None]:
+        """The (reference's, target's) items of per-scan `stage` as `kind`s (None where missing)."""
+        if core_stage(stage).per != "scan":
+            raise ValueError(f"{stage} is a per-pair stage: read it with item")
+        out = self.outputs.get(stage)
+        return _item_as(out, self.ref, kind), _item_as(out, self.tgt, kind)
+
+    def prepared(self) -> tuple[Scan, Scan] | None:
+        """The (reference, target) scans as the prepare stage left them, which the pair's slices, arcs
+        and sections index into; None until both are prepared."""
+        ref, tgt = self.scan_items("prepare", PreparedScan)
+        if ref is None or tgt is None or not (ref.ok and tgt.ok):
+            return None
+        return ref.scan, tgt.scan
+
+
+def _item_as(out: StageOutput | None, k: int, kind: type[R]) -> R | None:
+    it = out.items[k] if out is not None and 0 <= k < len(out.items) else None
+    return it if isinstance(it, kind) else None
 
 
 @dataclass(frozen=True)
@@ -79,6 +135,24 @@ class Snapshot:
     @property
     def scan_names(self) -> list[str]:
         return [s.name for s in self.scans]
+
+    @property
+    def n_pairs(self) -> int:
+        """How many pairs the app offers: the pipeline's, or before it knows them (four or more scans
+        before the projection stage) the reference with every other scan."""
+        return max(len(self.pairs), len(self.scans) - 1)
+
+    def pair(self, k: int) -> SnapshotPair:
+        """Pair k (0 <= k < n_pairs): the pipeline's pairs, the reference's first, so pair k < n - 1
+        is scan k + 2 onto scan 1 (counting from 1)."""
+        if not 0 <= k < self.n_pairs:
+            raise IndexError(f"pair {k} of {self.n_pairs}")
+        p = self.pairs[k] if k < len(self.pairs) else Pair(0, k + 1)
+        return SnapshotPair(k, p.ref, p.tgt, self.scans[p.ref], self.scans[p.tgt], self.outputs)
+
+    def reference_pair(self, i: int) -> SnapshotPair | None:
+        """Scan i's pair with the reference (whose transforms place scan i), None for the reference."""
+        return next((p for k in range(self.n_pairs) if (p := self.pair(k)).ref == 0 and p.tgt == i), None)
 
 
 Listener = Callable[[Snapshot], None]
@@ -159,8 +233,9 @@ def parse_scan_upload(filename: str, path: Path) -> tuple[Scan, list[str]]:
     except ScanError as e:
         raise ScanError(name, e.problem.replace(str(path), name)) from None
     notes = [str(w.message).replace(str(path), name) for w in caught if issubclass(w.category, UserWarning)]
-    # The temporary file goes away: name the scan after the uploaded file, not the temp path.
-    return Scan(scan.points, scan.name, scan.angular_step_deg, Path(name), scan.step_estimated), notes
+    # The temporary file goes away: name the scan after the uploaded file, not the temp path. Only the
+    # source changes (a scan rebuilt field by field lost the file's pose and the steps' provenance).
+    return replace(scan, source=Path(name)), notes
 
 
 class Controller:

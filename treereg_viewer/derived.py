@@ -17,6 +17,7 @@ import numpy as np
 
 from treereg_core.evaluate.cross_section import CrossSection, branch_section, stem_section
 from treereg_core.evaluate.residuals import overlap_residuals
+from treereg_core.fine.pose import FineResult
 from treereg_core.geometry.rigid import apply_transform
 
 from .controller import Snapshot
@@ -58,7 +59,8 @@ def pose_transforms(snap: Snapshot, pose: str) -> list[np.ndarray | None]:
                               else None for it in items[1:]]
     Ts: list[np.ndarray | None] = [np.eye(4)]
     for k in range(1, len(snap.scans)):
-        item = out.items[k - 1] if out is not None and k - 1 < len(out.items) else None
+        pair = snap.reference_pair(k)
+        item = out.items[pair.index] if out is not None and pair is not None and pair.index < len(out.items) else None
         ok = item is not None and getattr(item, "ok", False) and getattr(item, "ran", True)
         Ts.append(np.asarray(item.T_ref_target, dtype=float) if ok else None)
     return Ts
@@ -91,9 +93,10 @@ def target_bends(snap: Snapshot) -> list[Any]:
     out: list[Any] = [None] * len(snap.scans)
     if fine is None:
         return out
-    for k, p in enumerate(snap.pairs):
-        if p.ref == 0 and k < len(fine.items):
-            out[p.tgt] = getattr(fine.items[k], "bend", None)
+    for i in range(1, len(snap.scans)):
+        pair = snap.reference_pair(i)
+        item = pair.item("fine", FineResult) if pair is not None else None
+        out[i] = item.bend if item is not None else None
     return out
 
 

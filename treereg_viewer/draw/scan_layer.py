@@ -56,7 +56,8 @@ def scan_poses(snap: Snapshot, view: ViewState) -> list[np.ndarray]:
     pose = stage_pose(view)
     poses = [np.eye(4) for _ in snap.scans]
     for k in range(1, len(snap.scans)):
-        T = target_pose(snap, pose, k - 1)
+        pair = snap.reference_pair(k)
+        T = target_pose(snap, pose, pair.index) if pair is not None else None
         if T is not None:
             poses[k] = T
     return poses

@@ -12,7 +12,7 @@ import viser
 
 from ..actions import AppActions
 from ..controller import Snapshot
-from ..draw.common import Drawing, pair_label
+from ..draw.common import Drawing
 from ..view_state import ViewState
 
 
@@ -87,8 +87,7 @@ def pair_labels(snap: Snapshot) -> list[str]:
     """What the "Pair" lists offer, in the pipeline's order of pairs (a view's `target`): 'scan2 →
     scan1', 'scan3 → scan1', …, then the pairs between other scans ('scan3 → scan2': with three or
     more stations these are registered too, and may be the one that tells why a scan failed)."""
-    n = max(len(snap.pairs), len(snap.scans) - 1)
-    return [pair_label(snap, k) for k in range(n)] or ["(no target scan)"]
+    return [snap.pair(k).label for k in range(snap.n_pairs)] or ["(no target scan)"]
 
 
 class TargetControl(StageControls):

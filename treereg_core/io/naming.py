@@ -38,13 +38,15 @@ def scan_names(scans: Sequence[tuple[str | Path, str]]) -> list[str]:
     module docstring). The same scan given twice is a `ConfigError` naming the file.
     """
     where = [_Where(f, name) for f, name in scans]
-    seen: dict[tuple, str] = {}
+    seen: dict[tuple, _Where] = {}
     for w in where:
         if w.identity in seen:
-            also = f" (also as {seen[w.identity]})" if seen[w.identity] != w.given else ""
+            other = seen[w.identity]
+            same = ": the same file" if other.parts != w.parts else ""  # through a link, not a/ and ./a/
+            also = f" (also as {other.given}{same})" if other.given != w.given else ""
             scan = f" [{w.inner}]" if w.inner is not None else ""
             raise ConfigError(f"{w.given}{scan}: given twice{also}; give each scan once")
-        seen[w.identity] = w.given
+        seen[w.identity] = w
     names = []
     for i, w in enumerate(where):
         rivals = [o for j, o in enumerate(where) if j != i and o.name(1) == w.name(1)]
@@ -58,14 +60,19 @@ def scan_names(scans: Sequence[tuple[str | Path, str]]) -> list[str]:
 
 
 class _Where:
-    """Where a scan is: its file's absolute path (folders as given, links not followed) and, for a
-    scan named inside its file, that name."""
+    """Where a scan is: its file's absolute path (folders as given, links not followed: the name is
+    the user's) and, for a scan named inside its file, that name. Its identity is the file itself
+    (links followed): a link to a scan is that scan given twice."""
 
     def __init__(self, file: str | Path, name: str) -> None:
         self.given = str(file)
         self.parts = PurePath(os.path.abspath(file)).parts
         self.inner = None if shown(name) == shown(Path(file).name) else name  # a Scan's name is already shown
-        self.identity = (self.parts, self.inner)
+        try:
+            st = os.stat(file)
+            self.identity: tuple = ((st.st_dev, st.st_ino), self.inner)  # hard links too
+        except OSError:  # not there (yet): the path with links resolved
+            self.identity = (os.path.realpath(file), self.inner)
         self.depth_max = len(self.parts) + (self.inner is not None)  # the whole path: deeper adds nothing
 
     def name(self, depth: int) -> str:

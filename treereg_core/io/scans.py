@@ -73,6 +73,8 @@ OUTLIER_FACTOR = 1000.0
 #: origin; closer together, they sit far from the origin: not the scanner's frame (georeferenced).
 MIN_SPREAD_TO_RANGE = 0.02
 _SIZE_SAMPLE = 200_000
+#: The coarsest coordinate resolution a scan may have: stems are fitted to millimetres.
+MAX_RESOLUTION_M = 0.01
 #: LAS/LAZ coordinate resolution we write (metres).
 LAS_SCALE_M = 0.0001
 _LAS_CHUNK = 2_000_000
@@ -143,6 +145,8 @@ def _check_file(path: Path) -> str:
         raise ScanError(str(path), "no such file")
     if path.is_dir():
         raise ScanError(str(path), "is a directory, not a scan file")
+    if not path.is_file():  # a FIFO or device has no size: "empty" would be untrue, and reading it may block
+        raise ScanError(str(path), "is not a regular file (a FIFO, device or socket), so not a scan file; give the scan file itself")
     if path.stat().st_size == 0:
         raise ScanError(str(path), "the file is empty")
     return ext
@@ -189,6 +193,7 @@ def read_records(path: str | Path, check_units: bool = True) -> list[ScanRecord]
             raise ScanError(label, "the scan holds no valid points")
         keep = _valid_rows(label, r.points)  # warns for each kind of row dropped
         r = r if keep is None else r.select(keep)
+        check_precision(r.points, label)
         if check_units:
             # Points spread like a scene seen from the origin: their distance from it tells the unit
             # too. Far and close together (georeferenced) is `record_to_scan`'s to say.
@@ -326,6 +331,31 @@ def _seen_from_origin(points: np.ndarray, size: tuple[float, float, float] | Non
     `size`: `_size(points)` when already known."""
     _, spread, rng = size or _size(points)
     return spread >= MIN_SPREAD_TO_RANGE * rng
+
+
+def check_precision(points: np.ndarray, label: str) -> None:
+    """Raise `ScanError` when the coordinates are single precision (float32) at a magnitude where
+    float32 cannot hold a centimetre (`MAX_RESOLUTION_M`): UTM coordinates written as float32 are
+    0.5 m apart at 5,000 km, and every later check would blame something else (the angular step).
+
+    Float32 is told by every sampled coordinate being a float32 value exactly: coordinates computed
+    in float64 (or scaled integers, as LAS stores them) almost never all are.
+    """
+    if len(points) == 0:
+        return
+    sample = points[:: max(1, len(points) // _SIZE_SAMPLE)]
+    typical = np.median(np.abs(sample), axis=0)
+    resolution = np.spacing(typical.astype(np.float32)).astype(np.float64)
+    axis = int(np.argmax(resolution))
+    if resolution[axis] <= MAX_RESOLUTION_M or not np.array_equal(sample.astype(np.float32), sample):
+        return
+    raise ScanError(
+        label,
+        f"the coordinates are single precision (float32) and lie some {typical[axis]:,.0f} m from the origin, "
+        f"where float32 holds a coordinate only to {resolution[axis]:g} m: they lost their precision when the "
+        "file was written. Export the scan as float64 (double), or shifted near the origin (e.g. minus the "
+        "scanner's position) as float32, and read it again",
+    )
 
 
 def check_metres(points: np.ndarray, label: str, scanner_frame: bool = False,
@@ -831,7 +861,37 @@ def _sniff(path: Path, gzipped: bool) -> tuple[str | None, int, tuple[int, ...]]
         if rest:
             # the delimiter is better read off a data line than off the header
             delimiter = "," if "," in rest[0] else (";" if ";" in rest[0] else None)
+    data = [h for h in head[skip:] if not _is_comment(h)]
+    if data and _decimal_commas(data):
+        fix = "or replace each ',' by '.' in the file" if ";" in data[0] or len(data[0].split()) >= 3 else \
+            "commas separate its columns too, so no line can be read as x y z"
+        raise ScanError(str(path), f"the numbers are written with decimal commas ({data[0].strip()[:60]!r}), and "
+                                   "treereg reads a decimal point: export the scan with '.' as the decimal separator "
+                                   f"({fix}) and read it again")
     return delimiter, skip, cols or (0, 1, 2)
+
+
+_DECIMAL_COMMA = re.compile(r"[-+]?\d*,\d+(?:[eE][-+]?\d+)?")
+
+
+def _decimal_commas(lines: list[str]) -> bool:
+    """True when the data lines write numbers with a decimal comma: "1,5;2,3;4,7", "1,5 2,3 4,7", or
+    commas both ways, "1,5,2,3,4,7" (which would read as six numbers: every second one a fraction's
+    digits, all of one width, some with a leading zero no whole number is written with)."""
+    lines = [ln.split("#")[0].strip() for ln in lines[:16]]
+    if not all("," in ln for ln in lines):
+        return False
+    if all(";" in ln or len(ln.split()) >= 3 for ln in lines):  # another separator: each field one number
+        fields = [f for ln in lines for f in _split(ln, ";" if ";" in ln else None)[:3]]
+        return all(_DECIMAL_COMMA.fullmatch(f) or _is_number(f) for f in fields) and \
+            any(_DECIMAL_COMMA.fullmatch(f) for f in fields)
+    rows = [_split(ln, ",") for ln in lines]
+    if any(len(r) < 6 or len(r) % 2 or len(r) != len(rows[0]) for r in rows):
+        return False
+    whole = [f for r in rows for f in r[0::2]]
+    fractions = [f for r in rows for f in r[1::2]]
+    return all(re.fullmatch(r"[-+]?\d+", f) for f in whole) and all(f.isdigit() for f in fractions) and \
+        len({len(f) for f in fractions}) == 1 and (len(fractions[0]) == 1 or any(f[0] == "0" for f in fractions))
 
 
 def _named_columns(line: str) -> tuple[int, ...] | None:

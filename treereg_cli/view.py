@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import errno
+import math
 import socket
 from pathlib import Path
 
@@ -12,6 +13,7 @@ from treereg_core.demo import DEMO_DIR, demo_case
 from treereg_core.errors import ConfigError
 from treereg_core.io.atomic import check_output_dir
 from treereg_core.io.cases import read_truth, truth_beside
+from treereg_core.limits import MAX_UPLOAD_POINTS
 from treereg_core.parallel import APP_SPARE_CORES
 
 from .common import add_param_args, add_workers_arg, load_params, read_scans, workers_of
@@ -38,6 +40,11 @@ def add(sub: argparse._SubParsersAction) -> None:
                    "machines upload files and write exports, without a login)")
     p.add_argument("--max-upload-mb", type=float, default=DEFAULT_MAX_UPLOAD_MB, metavar="MB",
                    help=f"largest scan file the browser may upload (default {DEFAULT_MAX_UPLOAD_MB:g} MB)")
+    p.add_argument("--max-upload-points", type=int, default=MAX_UPLOAD_POINTS, metavar="N",
+                   help=f"most points an uploaded scan may hold, as its header announces (lines for text), "
+                   f"checked before any point is read: a compressed file can unpack to far more than its "
+                   f"size suggests, and each point takes about 64 bytes of the server's memory while it is "
+                   f"read and prepared (default {MAX_UPLOAD_POINTS:,})")
     p.set_defaults(func=run)
 
 
@@ -66,8 +73,10 @@ def run(args: argparse.Namespace) -> int:
     # Everything that can be wrong with the command line is checked before any scan is read.
     check_address(args.host, args.port)
     out_dir = check_output_dir(args.out) if args.out else None
-    if not args.max_upload_mb > 0:
-        raise ConfigError(f"--max-upload-mb: {args.max_upload_mb:g} must be a positive size in MB")
+    if not (math.isfinite(args.max_upload_mb) and args.max_upload_mb > 0):
+        raise ConfigError(f"--max-upload-mb: {args.max_upload_mb:g} must be a positive, finite size in MB")
+    if args.max_upload_points < 1:
+        raise ConfigError(f"--max-upload-points: {args.max_upload_points} must be a positive number of points")
     params = load_params(args)
     workers = workers_of(args)
     if args.scans:
@@ -90,5 +99,5 @@ def run(args: argparse.Namespace) -> int:
                          [*args.scans, *(f for f in (args.config, args.truth) if f)])
 
     serve(Controller(scans, params, truth, workers=workers), host=args.host, port=args.port, out_dir=out_dir,
-          max_upload_bytes=int(args.max_upload_mb * 1e6))
+          max_upload_bytes=int(args.max_upload_mb * 1e6), max_upload_points=args.max_upload_points)
     return 0

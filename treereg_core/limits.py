@@ -14,6 +14,10 @@ from .errors import ConfigError
 #: The most memory one stage may spend on rasters of one scan (2 GB of the 24 GB we plan for:
 #: a stage holds a few, and two scans are in memory at once).
 MAX_RASTER_BYTES = 2_000_000_000
+#: The most points a scan uploaded to the app may hold unless `treereg view --max-upload-points`
+#: says otherwise: about 64 bytes each while the app reads and prepares it (20 M: ~1.3 GB), and a
+#: compressed file's size says nothing of it (190 kB of LAZ held 20 M points).
+MAX_UPLOAD_POINTS = 20_000_000
 
 
 class RasterTooLarge(ConfigError):

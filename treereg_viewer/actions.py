@@ -23,6 +23,7 @@ class AppActions(Protocol):
     out_dir: Path | None
     uploads: UploadReceiver
     max_upload_bytes: int
+    max_upload_points: int
 
     @property
     def view(self) -> ViewState: ...
@@ -60,6 +61,7 @@ class AppHost(Protocol):
     out_dir: Path | None
     uploads: UploadReceiver
     max_upload_bytes: int
+    max_upload_points: int
     derived: Any
     server: Any
     presenter: Any

@@ -31,7 +31,7 @@ from typing import Any, Literal
 import viser
 
 from treereg_core.errors import ConfigError
-from treereg_core.limits import format_bytes
+from treereg_core.limits import MAX_UPLOAD_POINTS, format_bytes
 
 from . import camera
 from .controller import Controller, Snapshot
@@ -69,11 +69,13 @@ class TreeregApp:
         viewer on the server's own GUI and scene, seen by every tab (scripts, tests without a browser).
     max_upload_bytes
         Largest scan file a browser may upload (uploads stream to a temporary file).
+    max_upload_points
+        Most points an uploaded scan file may announce (checked before any is read).
     """
 
     def __init__(self, server: viser.ViserServer, controller: Controller, out_dir: Path | None = None,
                  autorun: bool = True, tabs: Literal["each", "shared"] = "shared",
-                 max_upload_bytes: int = MAX_UPLOAD_BYTES) -> None:
+                 max_upload_bytes: int = MAX_UPLOAD_BYTES, max_upload_points: int = MAX_UPLOAD_POINTS) -> None:
         self.server = server
         self.controller = controller
         self.out_dir = Path(out_dir) if out_dir is not None else None
@@ -83,6 +85,7 @@ class TreeregApp:
         self._viewers: dict[int | None, Viewer] = {}
         self.presenter: Viewer | None = None
         self.max_upload_bytes = int(max_upload_bytes)
+        self.max_upload_points = int(max_upload_points)
         # One receiver for every tab's upload buttons: each file streams to a temporary file.
         self.uploads = UploadReceiver(server, on_message=lambda text, error: controller.note(text, error=error),
                                       on_progress=self._show_receiving)
@@ -286,7 +289,7 @@ def exposure_warning(host: str, port: int, out_dir: Path | None, max_upload_byte
 
 
 def serve(controller: Controller, host: str = "127.0.0.1", port: int = 8080, out_dir: Path | None = None,
-          max_upload_bytes: int = MAX_UPLOAD_BYTES) -> None:
+          max_upload_bytes: int = MAX_UPLOAD_BYTES, max_upload_points: int = MAX_UPLOAD_POINTS) -> None:
     """Start the server and the app, print the URL (tests read it), block until Ctrl-C (or SIGTERM,
     which `treereg` raises as a KeyboardInterrupt named "SIGTERM"); then close the app (its upload
     folder removed).
@@ -301,7 +304,8 @@ def serve(controller: Controller, host: str = "127.0.0.1", port: int = 8080, out
         controller.close()
         raise ConfigError(f"--port {port}: the port is in use (another treereg view?); choose another port, "
                           "or --port 0 for any free one")
-    app = TreeregApp(server, controller, out_dir=out_dir, tabs="each", max_upload_bytes=max_upload_bytes)
+    app = TreeregApp(server, controller, out_dir=out_dir, tabs="each", max_upload_bytes=max_upload_bytes,
+                     max_upload_points=max_upload_points)
     warning = exposure_warning(host, server.get_port(), out_dir, max_upload_bytes)
     if warning:
         print(warning, file=sys.stderr, flush=True)

@@ -10,6 +10,10 @@ tab closed in the middle of a 200 MB upload left the upload button disabled, und
 passes every other upload on to viser unchanged:
 - parts are written to a temporary file as they arrive (nothing of the file is kept in memory);
 - a file larger than the button's limit, or than the free disk space, is refused when it starts;
+  a name no file can have (a NUL character) too;
+- a scan file whose header announces more points than the button's limit is refused when complete,
+  before a point is read: a few hundred kB of LAZ or gzip can unpack to tens of millions of points
+  (and gigabytes of the server's memory);
 - progress is acknowledged to the uploading tab only (its own progress notice), and reported to
   `on_progress` (the app shows it to every tab);
 - when the uploading tab disconnects, its unfinished files are deleted and `on_abandoned` says so;
@@ -34,6 +38,7 @@ from typing import Any, BinaryIO, Callable
 import viser
 from viser import _messages
 
+from treereg_core.io.scans import announced_points
 from treereg_core.limits import format_bytes
 
 log = logging.getLogger(__name__)
@@ -59,6 +64,7 @@ class _Button:
     max_bytes: int
     what: str  # "scan file", "parameter file"
     gui: int  # id() of the GuiApi the button belongs to
+    max_points: int | None = None  # scan files: the most points a file may announce
 
 
 @dataclass
@@ -108,11 +114,12 @@ class UploadReceiver:
         self._viser[id(gui)] = (gui, start, part)
 
     # ---- setup -----------------------------------------------------------------------------------
-    def add(self, button: Any, on_file: OnFile, max_bytes: int, what: str = "file") -> None:
-        """Receive `button`'s uploads: at most `max_bytes`, handed to `on_file` when complete."""
+    def add(self, button: Any, on_file: OnFile, max_bytes: int, what: str = "file", max_points: int | None = None) -> None:
+        """Receive `button`'s uploads: at most `max_bytes`, and for scan files at most `max_points`
+        announced points, handed to `on_file` when complete."""
         gui = button._impl.gui_api
         self._hook(gui)
-        self._buttons[button._impl.uuid] = _Button(on_file, int(max_bytes), what, id(gui))
+        self._buttons[button._impl.uuid] = _Button(on_file, int(max_bytes), what, id(gui), max_points)
 
     def remove(self, button: Any) -> None:
         """Stop receiving `button`'s uploads (its tab closed); forget its GUI once none of ours is left
@@ -159,7 +166,9 @@ class UploadReceiver:
         name = Path(msg.filename).name or "upload"
         size = int(msg.size_bytes)
         problem = None
-        if size > button.max_bytes:
+        if "\0" in name:  # no file system takes it (open() raises ValueError, not OSError)
+            problem = "its name holds a NUL character, which no file name can hold; rename the file"
+        elif size > button.max_bytes:
             problem = (f"{format_bytes(size)} is more than the {format_bytes(button.max_bytes)} a {button.what} may "
                        "have here (treereg view --max-upload-mb)")
         elif size + DISK_MARGIN_BYTES > shutil.disk_usage(self.tmp_root).free:
@@ -255,6 +264,11 @@ class UploadReceiver:
 
         def hand_over() -> None:  # off the event loop: parsing a scan takes a while
             try:
+                too_many = _too_many_points(t.path, button.max_points)
+                if too_many:
+                    discard(t.path)
+                    self._on_message(f"Upload rejected — {t.filename}: {too_many}; nothing was added.", True)
+                    return
                 button.on_file(t.filename, t.path)
             except Exception as e:  # a bug must not leave the file behind or go unsaid
                 log.exception("handling upload %s failed", t.filename)
@@ -284,6 +298,20 @@ class UploadReceiver:
             ts = list(self._transfers.values())
         self._on_progress("; ".join(f"Receiving {t.filename}: {100 * t.received / max(t.size, 1):.0f}% of "
                                     f"{format_bytes(t.size)}" for t in ts))
+
+
+def _too_many_points(path: Path, max_points: int | None) -> str | None:
+    """Why a received scan file holds too many points to be read here (None when it does not, or its
+    header cannot be read: reading it then says what is wrong)."""
+    if max_points is None:
+        return None
+    counted = announced_points(path, stop_after=max_points)
+    if counted is None or counted[0] <= max_points:
+        return None
+    n, announced = counted
+    holds = f"its header announces {n:,} points" if announced else f"it holds more than {max_points:,} lines of points"
+    return (f"{holds}, more than the {max_points:,} an uploaded scan may have here (treereg view "
+            "--max-upload-points)")
 
 
 def discard(path: Path) -> None:

@@ -146,6 +146,10 @@ class Viewer:
     def max_upload_bytes(self) -> int:
         return self.host.max_upload_bytes
 
+    @property
+    def max_upload_points(self) -> int:
+        return self.host.max_upload_points
+
     def set_view(self, **changes: Any) -> None:
         """Record display choices and ask for a redraw (callbacks call this; it returns at once)."""
         if "stage" in changes and changes["stage"] != self._view.stage and "focus_section" not in changes:

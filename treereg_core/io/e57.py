@@ -157,6 +157,16 @@ def read_e57(path: str | Path) -> list[ScanRecord]:
     return records
 
 
+def e57_point_count(path: str | Path) -> int:
+    """The points every scan of an E57 file announces in its header (no point is read)."""
+    pye57 = _pye57()
+    try:
+        with pye57.E57(str(path)) as e57:
+            return sum(int(e57.get_header(k).point_count) for k in range(e57.scan_count))
+    except Exception as e:  # libe57 raises its own exception types for malformed files
+        raise ScanError(str(path), f"not a readable E57 file ({type(e).__name__})") from None
+
+
 def _text(name: str) -> str:
     """A scan name as E57 text, which is UTF-8: the bytes of a file name that is not (kept by Python
     as lone surrogates) are written as \\xff escapes."""

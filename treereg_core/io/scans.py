@@ -18,9 +18,12 @@ from __future__ import annotations
 import gzip
 import io as _io
 import json
+import math
 import os
 import re
 import warnings
+import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Mapping, TextIO
@@ -309,6 +312,63 @@ def read_scan(
         raise ScanError(str(path), f"holds {len(scans)} scans ({', '.join(s.name for s in scans)}); read them with read_scans")
     scan = scans[0]
     return scan if name is None else scan.with_points(scan.points, name=name)
+
+
+def announced_points(path: str | Path, stop_after: int | None = None) -> tuple[int, bool] | None:
+    """How many points reading `path` would give at most, known before any point is read: what its
+    header announces (PLY, LAS/LAZ, NPY/NPZ arrays, every scan of an E57), or for text formats (XYZ,
+    TXT, CSV, PTX, gzipped or not) its lines, counted until more than `stop_after`.
+
+    Returns (count, announced): announced is True for a header's count, False for lines counted
+    (which stop once more than `stop_after`: at least that many). None when the file's header
+    cannot be read: reading the file says what is wrong. What a
+    file unpacks to is not bounded by its size: a few hundred kB of LAZ, gzip or compressed NPZ can
+    hold tens of millions of points.
+    """
+    import laspy  # laspy.errors: what a file that is no LAS raises
+
+    path = Path(path)
+    ext = extension(path)
+    try:
+        if ext == ".ply":
+            return next(e.count for e in _ply_header(path).elements if e.name == "vertex"), True
+        if ext in (".las", ".laz"):
+            with laspy.open(path) as reader:
+                return int(reader.header.point_count), True
+        if ext == ".e57":
+            from .e57 import e57_point_count
+            return e57_point_count(path), True
+        if ext == ".npy":
+            with open(path, "rb") as fh:
+                return _npy_points(fh), True
+        if ext == ".npz":
+            with zipfile.ZipFile(path) as z:
+                return max((_npy_points(z.open(m)) for m in z.namelist() if m.endswith(".npy")), default=0), True
+        if ext in READ_EXTENSIONS:  # text: at most one point per line
+            return _count_lines(path, ext.endswith(".gz"), stop_after)
+    except (ScanError, OSError, EOFError, ValueError, zlib.error, zipfile.BadZipFile, laspy.errors.LaspyException):
+        pass
+    return None
+
+
+def _npy_points(fh) -> int:
+    """The points (rows of three) an .npy array's header announces (its data is not read)."""
+    version = np.lib.format.read_magic(fh)
+    read = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+    shape = read(fh)[0]
+    return math.prod(shape) // 3
+
+
+def _count_lines(path: Path, gzipped: bool, stop_after: int | None) -> tuple[int, bool]:
+    """Lines of a text file (decompressed), counted in chunks until more than `stop_after`; (count, False)."""
+    count, last = 0, b"\n"
+    with (gzip.open(path, "rb") if gzipped else open(path, "rb")) as fh:
+        while chunk := fh.read(1 << 24):
+            count += chunk.count(b"\n")
+            last = chunk[-1:]
+            if stop_after is not None and count > stop_after:
+                break
+    return count + (last != b"\n"), False  # a last line without its newline counts
 
 
 def _size(points: np.ndarray) -> tuple[float, float, float]:

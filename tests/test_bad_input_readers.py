@@ -314,3 +314,34 @@ def test_a_binary_ply_that_shrinks_while_read_is_named_truncated(tmp_path, sandb
     assert rc == 2, err
     one_line(err, rf"^treereg: error: .*shrinks\.ply: the PLY file is truncated: its header announces {len(pts)} "
                   rf"points, the file holds {len(pts) // 3} \(it shrank while being read: read it again once it is complete\)$")
+
+
+def test_a_scan_read_from_npy_does_not_change_or_crash_when_its_file_is_cut_afterwards(tmp_path):
+    """A float64 .npy was memory-mapped and the map became the scan's points: the file cut (or
+    overwritten) during a run changed them, or ended the process with a bus error. Run apart: a bus
+    error would take pytest down."""
+    import subprocess
+    import sys
+
+    from hostile import REPO, _env
+
+    script = (
+        "import os, sys, numpy as np\n"
+        "from treereg_core.io.scans import read_points, read_scan\n"
+        "pts = read_points(sys.argv[1])\n"
+        "np.save(sys.argv[2], pts)\n"
+        "scan = read_scan(sys.argv[2])\n"
+        "os.truncate(sys.argv[2], 200)\n"
+        "print(bool(np.array_equal(scan.points, pts)))\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", script, str(REPO / "treereg_core" / "demo" / "scan2.ply"),
+                           str(tmp_path / "scan.npy")], cwd=REPO, env=_env(), capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0 and proc.stdout.strip() == "True", (proc.returncode, proc.stdout, proc.stderr[-2000:])
+
+
+def test_a_truncated_npy_is_one_line(sandbox, capsys):
+    bad = sandbox / "cut.npy"
+    np.save(bad, _demo(sandbox))
+    bad.write_bytes(bad.read_bytes()[:-1000])
+    _refused(capsys, sandbox, bad, r"cut\.npy: the \.npy file is truncated: its header announces 25123 points, the file "
+                                   r"holds 25081$")  # was "not a readable .npy array (mmap length is greater than file size)"

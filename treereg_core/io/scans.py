@@ -6,9 +6,10 @@ each in its scanner's own frame with the pose the file (or `scanner_position`) g
 Every point reader returns N x 3 float64 metres; every problem a user has to fix raises
 `errors.ScanError`, whose message names the file and says what is wrong and what to do.
 Readers never loop over points in Python: text goes through numpy's C parser, LAS/LAZ is read
-in chunks into one preallocated array, NPY is memory-mapped. Every reader checks what the file's
-header promises (point counts, types, end of header) and refuses a file cut short rather than read
-part of it. Rows that are no measurement (NaN, no-data values, absurdly far) are dropped with a
+in chunks into one preallocated array. No file is memory-mapped (a mapped file that shrinks ends
+the process with a bus error): every read is checked for length. Every reader checks what the
+file's header promises (point counts, types, end of header) and refuses a file cut short rather
+than read part of it. Rows that are no measurement (NaN, no-data values, absurdly far) are dropped with a
 warning before any unit is guessed (`_valid_rows`). Writers are atomic: a temporary file beside the
 target, renamed over it only when complete.
 """
@@ -351,12 +352,17 @@ def announced_points(path: str | Path, stop_after: int | None = None) -> tuple[i
     return None
 
 
-def _npy_points(fh) -> int:
-    """The points (rows of three) an .npy array's header announces (its data is not read)."""
+def _npy_header(fh) -> tuple[tuple[int, ...], np.dtype]:
+    """The shape and type an .npy array's header announces; `fh` is left at its data."""
     version = np.lib.format.read_magic(fh)
     read = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
-    shape = read(fh)[0]
-    return math.prod(shape) // 3
+    shape, _, dtype = read(fh)
+    return shape, dtype
+
+
+def _npy_points(fh) -> int:
+    """The points (rows of three) an .npy array's header announces (its data is not read)."""
+    return math.prod(_npy_header(fh)[0]) // 3
 
 
 def _count_lines(path: Path, gzipped: bool, stop_after: int | None) -> tuple[int, bool]:
@@ -561,7 +567,19 @@ def _as_xyz(path: Path, arr: np.ndarray, what: str) -> np.ndarray:
 
 def _read_npy(path: Path) -> np.ndarray:
     try:
-        arr = np.load(path, mmap_mode="r", allow_pickle=False)
+        with open(path, "rb") as fh:
+            shape, dtype = _npy_header(fh)
+            if dtype.kind in "biuf" and len(shape) == 2 and shape[1] == 3:
+                have = (os.fstat(fh.fileno()).st_size - fh.tell()) // (3 * dtype.itemsize)
+                if have < shape[0]:
+                    raise ScanError(str(path), f"the .npy file is truncated: its header announces {shape[0]} points, "
+                                               f"the file holds {have}")
+            fh.seek(0)
+            # Read, not memory-mapped: a float64 array's map became the scan's points, so the file
+            # overwritten or cut later changed them, or ended the process with a bus error.
+            arr = np.load(fh, allow_pickle=False)
+    except ScanError:
+        raise
     except (ValueError, OSError, EOFError) as e:
         raise ScanError(str(path), f"not a readable .npy array ({e})") from None
     return _as_xyz(path, arr, "the array")

@@ -107,7 +107,8 @@ def test_batch_names_start_no_formula_and_no_element(case_dir, tmp_path, capsys)
     capsys.readouterr()
     assert main(["batch", str(root), "--out", str(out), "--workers", "1", "--until", "coarse"]) == 1  # unverified
     got = capsys.readouterr()
-    _no_control(got.out + got.err.replace("\t", " "))
+    _no_control(got.out + got.err)
+    assert "\tTAB" not in got.err and re.search(r"^  \\tTAB: unverified: ", got.err, re.M), got.err  # shown
     with open(out / "summary.csv", newline="") as fh:
         trees = list(csv.DictReader(fh))
     with open(out / "scans.csv", newline="") as fh:

@@ -40,3 +40,14 @@ def browser():
         b = p.chromium.launch(executable_path=str(CHROMIUM), headless=True, args=CHROMIUM_ARGS)
         yield b
         b.close()
+
+
+def read(markdown: str) -> str:
+    """What a person reads of a markdown element: rendered as viser renders it (CommonMark with raw
+    HTML and tables), tags dropped, entities decoded (a scan name escaped for markdown reads as given)."""
+    import html
+
+    from markdown_it import MarkdownIt
+
+    out = MarkdownIt("commonmark", {"html": True}).enable(["table", "strikethrough"]).render(markdown)
+    return html.unescape(re.sub(r"<[^>]*>", "", out))

@@ -23,7 +23,7 @@ from pathlib import Path
 import pytest
 import viser
 
-from conftest import rss_mb
+from conftest import read, rss_mb
 from hostile import REPO, _env, changed, cli, fingerprint, one_line, stop_register_midway, sandbox, view_started  # noqa: F401  (sandbox: a fixture)
 from treereg_core import params as P
 from treereg_core.demo import DEMO_DIR
@@ -275,7 +275,7 @@ def _idle(a: TreeregApp, timeout: float = 120.0) -> None:
 
 
 def _message(a: TreeregApp) -> str:
-    return a.stages.message_md.content
+    return read(a.stages.message_md.content)
 
 
 def test_app_export_failure_then_success_leaves_no_stale_failure(app, tmp_path):
@@ -290,14 +290,14 @@ def test_app_export_failure_then_success_leaves_no_stale_failure(app, tmp_path):
         app.files.download_transforms.value = True
         _idle(app)
         assert re.search(r"Export failed: .*transforms\.json: is a FIFO", _message(app)), _message(app)
-        assert "Export failed" in app.files.export_md.content and not sent
+        assert "Export failed" in read(app.files.export_md.content) and not sent
         assert changed(before, fingerprint(tmp_path)) == []  # batch: not one file of the export was written
         (fifo / "transforms.json").unlink()
         app.files.download_transforms.value = True
         _idle(app)
         assert sent == ["transforms.json"]
         assert "Export failed" not in _message(app) and "Exported the transforms of 3 scans" in _message(app)
-        assert "Export failed" not in app.files.export_md.content
+        assert "Export failed" not in read(app.files.export_md.content)
     finally:
         del app.send_file
         app.out_dir = None
@@ -320,7 +320,7 @@ def test_app_uploads_too_large_abandoned_or_odd_change_nothing_and_leave_nothing
     r._part(7, M.FileTransferPart(app.scans.upload._impl.uuid, "t1", 0, data[: len(data) // 2]))
     assert [n for n, _ in r.in_flight] == ["half.ply"]
     assert any(r.tmp_root.rglob("half.ply"))
-    assert "Receiving half.ply" in app.scans.receiving.content
+    assert "Receiving half.ply" in read(app.scans.receiving.content)
 
     class Gone:
         client_id = 7
@@ -330,7 +330,7 @@ def test_app_uploads_too_large_abandoned_or_odd_change_nothing_and_leave_nothing
     asyncio.run(r._disconnected(Gone()))
     _idle(app)
     assert re.search(r"Upload of half\.ply abandoned at \d+% \(its browser tab was closed\); nothing was added\.", _message(app))
-    assert r.in_flight == [] and not any(r.tmp_root.rglob("*")) and app.scans.receiving.content == ""
+    assert r.in_flight == [] and not any(r.tmp_root.rglob("*")) and read(app.scans.receiving.content) == ""
     # Parts of a transfer nobody started, and parts out of range, are dropped.
     r._part(7, M.FileTransferPart(app.scans.upload._impl.uuid, "t1", 1, data[len(data) // 2:]))
     # A parameter file nested too deeply, or binary: a message, the parameters unchanged.

@@ -25,6 +25,7 @@ import viser
 from viser.infra._infra import WebsockMessageHandler
 
 from hostile import REPO, _env, changed, cli, fingerprint, one_line, sandbox, view_started  # noqa: F401  (sandbox: a fixture)
+from conftest import read
 from treereg_viewer.app import TreeregApp
 from treereg_viewer.controller import Controller
 from treereg_viewer.viewer import Viewer
@@ -85,7 +86,7 @@ def test_app_no_viser_call_from_the_pipeline_thread(app):
     assert ctl.snapshot.output("projection") is not None and ctl.snapshot.output("projection").ok
     assert app.sent_from, "nothing was sent to the browser"
     assert "treereg-worker" not in app.sent_from, sorted(set(app.sent_from))
-    assert "Ran " in app.stages.message_md.content  # and the news still reached the tab
+    assert "Ran " in read(app.stages.message_md.content)  # and the news still reached the tab
 
 
 def _type(viewer: Viewer, section: str, name: str, text: str) -> None:
@@ -134,7 +135,7 @@ def test_app_tree_at_off_the_tree_says_so(app):
     assert app.on_param_change("target", "tree_at", "50, 50") is None
     ctl.request_run("prepare")
     _idle(app)
-    assert re.search(r"\*\*⚠ 1 Scans failed: " + TREE_AT_OFF, app.stages.message_md.content), app.stages.message_md.content
+    assert re.search(r"⚠ 1 Scans failed: " + TREE_AT_OFF, read(app.stages.message_md.content)), read(app.stages.message_md.content)
     assert app.on_param_change("target", "tree_at", None) is None
     _idle(app)
 

@@ -4,6 +4,7 @@ stem the stations surround, or `tree_at`), each station cut to it, and the plot 
 import numpy as np
 import pytest
 
+from conftest import read
 from treereg_core.demo import demo_case
 from treereg_core.geometry.rigid import invert, mean_displacement, rotation_error_deg
 from treereg_core.params import Params, TargetParams
@@ -119,7 +120,7 @@ def test_the_app_marks_the_target_and_takes_another_tree(plot):
         assert app.controller.wait_idle(120) and app.drawer.wait_idle(30)
         nodes = set(server.scene._handle_from_node_name)
         assert {"/prepare/s0/target", "/prepare/s1/target", "/prepare/s2/target", "/prepare/s0/stems"} <= nodes
-        text = app.panel._text.content
+        text = read(app.panel._text.content)
         assert "Target tree:" in text and "surround" in text
         x, y = target_in_scan(plot, 0)
         assert f"{x:.2f}, {y:.2f}" in app.panel.table  # the table names the target's stem
@@ -130,7 +131,7 @@ def test_the_app_marks_the_target_and_takes_another_tree(plot):
         assert app.controller.wait_idle(120) and app.drawer.wait_idle(30)
         got = app.controller.snapshot.output("prepare").items[0].stem_xy
         assert np.hypot(*(np.asarray(got) - other)) < 0.1
-        assert "--tree-at" in app.panel._text.content
+        assert "--tree-at" in read(app.panel._text.content)
     finally:
         app.close()
         server.stop()

@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 import viser
 
+from conftest import read
 from treereg_core.demo import DEMO_DIR, demo_case
 from treereg_core.geometry.rigid import mean_displacement, rotation_error_deg
 from treereg_core.io.scans import read_points
@@ -102,8 +103,8 @@ def test_app_runs_every_stage_and_matches_truth(env, case):
     # Every scan's layer is in the scene, in its colour.
     for i in range(len(case.scans)):
         assert f"/scans/s{i}/points" in _nodes(server)
-    assert "✗" not in app.stages.status_md.content and "○" not in app.stages.status_md.content
-    assert "⚠" not in app.stages.status_md.content  # the demo registers: nothing to warn about
+    assert "✗" not in read(app.stages.status_md.content) and "○" not in read(app.stages.status_md.content)
+    assert "⚠" not in read(app.stages.status_md.content)  # the demo registers: nothing to warn about
     # Before registration all scanners sit at one point: one label names them all (names printed over
     # each other could not be read); registered, each scanner is named at its own station.
     nodes = _nodes(server)
@@ -147,7 +148,7 @@ def test_next_steps_through_every_stage_and_draws_its_layer(env, case):
         app.stages.step.value = "Next"  # the browser's click on "Next"
         _idle(app)
         assert app.view.stage == name
-        assert app.panel.title.startswith(f"### {k + 1} {APP_STAGES[k].title}"), app.panel.title
+        assert read(app.panel.title).startswith(f"{k + 1} {APP_STAGES[k].title}"), app.panel.title
         assert app.stages.selector.value == label(name)
         assert [f.visible for f in app.stages.folders.values()] == [j == k for j in range(len(STAGE_NAMES))]
         assert [g.visible for g in app.drawer._groups.values()] == [j == k for j in range(len(STAGE_NAMES))]
@@ -187,7 +188,7 @@ def test_next_steps_through_every_stage_and_draws_its_layer(env, case):
             T = snap.output("graph").items[1].T_ref_scan
             assert np.allclose(app.drawer._scan_frames[1].position, T[:3, 3], atol=1e-6)
         if name == "graph":  # every scan's verdict, the station graph
-            assert "3 of 3 scans verified" in app.panel._text.content and app.panel.plots[0].visible
+            assert "3 of 3 scans verified" in read(app.panel._text.content) and app.panel.plots[0].visible
         if name == "hypotheses":  # one rival drawn grey, the scores and margins in the table
             assert "/hypotheses/rival" in _nodes(server) and "consis&shy;tency" in app.panel.table and "margin (≥ 0.03)" in app.panel.table
         if name == "icp":
@@ -212,7 +213,7 @@ def test_the_pair_between_two_targets_can_be_chosen(env, case):
     assert list(dropdown.options) == [f"{names[1]} → {names[0]}", f"{names[2]} → {names[0]}", between]
     dropdown.value = between  # the browser's choice
     _idle(app)
-    assert app.view.target == 2 and app.panel.title.startswith(f"### 10 Verify: {between}"), app.panel.title
+    assert app.view.target == 2 and read(app.panel.title).startswith(f"10 Verify: {between}"), app.panel.title
     assert app.stages.control("coarse", TargetControl).dropdown.value == between  # every stage's list follows
     dropdown.value = f"{names[1]} → {names[0]}"
     _idle(app)
@@ -265,12 +266,12 @@ def test_invalid_parameter_is_rejected_and_the_input_shows_what_is_in_force(env)
     _idle(app)
     assert text.value == shown
     assert ctl.params == before.params
-    assert "slices.quantiles" in app.stages.message_md.content and "⚠" in app.stages.message_md.content
+    assert "slices.quantiles" in read(app.stages.message_md.content) and "⚠" in read(app.stages.message_md.content)
     number = app.stages.sections["coarse"].handles["inlier_m"]
     number.value = "-1"  # below its minimum
     _idle(app)
     assert number.value == "0.4" == str(before.params.coarse.inlier_m)
-    assert "coarse.inlier_m" in app.stages.message_md.content
+    assert "coarse.inlier_m" in read(app.stages.message_md.content)
     assert all(ctl.snapshot.output(s) is before.output(s) for s in STAGE_NAMES)
 
 
@@ -313,7 +314,7 @@ def test_bad_upload_shows_a_message_and_changes_nothing(env, case):
         assert why in snap.message, snap.message
         # The user never saw the temporary file the upload went through: its path must not show.
         assert "treereg-upload-" not in snap.message and "/tmp" not in snap.message
-        assert name in app.stages.message_md.content
+        assert name in read(app.stages.message_md.content)
         assert snap.scans == before.scans
         assert all(snap.output(s) is before.output(s) for s in STAGE_NAMES)
         assert len(app.scans._checkboxes) == len(before.scans)
@@ -360,7 +361,7 @@ def test_export_files_match_truth(env, case, tmp_path):
     app.files.download_cloud.value = True
     del app.send_file
     assert sent[-1][0] == "merged.ply" and sent[-1][1] == (tmp_path / "merged.ply").read_bytes()
-    assert "Exported the transforms of 3 scans." in app.files.export_md.content
+    assert "Exported the transforms of 3 scans." in read(app.files.export_md.content)
     assert json.loads((tmp_path / "transforms.json").read_text())["quality"]["scans"]["scan3.ply"]["verdict"] == "verified"
 
 
@@ -373,14 +374,14 @@ def test_failed_stage_shows_its_message_and_later_stages_stay_stale(small_app):
     snap = ctl.snapshot
     assert snap.status("coarse") == "failed"
     assert snap.status("fine") == "stale" and snap.status("evaluation") == "stale"
-    assert "4 Coarse failed" in app.stages.message_md.content
+    assert "4 Coarse failed" in read(app.stages.message_md.content)
     assert app.stages.progress.value == pytest.approx(300.0 / len(STAGE_NAMES))  # 3 stages up to date, not a full bar
-    assert "Failed" in app.panel._text.content
-    assert "Traceback" not in app.stages.message_md.content + app.panel._text.content
+    assert "Failed" in read(app.panel._text.content)
+    assert "Traceback" not in read(app.stages.message_md.content) + read(app.panel._text.content)
     app.select_stage("slices")  # a failure upstream: stepping on does not run anything
     _idle(app)
     assert ctl.snapshot.status("slices") == "stale" and ctl.snapshot.status("hypotheses") == "stale"
-    assert "4 Coarse failed" in app.panel._text.content
+    assert "4 Coarse failed" in read(app.panel._text.content)
 
 
 def test_presets_and_parameter_files_round_trip(small_app, tmp_path):
@@ -405,7 +406,7 @@ def test_presets_and_parameter_files_round_trip(small_app, tmp_path):
     _upload(app, app.files.load_params, "bad.json", b'{"matching": {"n_pairs": "many"}}')
     _idle(app)
     assert ctl.params.matching.n_pairs == 7
-    assert "matching.n_pairs" in app.stages.message_md.content
+    assert "matching.n_pairs" in read(app.stages.message_md.content)
 
 
 def test_good_upload_adds_a_scan_in_the_next_colour(small_app, case):
@@ -427,14 +428,14 @@ def test_good_upload_adds_a_scan_in_the_next_colour(small_app, case):
     _idle(app)
     snap = app.controller.snapshot
     assert snap.scans[-1].name == "holes.xyz" and snap.scans[-1].n_points == 2250
-    assert "dropped 750 of 3000 points with NaN" in app.stages.message_md.content
+    assert "dropped 750 of 3000 points with NaN" in read(app.stages.message_md.content)
     assert "treereg-upload-" not in snap.message
     # A wrong upload can be taken back: remove both, in the Scans tab.
     for name in ("holes.xyz", "extra.ply"):
         app.scans.remove_choice.value = name
         app.scans.remove_button.value = True
         _idle(app)
-        assert name not in app.controller.snapshot.scan_names and f"Removed {name}" in app.stages.message_md.content
+        assert name not in app.controller.snapshot.scan_names and f"Removed {name}" in read(app.stages.message_md.content)
     assert app.controller.snapshot.scan_names == [s.name for s in case.scans]
     assert [cb.label for cb in app.scans._checkboxes] == [f"{i + 1}: {s.name}" for i, s in enumerate(case.scans)]
     assert app.scans.remove_choice.options == tuple(s.name for s in case.scans[1:])
@@ -452,31 +453,31 @@ def test_paper_preset_runs_and_its_failure_is_explained(small_app, case):
     app = small_app
     ctl = app.controller
     app.files.preset.value = "paper"
-    note = app.files.preset_md.content.replace("<wbr>", "")  # (line-break chances in long words)
+    note = app.files.preset_md.content.replace("<wbr>", "")  # the markdown table (line-break chances in long words)
     assert "Why it often fails" in note and "| coarse.estimator | ransac | svd |" in note
     app.files.apply_preset.value = True
     _idle(app)
-    assert "preset paper in force" in app.stages.message_md.content and "often give a wrong" in app.stages.message_md.content
+    assert "preset paper in force" in read(app.stages.message_md.content) and "often give a wrong" in read(app.stages.message_md.content)
     app.stages.run_button.value = True
     _idle(app)
     snap = ctl.snapshot
     assert snap.status("coarse") == "failed"
-    message = app.stages.message_md.content
+    message = read(app.stages.message_md.content)
     assert "scan3.ply" in message and "--set coarse.estimator=ransac" in message
-    assert "✗ 4 Coarse" in app.stages.status_md.content
+    assert "✗ 4 Coarse" in read(app.stages.status_md.content)
     assert "scan3.ply" not in snap.transforms  # no transform claimed for the failed pair
     assert snap.verdicts["scan3.ply"][0] == "failed"
     # scan 2's pair went on to the end, unverified: the reason is on screen, with a mark in the header.
     assert snap.verdicts["scan2.ply"][0] == "unverified"
     assert "lie in space the reference saw through" in " ".join(snap.verdicts["scan2.ply"][1])
-    assert "⚠ 2 scan2.ply" in app.stages.status_md.content and "✗ 3 scan3.ply" in app.stages.status_md.content
-    assert "⚠ unverified: scan2.ply: " in app.stages.message_md.content
+    assert "⚠ 2 scan2.ply" in read(app.stages.status_md.content) and "✗ 3 scan3.ply" in read(app.stages.status_md.content)
+    assert "⚠ unverified: scan2.ply: " in read(app.stages.message_md.content)
     bundle = export_bundle(snap)
     assert set(bundle.transforms) == {"scan1.ply"}  # nothing but the reference is exported as a result
     for name in STAGE_NAMES:  # every stage draws with one pair failed, no drawing error
         app.select_stage(name)
         _idle(app)
-        assert "Drawing failed" not in app.stages.message_md.content
+        assert "Drawing failed" not in read(app.stages.message_md.content)
         nodes = _nodes(app.server)
         if name == "graph":
             # In 3-D: the best guess drawn ghosted and labelled, the failed scan not drawn where the
@@ -529,8 +530,8 @@ def test_started_with_the_paper_preset_the_files_tab_says_so(case):
     app = TreeregApp(server, Controller(case.scans, PRESETS["paper"], truth=case.truth()), autorun=False)
     try:
         _idle(app)
-        assert app.files.preset.value == "paper" and "Why it often fails" in app.files.preset_md.content
-        assert "often give a wrong coarse transform" in app.stages.message_md.content
+        assert app.files.preset.value == "paper" and "Why it often fails" in read(app.files.preset_md.content)
+        assert "often give a wrong coarse transform" in read(app.stages.message_md.content)
     finally:
         app.close()
         server.stop()
@@ -645,7 +646,7 @@ def test_cross_section_of_the_trunk_separate_arcs_at_coarse_one_ring_at_fine(env
     assert cs is not None and [p.pose for p in cs.poses] == ["coarse", "fine"]
     coarse, fine = cs.pose("coarse"), cs.pose("fine")
     assert coarse.spread_m(1) > 0.01 and fine.spread_m(1) < 0.005, (coarse.offsets_m[1], fine.offsets_m[1])
-    assert app.panel.title.startswith("### Cross-section at z = ")
+    assert read(app.panel.title).startswith("Cross-section at z = ")
     assert "Coarse: separate arcs" in app.panel.text and "Fine: one ring" in app.panel.text
     assert len([p for p in app.panel.plots if p.visible]) == 3  # top view, unrolled ring, Fig. 6 raster
     assert "/section/cut" in _nodes(server)  # where the cut lies, in 3-D
@@ -749,7 +750,7 @@ def test_the_tour_sets_stage_and_panel_and_ends(env):
     assert all(s.why.count(". ") + 1 >= 2 and s.try_this for s in STEPS)
     v.tour_go(0)
     _idle(app)
-    assert app.view.stage == "prepare" and v.tour.card.visible and "step 1 of" in v.tour.card.content
+    assert app.view.stage == "prepare" and v.tour.card.visible and "step 1 of" in read(v.tour.card.content)
     assert {"/tour/tree0", "/tour/tree1", "/tour/tree2"} <= _nodes(server)  # each station's tree named
     v.tour_go([s.stage for s in STEPS].index("fine"))  # the fine step: the cross-section, coarse and fine side by side
     _idle(app)

@@ -11,6 +11,7 @@ import json
 import numpy as np
 import pytest
 
+from conftest import read
 from treereg_core.fine.bend import Bend, cantilever
 from treereg_core.fine.stem import stem_profile
 from treereg_core.geometry.rigid import apply_transform, mean_displacement, rotation_error_deg
@@ -218,4 +219,4 @@ def test_the_scans_table_says_why_a_scan_was_not_filtered():
         _, panel = render(server.scene, "/t", snap, ViewState())
     finally:
         server.stop()
-    assert "not filtered" in panel.table and "merged.ply: mixed pixels off: no regular angular grid" in panel.text
+    assert "not filtered" in panel.table and "merged.ply: mixed pixels off: no regular angular grid" in read(panel.text)

@@ -30,6 +30,7 @@ from treereg_core.prepare.ground import PreparedScan
 from treereg_core.stage import Event, Pair, StageFinished, StageOutput, StageProgress, StageResult, StageStarted
 from treereg_core.stages import STAGE_NAMES as STAGES
 from treereg_core.stages import stage as core_stage
+from treereg_core.text import shown
 
 from .labels import label
 from .uploads import discard
@@ -448,7 +449,7 @@ class Controller:
                 message, error = f"Upload rejected — {e}; nothing was added.", True
                 continue
             except Exception as e:  # a reader bug must not take the app down either
-                log.exception("reading upload %s failed", filename)
+                log.exception("reading upload %s failed", shown(filename))
                 message, error = f"Upload rejected — {filename}: could not be read ({type(e).__name__}: {e})", True
                 continue
             finally:

@@ -40,6 +40,7 @@ from viser import _messages
 
 from treereg_core.io.scans import announced_points
 from treereg_core.limits import format_bytes
+from treereg_core.text import shown
 
 log = logging.getLogger(__name__)
 
@@ -271,7 +272,7 @@ class UploadReceiver:
                     return
                 button.on_file(t.filename, t.path)
             except Exception as e:  # a bug must not leave the file behind or go unsaid
-                log.exception("handling upload %s failed", t.filename)
+                log.exception("handling upload %s failed", shown(t.filename))
                 self._on_message(f"Upload rejected — {t.filename}: {type(e).__name__}: {e}", True)
                 discard(t.path)
 

@@ -137,8 +137,9 @@ class Pipeline:
         """Run every stage up to `until` (in run order) that has no cached output.
 
         A pair (or scan) that fails at one stage is skipped by the stages that depend on it, which
-        go on with the others; the run stops when a per-scan stage fails or a stage has no
-        successful item left. `events(event)` hears each stage computed start, progress, finish
+        go on with the others (a scan that cannot be prepared is that scan's failure); the run stops
+        when a per-scan stage fails for the reference (nothing is left to register onto) or a stage
+        has no successful item left. `events(event)` hears each stage computed start, progress, finish
         its items and finish (`stage.StageStarted` ...); cached stages are silent. Returns the
         output of the last stage run (or cached), which may be a failure. `between()` is called by
         every thread of the run before it starts an item (the app pauses its run there while a tab
@@ -161,9 +162,10 @@ class Pipeline:
                     self.runs[st.name] += 1
                     emit(StageFinished(out))
                 last = out
-                # A scan that cannot be prepared or projected is an input to fix: stop. A pair that
-                # fails later is skipped by the later stages while the other pairs go on.
-                if (st.stop_on_failure and not out.ok) or not any(it.ok for it in out.items):
+                # A reference that cannot be prepared or projected leaves nothing to register onto:
+                # stop. Another scan that cannot is its own failure (a scan of only ground among good
+                # ones): its pairs are skipped by the later stages while the other pairs go on.
+                if (st.stop_on_failure and not out.items[0].ok) or not any(it.ok for it in out.items):
                     break
         return last
 

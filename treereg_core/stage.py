@@ -156,7 +156,8 @@ class Stage:
     run
         `run(context) -> list` with one item per scan or pair (None where not live).
     stop_on_failure
-        A failed item stops the whole run (a scan that cannot be prepared is an input to fix).
+        A per-scan stage whose reference item fails stops the whole run (nothing is left to register
+        onto); another scan's failed item is that scan's failure, its pairs skipped.
     processes
         Its items are mostly Python between small numpy calls (holding the GIL): side by side they
         run in forked processes where the run may fork, not in threads (`parallel`).

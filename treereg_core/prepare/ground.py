@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..params import PrepareParams, TargetParams
+from ..params import PrepareParams, TargetParams, set_flag
 from ..results import Metric
 from ..scan import MIN_POINTS, Scan
 from .target import Stems, TargetChoice, choose_targets, find_stems
@@ -51,6 +51,8 @@ class PreparedScan:
     mixed_points : M x 3, the mixed pixels the prepare stage removed from the station (its frame):
         drawn in the Scans stage; the free-space test is blind where they were.
     mixed_not_filtered : why the mixed-pixel filter stood down on this scan ("" when it ran or is off).
+    reason, hint : when not `ok`, why the scan could not be prepared (without its name: the reason of
+        its verdict) and what to do; `message` is both, after its name.
     """
 
     ok: bool
@@ -67,6 +69,8 @@ class PreparedScan:
     station: Scan | None = None
     mixed_points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     mixed_not_filtered: str = ""
+    reason: str = ""
+    hint: str = ""
 
     def ground_z(self, xy: np.ndarray, default: float) -> np.ndarray:
         """Height of the ground plane below the points `xy` (K x 2, the scan's frame); `default`
@@ -255,13 +259,31 @@ def _finish(scan: Scan, g: _Ground, stems: Stems, choice: TargetChoice, p: Prepa
     common = dict(metrics=tuple(metrics), plane=plane_t, stem_xy=stem_t, stems=stems.as_array(), target=choice.how,
                   T_stem_map=choice.T_ref_scan)
     if n_kept < MIN_POINTS:
+        reason, hint = _too_few(n, n_kept, g, p)
         return PreparedScan(
-            ok=False,
-            message=(f"{scan.label}: only {n_kept} of {n} points left after cropping and ground removal; "
-                     "widen the crop (target.radius_m, or prepare.crop_radius_m when set; prepare.crop_z_min_m, "
-                     "prepare.crop_z_max_m) or lower the ground band (prepare.ground_band_m, e.g. "
-                     "--set prepare.ground_band_m=0.1)"),
+            ok=False, message=f"{scan.label}: {reason}; {hint}", reason=reason, hint=hint,
             scan=scan, kept_mask=np.ones(n, dtype=bool), ground_mask=np.zeros(n, dtype=bool), **common,
         )
     return PreparedScan(ok=True, message="", scan=scan.with_points(pts[kept]), kept_mask=kept, ground_mask=g.ground,
                         **common)
+
+
+def _too_few(n: int, n_kept: int, g: _Ground, p: PrepareParams) -> tuple[str, str]:
+    """Why a scan kept too few points to register, and what to do. A scan whose points all lie on its
+    ground plane (a crop that missed the tree) is said to hold only ground: no crop around a stem
+    could help it."""
+    n_ground, n_above = int(g.ground.sum()), int(g.kept.sum())
+    crop = "prepare.crop_z_min_m" if p.crop_z_min_m is not None else ""
+    crop = " and ".join(c for c in (crop, "prepare.crop_z_max_m" if p.crop_z_max_m is not None else "") if c)
+    if g.plane is not None and n_above < MIN_POINTS and n_ground >= MIN_POINTS:
+        after = f" after the height crop ({crop})" if crop else ""
+        reason = (f"it holds only ground: {n_ground} of its {n} points lie on its ground plane (within prepare.ground_band_m "
+                  f"= {p.ground_band_m:g} m of it) and {n_above} above it{after}, so it shows no stem to register")
+        hint = ("leave it out, or give the scan of the tree (the whole station, or a crop reaching up the stem)"
+                + (f"; widen the height crop ({crop})" if crop else "")
+                + ("; if a short stem is there, a thinner ground band keeps more of it "
+                   f"({set_flag('prepare.ground_band_m', round(p.ground_band_m / 3.0, 3))})" if p.ground_band_m > 0 else ""))
+        return reason, hint
+    return (f"only {n_kept} of {n} points left after cropping and ground removal",
+            "widen the crop (target.radius_m, or prepare.crop_radius_m when set; prepare.crop_z_min_m, prepare.crop_z_max_m) "
+            f"or lower the ground band (prepare.ground_band_m, e.g. {set_flag('prepare.ground_band_m', 0.1)})")

@@ -9,9 +9,9 @@ import numpy as np
 from ..geometry.rigid import invert, mean_displacement, rotation_error_deg
 from ..results import Metric
 from ..stage import Stage, StageContext, StageResult
-from ..verify.evidence import VERIFIED, PairVerification
+from ..verify.evidence import FAILED, VERIFIED, PairVerification
 from ..verify.graph import Edge, Placement, edge_weight, place_scans
-from .common import scan_of
+from .common import prepared, scan_of
 
 
 def run(ctx: StageContext) -> list[StageResult | None]:
@@ -32,7 +32,16 @@ def run(ctx: StageContext) -> list[StageResult | None]:
         pts = scan_of(ctx, i).points
         samples[i] = pts[rng.choice(len(pts), min(ctx.params.graph.sample_points, len(pts)), replace=False)]
     placed = place_scans(len(ctx.scans), edges, samples, graph=ctx.params.graph, max_loop_m=ctx.params.verify.max_loop_m)
-    return [_with_truth(ctx, i, _with_step_doubt(ctx, i, pl)) for i, pl in enumerate(placed)]
+    return [_with_truth(ctx, i, _with_step_doubt(ctx, i, _unprepared(ctx, i, pl))) for i, pl in enumerate(placed)]
+
+
+def _unprepared(ctx: StageContext, i: int, pl: Placement) -> Placement:
+    """A scan that could not be prepared (only ground, nothing left after the crop) failed for that
+    reason, said once, with what to do: not as each of its pairs' "not run"."""
+    prep = prepared(ctx, i)
+    if prep.ok or pl.verdict != FAILED or not prep.reason:
+        return pl
+    return replace(pl, reasons=(prep.reason,), message=prep.reason, hint=prep.hint)
 
 
 def _with_step_doubt(ctx: StageContext, i: int, pl: Placement) -> Placement:

@@ -8,11 +8,14 @@ import json
 import re
 
 import numpy as np
+import pytest
 
 from hostile import cli
 from treereg_core.demo import demo_case
 from treereg_core.io.scans import write_scan
 from treereg_core.io.transforms import read_transforms
+from treereg_core.pipeline import register
+from treereg_core.prepare.vertical import scan_vertical
 
 
 def test_a_scan_of_only_ground_fails_alone_and_the_others_are_written(tmp_path, capsys):
@@ -38,3 +41,50 @@ def test_a_scan_of_only_ground_fails_alone_and_the_others_are_written(tmp_path, 
                     lines[0]), lines[0]
     assert "widen the crop" not in err and "same tree" not in err
     assert "scan3.ply" in json.dumps(tf.extra["quality"])
+
+
+def _rot_x(deg: float) -> np.ndarray:
+    a = np.radians(deg)
+    return np.array([[1.0, 0.0, 0.0], [0.0, np.cos(a), -np.sin(a)], [0.0, np.sin(a), np.cos(a)]])
+
+
+@pytest.mark.parametrize("which, how, pattern", [
+    (1, lambda p: p @ _rot_x(25.0).T, r"the scan's vertical is 2[4-6]° off z \(a scanner not levelled\?\)"),
+    (1, lambda p: p @ _rot_x(180.0).T, r"the scan's vertical is 1[78]\d° off z \(upside down\?\)"),
+    (1, lambda p: np.c_[p[:, 0], p[:, 2], -p[:, 1]], r"the scan's vertical is (89|90|91)° off z \(y-up\?\)"),
+    (0, lambda p: p @ _rot_x(25.0).T, r"the scan's vertical is 2[4-6]° off z \(a scanner not levelled\?\)"),
+], ids=["tilted 25", "upside down", "y-up", "reference tilted 25"])
+def test_a_scan_whose_vertical_is_not_z_says_so(which, how, pattern):
+    scans = list(demo_case().scans[:2])
+    off = scans[which]
+    scans[which] = off.with_points(how(off.points))
+    reg = register(scans)
+    verdict, reasons, hint = reg.pipeline.verdicts()["scan2.ply"]
+    assert verdict != "verified"  # the words change, not the verdict
+    assert re.fullmatch(rf"{re.escape(off.name)}: {pattern}: export it z-up and levelled", reasons[0]), reasons
+    assert not any("same tree" in r for r in reasons) and "same tree" not in hint
+    assert hint == f"export {off.name} z-up and levelled, then register again"
+
+
+def _hill(slope_deg: float, tilt_deg: float) -> np.ndarray:
+    """A scanner 1.5 m above ground sloping `slope_deg` (along x), a plumb stem 8 m off, the scanner
+    tilted `tilt_deg` about y."""
+    rng = np.random.default_rng(0)
+    g = rng.uniform([3.0, -5.0], [13.0, 5.0], (20_000, 2))
+    rise = np.tan(np.radians(slope_deg))
+    a, h = rng.uniform(np.pi / 2, 3 * np.pi / 2, 6000), rng.uniform(0.0, 7.0, 6000)
+    stem = np.c_[8 + 0.2 * np.cos(a), 0.2 * np.sin(a), -1.5 + 8 * rise + h]
+    pts = np.vstack([np.c_[g, -1.5 + rise * g[:, 0]], stem]) + rng.normal(0.0, 0.003, (26_000, 3))
+    t = np.radians(tilt_deg)
+    return pts @ np.array([[np.cos(t), 0.0, np.sin(t)], [0.0, 1.0, 0.0], [-np.sin(t), 0.0, np.cos(t)]]).T
+
+
+def test_steep_ground_under_a_levelled_scanner_is_not_a_tilted_scan():
+    # the stem stands plumb on the slope: nothing to say
+    assert scan_vertical(_hill(25.0, 0.0)).note == ""
+    # tilted on a slope: the stem's lean is the scanner's tilt, not the ground's 40°
+    assert scan_vertical(_hill(-15.0, 25.0)).note.startswith("the scan's vertical is 25° off z (a scanner not levelled?)")
+    # a tree with no ground near the scanner (cut out of a cloud): nothing is said
+    case = demo_case()
+    p = case.scans[0].points
+    assert scan_vertical((p[p[:, 2] > p[:, 2].min() + 0.5]) @ _rot_x(25.0).T).note == ""

@@ -3,15 +3,17 @@
 from __future__ import annotations
 
 from dataclasses import replace
+from typing import Callable
 
 import numpy as np
 
 from ..geometry.rigid import invert, mean_displacement, rotation_error_deg
+from ..prepare.vertical import scan_vertical
 from ..results import Metric
 from ..stage import Stage, StageContext, StageResult
-from ..verify.evidence import FAILED, VERIFIED, PairVerification
+from ..verify.evidence import FAILED, OTHER_TREE, VERIFIED, PairVerification
 from ..verify.graph import Edge, Placement, edge_weight, place_scans
-from .common import prepared, scan_of
+from .common import prepared, scan_of, station
 
 
 def run(ctx: StageContext) -> list[StageResult | None]:
@@ -32,7 +34,16 @@ def run(ctx: StageContext) -> list[StageResult | None]:
         pts = scan_of(ctx, i).points
         samples[i] = pts[rng.choice(len(pts), min(ctx.params.graph.sample_points, len(pts)), replace=False)]
     placed = place_scans(len(ctx.scans), edges, samples, graph=ctx.params.graph, max_loop_m=ctx.params.verify.max_loop_m)
-    return [_with_truth(ctx, i, _with_step_doubt(ctx, i, _unprepared(ctx, i, pl))) for i, pl in enumerate(placed)]
+    notes: dict[int, str] = {}
+
+    def vertical(j: int) -> str:
+        # Only for scans not verified and their reference: a clean run pays nothing for it.
+        if j not in notes:
+            notes[j] = scan_vertical(station(ctx, j).points).note
+        return notes[j]
+
+    return [_with_truth(ctx, i, _with_step_doubt(ctx, i, _with_vertical(ctx, i, _unprepared(ctx, i, pl), vertical)))
+            for i, pl in enumerate(placed)]
 
 
 def _unprepared(ctx: StageContext, i: int, pl: Placement) -> Placement:
@@ -42,6 +53,22 @@ def _unprepared(ctx: StageContext, i: int, pl: Placement) -> Placement:
     if prep.ok or pl.verdict != FAILED or not prep.reason:
         return pl
     return replace(pl, reasons=(prep.reason,), message=prep.reason, hint=prep.hint)
+
+
+def _with_vertical(ctx: StageContext, i: int, pl: Placement, vertical: Callable[[int], str]) -> Placement:
+    """A scan not verified while its (or the reference's) vertical is not its z (a scanner tilted or
+    upside down, a scan exported y-up): every stage takes z as up, so that is the reason to give first,
+    not that the scans show different trees."""
+    if pl.verdict == VERIFIED:
+        return pl
+    off = [(ctx.scans[j].name, note) for j in dict.fromkeys((0, i)) if (note := vertical(j))]
+    if not off:
+        return pl
+    why = tuple(f"{name}: {note}" for name, note in off)
+    # "It does not show the same tree" rests on a z that is not up: not said.
+    reasons = why + tuple(r for r in pl.reasons if OTHER_TREE not in r)
+    hint = f"export {' and '.join(name for name, _ in off)} z-up and levelled, then register again"
+    return replace(pl, reasons=reasons, message="; ".join(reasons), hint=hint)
 
 
 def _with_step_doubt(ctx: StageContext, i: int, pl: Placement) -> Placement:

@@ -394,6 +394,8 @@ def _check(what: str, value: float | int | None, unit: str, relation: str, limit
 
 _CALM_HINT = "rescan these stations in calmer air, or add a station scanned soon after the reference"
 _SAME_TREE_HINT = "check that both scans show the same tree"
+#: The reason of a pair whose scans show two different trees (the graph stage recognises it).
+OTHER_TREE = "it does not show the same tree as"
 
 
 def _support(e: Evidence, p: VerifyParams, coarse: CoarseParams) -> Check:
@@ -452,7 +454,7 @@ def _same_tree(e: Evidence, p: VerifyParams, judged: bool, target: str, referenc
                   "level: below it more of the target lies in the reference's free space than a right pose leaves"
                   + ("" if judged else " (not judged: the tie support is above chance or the overlap too small)"),
                   judged=judged, hint=f"check the files: {target} and {reference} may be scans of different trees",
-                  reason=lambda: f"it does not show the same tree as {reference}")
+                  reason=lambda: f"{OTHER_TREE} {reference}")
 
 
 def _margin(e: Evidence, p: VerifyParams) -> Check:

@@ -9,6 +9,7 @@ import os
 import re
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import Iterator
@@ -18,9 +19,10 @@ import pytest
 REPO = Path(__file__).resolve().parent.parent
 
 
-def view(args: list[str], cwd: Path = REPO) -> Iterator[tuple[str, float, float]]:
+def view(args: list[str], cwd: Path = REPO, output: list[str] | None = None) -> Iterator[tuple[str, float, float]]:
     """`treereg view --port 0 ARGS` started as a user starts it (from `cwd`); yields (url, seconds to
-    the URL, start time) and stops the app afterwards."""
+    the URL, start time) and stops the app afterwards. Given `output`, every line the server prints
+    (stdout and stderr) is appended to it as it comes (a traceback there is a bug)."""
     env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""), PYTHONUNBUFFERED="1")
     t0 = time.perf_counter()
     proc = subprocess.Popen(
@@ -39,6 +41,9 @@ def view(args: list[str], cwd: Path = REPO) -> Iterator[tuple[str, float, float]
     if url is None:
         proc.kill()
         pytest.fail("treereg view did not start:\n" + "".join(lines))
+    if output is not None:
+        output += lines
+        threading.Thread(target=lambda: output.extend(iter(proc.stdout.readline, "")), daemon=True).start()
     yield url, time.perf_counter() - t0, t0
     proc.terminate()
     try:

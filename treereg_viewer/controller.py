@@ -30,6 +30,7 @@ from treereg_core.prepare.ground import PreparedScan
 from treereg_core.stage import Event, Pair, StageFinished, StageOutput, StageProgress, StageResult, StageStarted
 from treereg_core.stages import STAGE_NAMES as STAGES
 from treereg_core.stages import stage as core_stage
+from treereg_core.verify.graph import Placement
 from treereg_core.text import shown
 
 from .labels import label
@@ -512,13 +513,16 @@ class Controller:
         took = f"Ran {', '.join(label(s) for s in ran)} in {seconds:.1f} s. " if ran else ""
         if failed == "graph":
             # Scans that failed their verdict: named here, their reasons once, in the lines below.
-            gone = [pipe.scans[i].name for i, pl in enumerate(pipe.output("graph").items) if pl.verdict == "failed"]
+            graph = pipe.output("graph")
+            placed = graph.items_as(Placement) if graph is not None else ()
+            gone = [pipe.scans[i].name for i, pl in enumerate(placed) if pl.verdict == "failed"]
             self._publish(message=f"{took}✗ {', '.join(gone) or 'a scan'} failed: not placed (why: below, and in "
                                   f"{label('graph')}).", error=True)
         elif failed is not None:
             went_on = last is not None and last.stage != failed and any(it.ok for it in last.items)
-            more = f" The other pairs went on to {label(last.stage)}." if went_on else ""
-            self._publish(message=f"{took}{label(failed)} failed: {pipe.output(failed).message}.{more}", error=True)
+            more = f" The other pairs went on to {label(last.stage)}." if went_on and last is not None else ""
+            why = o.message if (o := pipe.output(failed)) is not None else ""
+            self._publish(message=f"{took}{label(failed)} failed: {why}.{more}", error=True)
         elif todo:
             self._publish(message=f"Ran {', '.join(label(s) for s in todo)} in {seconds:.1f} s.")
         else:

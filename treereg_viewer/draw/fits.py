@@ -8,7 +8,7 @@ they were made at (`rigid.apply_transform`).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import trimesh
@@ -125,10 +125,10 @@ def fit_rows(snap: Snapshot, t: int, sl: SliceResult, sec: SectionsResult, ref: 
     return rows, hidden
 
 
-def slice_points(scene: viser.SceneApi, root: str, pair: SnapshotPair, sl: SliceResult, T: np.ndarray, ref: Any,
+def slice_points(scene: viser.SceneApi, root: str, pair: SnapshotPair, sl: SliceResult, T: np.ndarray | None, ref: Any,
                  tgt: Any, size: float, only_slice: int | None = None) -> list[Any]:
     """Every slice's points of both scans of `pair` (or slice `only_slice`'s) in the reference frame,
-    in the scans' colours."""
+    in the scans' colours; the target's mapped by `T` (None: no pose yet, each scan in its own frame)."""
     handles: list[Any] = []
     for k in range(sl.n_slices) if only_slice is None else (only_slice,):
         r_idx, t_idx = sl.ref_indices[k], sl.tgt_indices[k]
@@ -136,9 +136,9 @@ def slice_points(scene: viser.SceneApi, root: str, pair: SnapshotPair, sl: Slice
             handles.append(scene.add_point_cloud(f"{root}/ref{k}", ref.points[r_idx], scan_color(pair.ref), point_size=size,
                                                  point_shape="circle", precision="float32"))
         if len(t_idx):
-            handles.append(scene.add_point_cloud(f"{root}/tgt{k}", apply_transform(T, tgt.points[t_idx]),
-                                                 scan_color(pair.tgt), point_size=size, point_shape="circle",
-                                                 precision="float32"))
+            pts = tgt.points[t_idx] if T is None else apply_transform(T, tgt.points[t_idx])
+            handles.append(scene.add_point_cloud(f"{root}/tgt{k}", pts, scan_color(pair.tgt), point_size=size,
+                                                 point_shape="circle", precision="float32"))
     return handles
 
 
@@ -173,14 +173,15 @@ def section_mesh(section: Any, thickness_m: float, grow: float = 1.0) -> trimesh
     length = thickness_m if section.kind == "circle" else \
         min(max(float(getattr(section.fit, "length_m", thickness_m)), thickness_m), 3.0 * thickness_m)
     seg = np.stack([centre - axis * length / 2, centre + axis * length / 2])
-    return trimesh.creation.cylinder(radius=r, segment=seg, sections=32)
+    mesh: trimesh.Trimesh = trimesh.creation.cylinder(radius=r, segment=seg, sections=32)
+    return mesh
 
 
 def _sections_meshes(scene: viser.SceneApi, name: str, sections: list[Any], color: tuple[int, int, int],
                      thickness_m: float, opacity: float, grow: float = 1.0) -> list[Any]:
     if not sections:
         return []
-    mesh = trimesh.util.concatenate([section_mesh(s, thickness_m, grow) for s in sections])
+    mesh = cast(trimesh.Trimesh, trimesh.util.concatenate([section_mesh(s, thickness_m, grow) for s in sections]))
     return [scene.add_mesh_simple(name, mesh.vertices.astype(np.float32), mesh.faces.astype(np.int32),
                                   color=color, opacity=opacity, side="double")]
 

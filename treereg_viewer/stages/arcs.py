@@ -24,7 +24,7 @@ from .base import AppStage, StageView, TargetControl, TourStep
 from .slices import SliceControl
 
 
-def _arc_points(scene: viser.SceneApi, root: str, ar: SliceArcs, T: np.ndarray, ref: Any, tgt: Any,
+def _arc_points(scene: viser.SceneApi, root: str, ar: SliceArcs, T: np.ndarray | None, ref: Any, tgt: Any,
                 size: float, only: int | None) -> tuple[list[Any], list[tuple[str, str]]]:
     """Both scans' arcs coloured one per arc (of slice `only`, or every slice); per slice the arc counts."""
     handles: list[Any] = []

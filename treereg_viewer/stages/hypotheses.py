@@ -101,7 +101,7 @@ class RivalControl(StageControls):
         self.dropdown = gui.add_dropdown("Rival shown", ("(none)",),
                                          hint="The competing pose drawn in grey beside the chosen one (it opens on the "
                                          "best distinct rival).")
-        self.dropdown.on_update(lambda _: host.quiet or host.set_view(rival=self.dropdown.value))
+        self.dropdown.on_update(lambda _: None if host.quiet else host.set_view(rival=self.dropdown.value))
 
     def show_view(self, view: ViewState, snap: Snapshot) -> None:
         self.show_snapshot(snap, view)
@@ -129,7 +129,7 @@ class HypothesisControl(StageControls):
         self.app = host.app
         self.dropdown = gui.add_dropdown("Use hypothesis", ("automatic",),
                                          hint="Pick a competing pose by hand (it is then marked as chosen by hand).")
-        self.dropdown.on_update(lambda _: host.quiet or self._choose())
+        self.dropdown.on_update(lambda _: None if host.quiet else self._choose())
 
     def _choose(self) -> None:
         snap = self.app.controller.snapshot
@@ -150,7 +150,7 @@ class HypothesisControl(StageControls):
             self.dropdown.options = options
         current = snap.choices.get(snap.pair(target_index(snap, "hypotheses", view)).key, "automatic")
         if self.dropdown.value != current and current in options:
-            self.dropdown.value = current
+            self.dropdown.value = current  # type: ignore[misc]
 
 
 STAGE = AppStage(

@@ -134,7 +134,8 @@ class MatchPairControl(StageControls):
 
     def show_view(self, view: ViewState, snap: Snapshot) -> None:
         if view.match_pair + 1 <= self.slider.max:
-            self.slider.value = view.match_pair + 1
+            # viser's slider redeclares `value` with a getter only; the base class's setter applies.
+            self.slider.value = view.match_pair + 1  # type: ignore[misc]
 
     def show_snapshot(self, snap: Snapshot, view: ViewState) -> None:
         match = snap.output("matching")

@@ -59,10 +59,10 @@ class FitControls(StageControls):
         self.rejected.on_update(lambda _: host.set_view(show_rejected=bool(self.rejected.value), focus_section=None))
         self.focus = gui.add_dropdown("Frame a fit", (NO_FOCUS,),
                                       hint="A row of the fits table: the camera goes there and the fit is outlined in yellow.")
-        self.focus.on_update(lambda _: host.quiet or host.app.focus_section(stage, self.focus.value))
+        self.focus.on_update(lambda _: None if host.quiet else host.app.focus_section(stage, self.focus.value))
 
     def show_view(self, view: ViewState, snap: Snapshot) -> None:
-        self.rejected.value = view.show_rejected
+        self.rejected.value = view.show_rejected  # type: ignore[misc]
 
     def refresh_focus(self, snap: Snapshot, view: ViewState) -> None:
         """The list follows the fits table (its pair and the rejected-fits switch), on this stage only."""
@@ -74,7 +74,7 @@ class FitControls(StageControls):
         want = (rows[view.focus_section].label if here and view.focus_section is not None
                 and view.focus_section < len(rows) else NO_FOCUS)
         if self.focus.value != want:
-            self.focus.value = want
+            self.focus.value = want  # type: ignore[misc]
 
 
 STAGE = AppStage(

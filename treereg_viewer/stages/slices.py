@@ -31,7 +31,7 @@ class SliceControl(StageControls):
         self.dropdown = gui.add_dropdown("Slice", (EVERY_SLICE,),
                                          hint="One slice, framed close up (the view opens on the slice with the most "
                                          "fits), or every slice at once.")
-        self.dropdown.on_update(lambda _: host.quiet or self._picked())
+        self.dropdown.on_update(lambda _: None if host.quiet else self._picked())
 
     def _options(self, snap: Snapshot, view: ViewState) -> tuple[str, ...]:
         sl = snap.output("slices")

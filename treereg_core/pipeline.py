@@ -1,8 +1,8 @@
 """Runs the registered stages in order, caching each stage's output.
 
-A stage re-runs only when one of its own parameter sections, or a stage it depends on, changed
-(`Pipeline.set_params`). The command line, the app's controller, the tests and the benchmarks all
-drive this one `Pipeline` (scripts call `register(scans, params)`). The first scan is the
+A stage re-runs only when a parameter section it reads (`Stage.reads`, the only ones it can), or a
+stage it depends on, changed (`Pipeline.set_params`). The command line, the app's controller, the
+tests and the benchmarks all drive this one `Pipeline` (scripts call `register(scans, params)`). The first scan is the
 reference; every other scan is registered onto it (the paper's order 2->1, 3->1, ...).
 """
 
@@ -16,7 +16,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from . import parallel
-from .params import Params
+from .params import SECTIONS, Params
 from .results import MetricRow, Progress
 from .scan import Scan
 from .coarse.estimate import CoarseResult
@@ -25,7 +25,7 @@ from .coarse.similarity import scan_similarity
 from .fine.pose import FineResult
 from .stage import (Event, Events, ItemFinished, Pair, Skipped, Stage, StageContext, StageFinished, StageOutput,
                     StageProgress, StageResult, StageStarted)
-from .stages import STAGE_NAMES, STAGES, downstream, stage
+from .stages import STAGE_NAMES, STAGES, affected_by, downstream, stage
 from .verify.graph import Placement, select_pairs
 
 
@@ -73,14 +73,18 @@ class Pipeline:
         return tuple(Pair(i, j) for i, j in star)
 
     def set_params(self, params: Params) -> list[str]:
-        """Adopt `params`; drop the cached outputs of every stage that reads a changed section and of
-        every stage downstream of it. Returns the stages whose outputs were dropped."""
-        changed = [s.name for s in STAGES if any(getattr(params, sec) != getattr(self.params, sec) for sec in s.sections)]
+        """Adopt `params`; drop the cached outputs of every stage that reads a changed section (and of
+        every per-pair stage when the pairs changed) and of every stage downstream of it. Returns the
+        stages whose outputs were dropped."""
+        stale = {s for sec in SECTIONS if getattr(params, sec) != getattr(self.params, sec) for s in affected_by(sec)}
+        pairs = self.pairs
         self.params = params
-        dropped: list[str] = []
-        for name in changed:
-            dropped += [d for d in self.invalidate(name) if d not in dropped]
-        return [s for s in STAGE_NAMES if s in dropped]
+        if self.pairs != pairs:  # with four scans or more the pairs follow parameters (`pairs`)
+            stale.update(downstream(next(s.name for s in STAGES if s.per == "pair")))
+        dropped = [s for s in STAGE_NAMES if s in stale and s in self._out]
+        for s in stale:
+            self._out.pop(s, None)
+        return dropped
 
     def choose(self, pair_label: str, candidate: str | None) -> list[str]:
         """Pick a pose hypothesis of a pair by hand (None: let the surfaces choose again); the
@@ -177,7 +181,7 @@ class Pipeline:
         n = len(self.scans) if st.per == "scan" else len(self.pairs)
         why = [self._blocked(st, k) for k in range(n)]
         emit(StageStarted(st.name, n))
-        ctx = StageContext(tuple(self.scans), self.pairs, self.params, self.truth, dict(self._out),
+        ctx = StageContext(tuple(self.scans), self.pairs, st.params_view(self.params), self.truth, dict(self._out),
                            tuple(w is None for w in why), progress, dict(self.choices), workers, st.processes)
         t0 = time.perf_counter()
         items = tuple(_item(st, it, w) for it, w in zip(st.run(ctx), why))

@@ -9,17 +9,21 @@ its output holds one item per scan or pair, each a frozen result with `ok`, `mes
 `depends` are hard dependencies (a failed item skips the pair); `uses` are soft ones (the run
 function reads them if they succeeded). Both order the stages and both make a stage stale when
 they re-run.
+
+A stage reads only the parameter sections it declares (`Stage.reads`: its own `sections` and those
+it `borrows`): its run function is given `DeclaredParams`, which raises `UndeclaredSection` on any
+other, so a change to a section re-runs every stage whose results it can alter.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Callable, Literal, Mapping, Protocol, TypeVar, Union
+from dataclasses import dataclass, field, fields
+from typing import Any, Callable, Literal, Mapping, Protocol, TypeVar, Union
 
 import numpy as np
 
 from .parallel import SERIAL, Workers
-from .params import Params
+from .params import SECTIONS, Params
 from .results import Metric, Progress
 from .scan import Scan
 
@@ -82,9 +86,50 @@ class StageOutput:
         return tuple(self.item(k, kind) for k in range(len(self.items)))
 
 
+class UndeclaredSection(RuntimeError):
+    """A stage read a parameter section it does not declare: a change to that section would leave its
+    cached result stale. Not an AttributeError, which `getattr(params, name, default)` would swallow."""
+
+
+class DeclaredParams(Params):
+    """The parameters as one stage may read them: a `Params` (every helper taking one gets this view)
+    whose sections outside `reads` raise `UndeclaredSection` when read.
+
+    Made with `DeclaredParams.of(params, stage, reads)`, never by the constructor."""
+
+    _stage: str
+    _reads: frozenset[str]
+
+    @classmethod
+    def of(cls, params: Params, stage: str, reads: tuple[str, ...]) -> "DeclaredParams":
+        unknown = [r for r in reads if r not in SECTIONS]
+        if unknown:
+            raise ValueError(f"stage {stage!r} declares unknown parameter sections {unknown}")
+        view = object.__new__(cls)
+        # Frozen: the fields are copied as dataclasses' own __init__ sets them.
+        for f in fields(Params):
+            object.__setattr__(view, f.name, object.__getattribute__(params, f.name))
+        object.__setattr__(view, "_stage", stage)
+        object.__setattr__(view, "_reads", frozenset(reads))
+        return view
+
+    def __getattribute__(self, name: str) -> Any:
+        if name in SECTIONS and name not in object.__getattribute__(self, "_reads"):
+            stage = object.__getattribute__(self, "_stage")
+            raise UndeclaredSection(
+                f"stage {stage!r} read parameter section {name!r}, which it does not declare: add it to its "
+                f"STAGE's sections (or borrows) in treereg_core/stages/{stage}.py, so that a change to it "
+                "re-runs the stage")
+        return object.__getattribute__(self, name)
+
+    def __repr__(self) -> str:  # the dataclass's repr would read every section
+        return f"DeclaredParams(stage={self._stage!r}, reads={sorted(self._reads)})"
+
+
 @dataclass(frozen=True)
 class StageContext:
-    """What a stage's run function is given: the inputs, the parameters and the upstream outputs."""
+    """What a stage's run function is given: the inputs, the parameters (only the sections the stage
+    declares: `DeclaredParams`) and the upstream outputs."""
 
     scans: tuple[Scan, ...]
     pairs: tuple[Pair, ...]
@@ -148,7 +193,8 @@ class Stage:
     per
         "scan" (one item per scan) or "pair" (one item per registered pair).
     sections
-        The parameter sections it reads; a change to one of them makes it stale.
+        Its own parameter sections (the app edits each in this stage's folder; every section is
+        some one stage's own); a change to one of them makes it stale.
     depends, uses
         Hard and soft upstream stages (see the module docstring).
     result
@@ -161,6 +207,9 @@ class Stage:
     processes
         Its items are mostly Python between small numpy calls (holding the GIL): side by side they
         run in forked processes where the run may fork, not in threads (`parallel`).
+    borrows
+        Sections of other stages it reads too (`surface.voxel_m` for the hypotheses); a change to one
+        of them makes it stale as well.
     """
 
     name: str
@@ -174,10 +223,20 @@ class Stage:
     uses: tuple[str, ...] = ()
     stop_on_failure: bool = False
     processes: bool = False
+    borrows: tuple[str, ...] = ()
 
     @property
     def upstream(self) -> tuple[str, ...]:
         return self.depends + self.uses
+
+    @property
+    def reads(self) -> tuple[str, ...]:
+        """Every parameter section it reads: the only ones its run function can (`DeclaredParams`)."""
+        return self.sections + self.borrows
+
+    def params_view(self, params: Params) -> DeclaredParams:
+        """`params` as this stage's run function sees them."""
+        return DeclaredParams.of(params, self.name, self.reads)
 
 
 # ---- what a run tells its subscribers --------------------------------------------------------------

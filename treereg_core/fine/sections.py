@@ -11,7 +11,7 @@ centre; a cylinder's axis point at the slice height and the point one unit furth
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal, Sequence
+from typing import Literal, Sequence, TypeVar
 
 import numpy as np
 
@@ -189,8 +189,8 @@ class PoseFit:
 
 # Eleven parameters, all but the pose keyword-only: the three stages' sections plus the work already
 # done (by the stage before, by an earlier iteration, or for the reference once) that it must not redo.
-def fit_at_pose(ref: Scan, tgt: Scan, T_ref_target: np.ndarray, *, slices: SlicesParams, arcs: ArcParams,
-                sections: SectionsParams, done: PoseFit | None = None,
+def fit_at_pose(ref: Scan, tgt: Scan, T_ref_target: np.ndarray, *, slices: SlicesParams | None,
+                arcs: ArcParams | None, sections: SectionsParams | None, done: PoseFit | None = None,
                 ref_arcs: tuple[ArcResult, ...] | None = None, ref_sections: ScanSections | None = None,
                 seen: Scan | None = None, until: Literal["slices", "arcs", "sections"] = "sections") -> PoseFit:
     """Slice both scans at the pose `T_ref_target`, separate the slices into arcs and fit the arcs
@@ -205,7 +205,8 @@ def fit_at_pose(ref: Scan, tgt: Scan, T_ref_target: np.ndarray, *, slices: Slice
     T_ref_target
         The pose the target is sliced and fitted at.
     slices, arcs, sections
-        The three stages' parameter sections.
+        The three stages' parameter sections; None for a step given in `done` or after `until` (a
+        stage passes only the sections it reads).
     done
         Steps already made (a stage's upstream results): only the rest is computed.
     ref_arcs, ref_sections
@@ -218,12 +219,22 @@ def fit_at_pose(ref: Scan, tgt: Scan, T_ref_target: np.ndarray, *, slices: Slice
     """
     seen = tgt if seen is None else seen
     T = np.asarray(T_ref_target, dtype=float)
-    sl = done.slices if done is not None else slice_scans(ref, seen, T, slices=slices)
+    sl = done.slices if done is not None else slice_scans(ref, seen, T, slices=_given(slices, "slices"))
     if until == "slices" or not sl.ok:
         return PoseFit(slices=sl)
     ar = done.arcs if done is not None and done.arcs is not None else separate_slices(
-        ref, tgt, sl.ref_indices, sl.tgt_indices, arcs=arcs, ref_arcs=ref_arcs)
+        ref, tgt, sl.ref_indices, sl.tgt_indices, arcs=_given(arcs, "arcs"), ref_arcs=ref_arcs)
     if until == "arcs":
         return PoseFit(slices=sl, arcs=ar)
     return PoseFit(slices=sl, arcs=ar, sections=fit_sections(ref, seen, ar.ref, ar.tgt, sl.heights_m, T,
-                                                             sections=sections, ref_sections=ref_sections))
+                                                             sections=_given(sections, "sections"),
+                                                             ref_sections=ref_sections))
+
+
+P = TypeVar("P")
+
+
+def _given(section: P | None, name: str) -> P:
+    if section is None:
+        raise ValueError(f"fit_at_pose: the {name} step is made here, but its parameter section was not given")
+    return section

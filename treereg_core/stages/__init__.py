@@ -43,6 +43,13 @@ def downstream(name: str) -> tuple[str, ...]:
     return tuple(s for s in STAGE_NAMES if s in hit)
 
 
+def affected_by(section: str) -> tuple[str, ...]:
+    """The stages a change to parameter `section` makes stale: those reading it (`Stage.reads`) and
+    every stage downstream of them, in run order."""
+    hit = {d for s in STAGES if section in s.reads for d in downstream(s.name)}
+    return tuple(s for s in STAGE_NAMES if s in hit)
+
+
 def _check() -> None:
     seen: set[str] = set()
     for s in STAGES:

@@ -62,7 +62,13 @@ def start_pose(ctx: StageContext, k: int) -> np.ndarray:
 
 def pose_fit(ctx: StageContext, k: int, *, until: Literal["slices", "arcs", "sections"], done: PoseFit | None = None,
              ref_arcs: tuple[ArcResult, ...] | None = None, ref_sections: ScanSections | None = None) -> PoseFit:
-    """Pair k sliced, separated and fitted at its start pose (`fine.sections.fit_at_pose`), up to `until`."""
+    """Pair k sliced, separated and fitted at its start pose (`fine.sections.fit_at_pose`), up to `until`.
+    Only the sections of the steps made here are read: the slices stage reads no arcs parameter."""
     p, par = ctx.pairs[k], ctx.params
-    return fit_at_pose(scan_of(ctx, p.ref), scan_of(ctx, p.tgt), start_pose(ctx, k), slices=par.slices, arcs=par.arcs,
-                       sections=par.sections, done=done, ref_arcs=ref_arcs, ref_sections=ref_sections, until=until)
+    steps = ("slices", "arcs", "sections")
+    first = "slices" if done is None else "arcs" if done.arcs is None else "sections"
+    made = steps[steps.index(first):steps.index(until) + 1]
+    return fit_at_pose(scan_of(ctx, p.ref), scan_of(ctx, p.tgt), start_pose(ctx, k),
+                       slices=par.slices if "slices" in made else None, arcs=par.arcs if "arcs" in made else None,
+                       sections=par.sections if "sections" in made else None, done=done, ref_arcs=ref_arcs,
+                       ref_sections=ref_sections, until=until)

@@ -22,6 +22,10 @@ def run(ctx: StageContext) -> list[StageResult | None]:
     return ctx.each(one, lambda k: pair_label(ctx, k))
 
 
+#: Its own sections of the eight `register_fine` reads (the others are the slices, arcs, sections
+#: and hypotheses stages', whose folders in the app show them).
+_OWN = ("fine", "joint", "surface", "acceptance")
+
 STAGE = Stage("fine", "Fine", "The fine transform from the corresponding sections, iterated and checked against the surfaces.",
-              "pair", FINE_SECTIONS, ("hypotheses",), FineResult, run, uses=("slices", "arcs", "sections"),
-              processes=True)
+              "pair", _OWN, ("hypotheses",), FineResult, run, uses=("slices", "arcs", "sections"),
+              processes=True, borrows=tuple(s for s in FINE_SECTIONS if s not in _OWN))

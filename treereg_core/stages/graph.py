@@ -99,4 +99,6 @@ def _with_truth(ctx: StageContext, i: int, pl: Placement) -> Placement:
 
 
 STAGE = Stage("graph", "Placement", "Every scan placed onto the reference from the verified pairs, loops closed, all poses solved together.",
-              "scan", ("graph", "verify"), (), Placement, run, uses=("verify",))
+              "scan", ("graph",), (), Placement, run, uses=("verify",),
+              # the loop tolerance; whether the angular steps were given (a doubtful estimate is named)
+              borrows=("verify", "prepare"))

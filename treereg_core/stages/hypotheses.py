@@ -54,4 +54,6 @@ def _stem_xy(ctx: StageContext, i: int) -> np.ndarray | None:
 
 
 STAGE = Stage("hypotheses", "Hypotheses", "Competing poses (other headings, other RANSAC modes) polished and scored by the surfaces.",
-              "pair", ("hypotheses", "wind"), ("coarse",), HypothesesResult, run)
+              "pair", ("hypotheses", "wind"), ("coarse",), HypothesesResult, run,
+              # the surfaces' voxel, and the stem profile's loss scale where the crown moved
+              borrows=("surface", "joint"))

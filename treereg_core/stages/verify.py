@@ -52,4 +52,5 @@ def _ref_stem_xy(ctx: StageContext, i: int) -> np.ndarray:
 
 
 STAGE = Stage("verify", "Verify", "The evidence that each registration is right: support, free space, residual, ambiguity, plausibility.",
-              "pair", ("verify", "hypotheses", "acceptance", "wind"), ("fine",), PairVerification, run)
+              "pair", ("verify",), ("fine",), PairVerification, run,
+              borrows=("hypotheses", "acceptance", "wind", "coarse", "surface"))

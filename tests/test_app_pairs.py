@@ -82,6 +82,11 @@ def test_every_stage_draws_every_offered_pair(registered, caplog):
                     failures[(name, label)] = message
                 elif app.view.target != k or (stage(name).per == "pair" and label not in heading):
                     failures[(name, label)] = f"pair {app.view.target} shown: {heading}"  # the heading names the pair drawn
+                elif stage(name).per == "pair":
+                    # Drawn in the pair's reference scan's frame, where that scan is shown.
+                    layer, ref = app.drawer._groups[name], app.drawer._scan_frames[snap.pair(k).ref]
+                    if not (np.allclose(layer.position, ref.position) and np.allclose(layer.wxyz, ref.wxyz)):
+                        failures[(name, label)] = f"drawn at {layer.position}, its reference at {ref.position}"
     errors = [r for r in caplog.records if r.levelno >= logging.ERROR]  # on the drawer's and the worker's threads
     failures.update({("log", i): r.getMessage() + (f" ({r.exc_info[1]!r})" if r.exc_info else "")
                      for i, r in enumerate(errors)})

@@ -15,6 +15,7 @@ import numpy as np
 
 from treereg_core.fine.sections import SectionsResult
 from treereg_core.fine.slicing import SliceResult
+from treereg_core.geometry.rigid import apply_transform
 
 from .controller import Snapshot
 from .draw.common import display_subset
@@ -52,9 +53,11 @@ SLICE_STAGES = ("arcs", "sections", "fine")
 
 def _slice_points(snap: Snapshot, view: ViewState) -> np.ndarray | None:
     """What to frame of the slice the view shows: its fitted sections (centres and rims) once the
-    Fits stage has them, else the reference's points in it (None: every slice, or none yet)."""
+    Fits stage has them, else the reference's points in it (None: every slice, or none yet); where
+    they are shown, i.e. moved with the pair's reference scan (the drawer's `pair_reference`)."""
     from .draw.common import target_index
     from .draw.fits import slice_shown
+    from .draw.scan_layer import scan_poses
 
     if snap.output("slices") is None:
         return None
@@ -71,8 +74,10 @@ def _slice_points(snap: Snapshot, view: ViewState) -> np.ndarray | None:
             and np.isfinite(s.radius_m) and s.radius_m < 2.0]
     if fits:
         rim = np.array([[np.cos(a), np.sin(a), 0.0] for a in np.linspace(0, 2 * np.pi, 8, endpoint=False)])
-        return np.concatenate([np.asarray(s.centre_m) + 2.0 * s.radius_m * rim for s in fits])
-    return np.asarray(scans[0].points[sl.ref_indices[k]])
+        pts = np.concatenate([np.asarray(s.centre_m) + 2.0 * s.radius_m * rim for s in fits])
+    else:
+        pts = np.asarray(scans[0].points[sl.ref_indices[k]])
+    return apply_transform(scan_poses(snap, view)[pair.ref], pts)
 
 
 def frame(snap: Snapshot, stage: str, view: ViewState | None = None) -> CameraPose | None:

@@ -236,7 +236,8 @@ class Drawer:
                     i: h for i, h in enumerate(h for h in self._handles["scans"] if _is_scan_frame(h))
                 }
                 self._keys["scans"] = key
-            apply_poses(self._scan_frames, scan_poses(snap, view))
+            poses = scan_poses(snap, view)
+            apply_poses(self._scan_frames, poses)
             for i, s in enumerate(snap.scans):
                 h = self._scan_frames.get(i)
                 if h is not None:
@@ -257,6 +258,9 @@ class Drawer:
                 self._stage_content = content
             for k, g in self._groups.items():
                 g.visible = k == name
+            # A pair's drawing is in its reference scan's frame: the layer stands where that scan is
+            # shown (scan3 -> scan2 where scan2 stands, not at scan1's origin).
+            apply_poses({0: self._groups[name]}, [poses[pair_reference(snap, view)]])
             # The cross-section: its 3-D marker and, in section mode, the panel.
             key = (id(cs), None if branch is None else branch.index, view.show_rejected, sectioning)
             if self._keys.get("section") != key:
@@ -295,6 +299,14 @@ class Drawer:
             except Exception:  # already removed with its parent
                 pass
         self._handles[layer] = handles
+
+
+def pair_reference(snap: Snapshot, view: ViewState) -> int:
+    """The scan whose frame the current stage's drawing is in: the reference scan of the pair in view
+    (0 on a per-scan stage, or before there is a pair)."""
+    if core_stage(view.stage).per != "pair" or snap.n_pairs == 0:
+        return 0
+    return snap.pair(target_index(snap, view.stage, view)).ref
 
 
 def _is_scan_frame(h: Any) -> bool:

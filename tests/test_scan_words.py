@@ -11,11 +11,13 @@ import numpy as np
 import pytest
 
 from hostile import cli
-from treereg_core.demo import demo_case
+from treereg_core.demo import DEMO_DIR, demo_case
 from treereg_core.io.scans import write_scan
 from treereg_core.io.transforms import read_transforms
 from treereg_core.pipeline import register
 from treereg_core.prepare.vertical import scan_vertical
+from treereg_core.verify.report import motion_lines
+from treereg_viewer.draw.motion import motion_sentence
 
 
 def test_a_scan_of_only_ground_fails_alone_and_the_others_are_written(tmp_path, capsys):
@@ -88,3 +90,35 @@ def test_steep_ground_under_a_levelled_scanner_is_not_a_tilted_scan():
     case = demo_case()
     p = case.scans[0].points
     assert scan_vertical((p[p[:, 2] > p[:, 2].min() + 0.5]) @ _rot_x(25.0).T).note == ""
+
+
+def test_a_stem_without_crown_is_not_said_to_have_a_crown_that_moved():
+    """The demo (our simulator's tree, in still air) cut below its crown: the bend the fine stage fits
+    to the bare stem is not called the crown's motion, nor taken for wind."""
+    truth = json.loads((DEMO_DIR / "truth.json").read_text())
+    crown_base = truth["trees"][0]["crown_base_m"]  # above the tree's base, world z = 0
+    scans = []
+    for s in demo_case().scans:
+        up = truth["stations"][s.name]["T_world_scan"][2][3]  # stations stand level: world z = z + up
+        scans.append(s.with_points(s.points[s.points[:, 2] + up < crown_base - 0.2]))
+    reg = register(scans)
+    pipe = reg.pipeline
+    bent = [it.evidence for it in pipe.outputs["verify"].items if getattr(it, "evidence", None) and it.evidence.sway_m > 0]
+    assert bent and not any(e.crown for e in bent)  # a bend was fitted: the words are what is tested
+    lines = motion_lines(scans, pipe.pairs, pipe.outputs)
+    assert lines
+    for line in lines:
+        assert re.fullmatch(r"scan\d\.ply: the stem top stands 0\.\d\d m off scan1\.ply's \(towards -?\d+° in scan1\.ply's "
+                            r"frame\): a bend fitted to a stem without crown, which cannot tell wind from a pose that is off",
+                            line), line
+    said = json.dumps([list(v[1]) for v in pipe.verdicts().values()])
+    said += json.dumps([m.description for it in pipe.outputs["verify"].items for m in it.metrics])
+    said += json.dumps([m.description for it in pipe.outputs["fine"].items for m in it.metrics])
+    assert "crown moved" not in said and "crown's" not in said
+    assert "stem top off the reference's (a bend of a stem without crown)" in said
+    # The app's Fine and Result stages say it alike.
+    fits = [f for f in pipe.outputs["fine"].items if getattr(f, "bend", None) is not None]
+    assert fits
+    for f in fits:
+        text = motion_sentence(f, "scan1.ply", "scan2.ply", 0.005)
+        assert text.startswith("**The stem top stands 0.") and "crown moved" not in text.lower(), text

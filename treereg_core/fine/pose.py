@@ -652,7 +652,8 @@ def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, *, params: FineSec
         Metric("surface residual (trimmed), sections", "m", float(residuals[1])),
         Metric("surface residual (trimmed), polished", "m", float(residuals[2])),
         Metric("surface residual (trimmed), coarse polished", "m", float(residuals[3])),
-        Metric("crown moved between the stations (stem top)", "m", bend.sway_m if bend is not None else 0.0),
+        Metric("crown moved between the stations (stem top)" if profile is None or profile.crown else
+               "stem top off the reference's (a bend of a stem without crown)", "m", bend.sway_m if bend is not None else 0.0),
         Metric("stem stands as the reference's up to (above its base)", "m",
                profile.stable_height_m(wind.stable_tolerance_m) if profile is not None else float("nan")),
     )

@@ -157,7 +157,10 @@ class StemProfile:
     heights_m : slab heights both stems reach; offsets_m : K x 2, target minus reference;
     std_m : each offset's noise std; radii_m : the shared radius; base_z_m, height_m : the tree's
     base and height (the bend's 0 and 1); model : the offsets explained (None with too few slabs);
-    base_xy_m : where the reference's stem was traced from (x, y): what a tilt turns about.
+    base_xy_m : where the reference's stem was traced from (x, y): what a tilt turns about;
+    crown : whether the reference's tree holds a crown (`holds_crown`; True when no stem was traced
+    to tell): without one a fitted bend is no crown's motion, and a bare stem cannot tell it from a
+    pose that is off.
     """
 
     heights_m: np.ndarray
@@ -168,6 +171,7 @@ class StemProfile:
     height_m: float
     model: StemModel | None
     base_xy_m: np.ndarray
+    crown: bool = True
 
     @property
     def n(self) -> int:
@@ -292,4 +296,29 @@ def stem_profile(ref_points: np.ndarray, tgt_points: np.ndarray, ref_xy: np.ndar
     # A slab whose circles the points hardly fix (a trace that strayed onto a branch) says nothing.
     ok = np.isfinite(std) & np.isfinite(off).all(axis=1) & (std <= _MAX_OFFSET_STD_M)
     h, off, std, radii = common[ok], off[ok], std[ok], radii[ok]
-    return StemProfile(h, off, std, radii, lo, H, fit_profile(h, off, std, lo, H), base)
+    return StemProfile(h, off, std, radii, lo, H, fit_profile(h, off, std, lo, H), base,
+                       holds_crown(ref_points, lo, H, float(np.median(a.radii_m))))
+
+
+#: A slab of a crown spreads wider than this (m), or than this many stem radii, across.
+_CROWN_SPREAD_M, _CROWN_SPREAD_RADII = 1.0, 6.0
+#: A tree holds a crown when at least this share of its slabs above the lowest third spread so.
+_CROWN_SHARE = 0.25
+
+
+def holds_crown(points: np.ndarray, base_z_m: float, height_m: float, stem_radius_m: float, step_m: float = 0.25) -> bool:
+    """Whether `points` (one tree, z up) hold a crown: above the lowest third of its height, a slab
+    in four at least spreads wider (5th to 95th percentile, across x or y) than a stem could (1 m,
+    or 6 stem radii). A stem cut below its crown spreads no wider than itself: what a bend fitted
+    to it says is not a crown's motion."""
+    p = np.asarray(points, dtype=float)
+    p = p[p[:, 2] >= base_z_m + height_m / 3.0]
+    if not len(p):
+        return False
+    wide = max(_CROWN_SPREAD_M, _CROWN_SPREAD_RADII * stem_radius_m) if np.isfinite(stem_radius_m) else _CROWN_SPREAD_M
+    k = np.floor((p[:, 2] - p[:, 2].min()) / step_m).astype(np.int64)
+    order = np.argsort(k, kind="stable")
+    bounds = np.searchsorted(k[order], np.arange(int(k.max()) + 2))
+    spreads = [np.ptp(np.percentile(p[order[a:b], :2], [5, 95], axis=0), axis=0).max()
+               for a, b in zip(bounds[:-1], bounds[1:]) if b - a >= _MIN_POINTS]
+    return bool(spreads) and float(np.mean(np.asarray(spreads) > wide)) >= _CROWN_SHARE

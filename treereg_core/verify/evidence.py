@@ -71,6 +71,10 @@ class Evidence:
     sway_direction_deg: float = float("nan")
     sway_std_m: float = float("nan")
     stable_height_m: float = float("nan")
+    #: Whether the reference's tree holds a crown (`fine.stem.StemProfile.crown`; True when no stem
+    #: was traced to tell). Without one the sway is a bend fitted to a bare stem, which cannot tell
+    #: wind from a pose that is off: it is not called a crown's motion.
+    crown: bool = True
     #: Wind: how far the points that still disagree once the stem is unbent must be allowed to lie
     #: from a surface the reference saw for the views to agree (the branches' own motion), the
     #: allowance used (capped at verify.max_motion_m), and the points counted as moved.
@@ -248,9 +252,19 @@ def gather_evidence(scene: PairScene, results: PairResults, *, verify: VerifyPar
         sway_direction_deg=bend.sway_direction_deg if bend is not None else float("nan"),
         sway_std_m=bend.sway_std_m if bend is not None else float("nan"),
         stable_height_m=profile.stable_height_m(wind.stable_tolerance_m) if profile is not None else float("nan"),
+        crown=profile.crown if profile is not None else True,
         motion_needed_m=needed, motion_m=motion, moved=vis.moved, heading_offset_deg=heading,
         fine_kept=results.fine_kept, **stem,
     )
+
+
+def sway_text(e: Evidence) -> str:
+    """The fitted bend in words that are true: "the crown moved 0.21 m between the stations (the stem
+    top)", or, on a stem without crown, how far its top stands off and what that cannot tell apart."""
+    if e.crown:
+        return f"the crown moved {e.sway_m:.2f} m between the stations (the stem top)"
+    return (f"the stem top stands {e.sway_m:.2f} m off the reference's (a bend fitted to a stem without crown: wind, "
+            "or a pose that is off, which a bare stem cannot tell apart)")
 
 
 #: Steps of the heading scan each side of the pose.
@@ -404,7 +418,7 @@ def _support(e: Evidence, p: VerifyParams, coarse: CoarseParams) -> Check:
     rule = (f"{p.chance_factor:g} × the {e.chance_inliers} inliers reached by chance (at least coarse.min_ties = "
             f"{coarse.min_ties})" if judged else "not judged: the ties were not re-paired at random")
     moving = (f"; the crown moved {e.sway_m:.2f} m between the stations, and ties on a moving crown agree less"
-              if e.sway_m > 0 else "")
+              if e.sway_m > 0 and e.crown else "")
     return _check("tie support", e.inliers, "ties", ">=", limit if judged else None, "verify.chance_factor", rule,
                   judged=judged, hint=_SAME_TREE_HINT, reason=lambda: (
                       f"only {e.inliers} of {e.ties} tie points agree with the coarse transform or the final pose, against "
@@ -428,14 +442,14 @@ def _motion(e: Evidence, p: VerifyParams, judged: bool) -> Check:
                   f"verify.max_motion_m = {p.max_motion_m:g} m: beyond it the wind cannot be told from a wrong pose "
                   "(measured up to twice that)" + ("" if judged else " (not judged: too little overlap)"),
                   judged=judged, hint=_CALM_HINT, reason=lambda: (
-                      f"the crown moved between the stations (the stem top by {e.sway_m:.2f} m), and with the stem's "
-                      f"bend taken out its branches still stand {far} from where the "
+                      f"{sway_text(e)}, and with the stem's "
+                      f"bend taken out its {'branches' if e.crown else 'points'} still stand {far} from where the "
                       f"reference saw them (verify.max_motion_m = {p.max_motion_m:g}): too much motion to tell the "
                       "wind from a wrong pose"))
 
 
 def _consistency(e: Evidence, p: VerifyParams, why_not: str) -> Check:
-    moved = (f", after the crown's motion was taken out ({e.moved} points within {100 * e.motion_m:.0f} cm of a "
+    moved = (f", after the {'crown' if e.crown else 'stem'}'s fitted bend was taken out ({e.moved} points within {100 * e.motion_m:.0f} cm of a "
              "surface the reference saw counted as moved)") if e.sway_m > 0 else ""
     return _check("free-space consistency", e.consistency, "", ">=", p.min_consistency, "verify.min_consistency",
                   f"verify.min_consistency = {p.min_consistency:g} of the points both stations see lie where the "
@@ -519,7 +533,7 @@ def _heading(e: Evidence, p: VerifyParams) -> Check:
                   "the pose's" + ("" if judged else " (not judged: measured only when the sections leave the turn about "
                                                     "the stem open)"),
                   judged=judged, hint=_CALM_HINT, reason=lambda: (
-                      f"the crown moved (the stem top by {e.sway_m:.2f} m) and the sections leave the turn about the "
+                      f"{sway_text(e)}, and the sections leave the turn about the "
                       f"stem open: the free-space evidence puts the heading {abs(e.heading_offset_deg):.1f}° or more from "
                       f"the pose, or cannot fix it (verify.max_heading_deg = {p.max_heading_deg:g})"))
 
@@ -629,7 +643,8 @@ def verification(T: np.ndarray, e: Evidence, j: Judgement) -> PairVerification:
         Metric("scanner height difference", "m", e.height_difference_m if e.height_difference_m is not None else float("nan")),
         Metric("stems lean against each other", "deg", e.stem_tilt_deg),
         Metric("stems stand apart", "m", e.stem_shift_m),
-        Metric("crown moved between the stations (stem top)", "m", e.sway_m),
+        Metric("crown moved between the stations (stem top)" if e.crown else
+               "stem top off the reference's (a bend of a stem without crown)", "m", e.sway_m),
         Metric("stems agree up to (above the base)", "m", e.stable_height_m),
     ) + ((Metric("branches moved on their own by (allowed)", "m", e.motion_m),
           Metric("points counted as moved", "", e.moved)) if e.sway_m > 0 else ()) + (

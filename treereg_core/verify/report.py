@@ -82,8 +82,9 @@ def crown_motion(scans: Sequence[Scan], pairs: Sequence[Pair], outputs: Mapping[
                  i: int) -> dict[str, Any] | None:
     """How far scan i's crown had moved from where its pair's reference saw it (wind between the
     stations), when it moved measurably: top sway (m), its direction (deg, that scan's frame), its
-    noise, the height above the stem's base up to which the two stems agree, and how far the small
-    branches moved beyond the stem's bend (the allowance the verification needed); None otherwise."""
+    noise, the height above the stem's base up to which the two stems agree, how far the small
+    branches moved beyond the stem's bend (the allowance the verification needed), and whether the
+    tree holds a crown (False: the bend was fitted to a bare stem); None otherwise."""
     k = _motion_pair(pairs, outputs, i)
     if k is None:
         return None
@@ -92,17 +93,24 @@ def crown_motion(scans: Sequence[Scan], pairs: Sequence[Pair], outputs: Mapping[
         return None
     return {"relative_to": scans[pairs[k].ref].name, "top_sway_m": _num(e.sway_m),
             "direction_deg": _num(e.sway_direction_deg), "sway_std_m": _num(e.sway_std_m),
-            "stems_agree_up_to_m": _num(e.stable_height_m), "branches_moved_m": _num(e.motion_needed_m)}
+            "stems_agree_up_to_m": _num(e.stable_height_m), "branches_moved_m": _num(e.motion_needed_m),
+            "crown": bool(e.crown)}
 
 
 def motion_lines(scans: Sequence[Scan], pairs: Sequence[Pair], outputs: Mapping[str, StageOutput]) -> list[str]:
-    """One line per scan whose crown moved measurably between its station and its pair's reference."""
+    """One line per scan whose crown moved measurably between its station and its pair's reference (on
+    a stem without crown: how far its top stands off, not called a crown's motion)."""
     out = []
     for i, s in enumerate(scans):
         m = crown_motion(scans, pairs, outputs, i) if i else None
         if m is None:
             continue
         stable = m["stems_agree_up_to_m"]
+        if not m["crown"]:
+            out.append(f"{s.name}: the stem top stands {m['top_sway_m']:.2f} m off {m['relative_to']}'s (towards "
+                       f"{m['direction_deg']:.0f}° in {m['relative_to']}'s frame): a bend fitted to a stem without crown, which cannot tell "
+                       "wind from a pose that is off")
+            continue
         out.append(f"{s.name}: the crown moved {m['top_sway_m']:.2f} m (stem top, towards {m['direction_deg']:.0f}° in "
                    f"{m['relative_to']}'s frame) between the stations of {m['relative_to']} and {s.name}"
                    + (f"; the stems agree up to {stable:.1f} m above the base" if stable is not None else "")

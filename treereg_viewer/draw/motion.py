@@ -69,6 +69,10 @@ def motion_sentence(f: Any, ref_name: str, tgt_name: str, tolerance_m: float) ->
             return ""
         return (f"The stems of {tgt_name} and {ref_name} stand alike at every height traced (within "
                 f"{tolerance_m * 1000:g} mm up to {stable:.1f} m): no crown motion between the stations.")
+    if prof is not None and not prof.crown:  # a bend fitted to a bare stem: no crown moved
+        return (f"**The stem top stands {bend.sway_m:.2f} m off** {ref_name}'s (±{bend.sway_std_m * 100:.1f} cm; "
+                f"towards {bend.sway_direction_deg:.0f}° in {ref_name}'s frame), fitted as a bend. The scans hold no "
+                "crown: a bare stem cannot tell wind from a pose that is off.")
     return (f"**The crown moved {bend.sway_m:.2f} m** between the stations (the stem top, ±{bend.sway_std_m * 100:.1f} cm; "
             f"towards {bend.sway_direction_deg:.0f}° in {ref_name}'s frame): wind. The stems agree within "
             f"{tolerance_m * 1000:g} mm up to {stable:.1f} m above the base; above, the target's stem bends off as a "

@@ -42,10 +42,12 @@ def render_verify(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewSt
     e = getattr(v, "evidence", None)
     if e is not None and e.sway_m > 0:
         stable = f"; the stems agree up to {e.stable_height_m:.1f} m above the base" if np.isfinite(e.stable_height_m) else ""
-        text += (f" The crown moved {e.sway_m:.2f} m between the stations (the stem top){stable}. The evidence is "
-                 f"measured with the target unbent by that motion; {e.moved:,} of its points the reference saw "
-                 f"through lie within {e.motion_m * 100:.0f} cm of a surface the reference saw and count as moved "
-                 "(small branches in the wind), not against the pose.")
+        sway = (f" The crown moved {e.sway_m:.2f} m between the stations (the stem top){stable}." if e.crown else
+                f" The stem top stands {e.sway_m:.2f} m off the reference's{stable}, fitted as a bend: the scans hold "
+                "no crown, and a bare stem cannot tell wind from a pose that is off.")
+        text += (sway + " The evidence is measured with the target unbent by that bend; "
+                 f"{e.moved:,} of its points the reference saw through lie within {e.motion_m * 100:.0f} cm of a "
+                 "surface the reference saw and count as moved (small branches in the wind), not against the pose.")
     if v.reasons:
         text += "\n\n" + "\n\n".join(f"- {md_sentence(r)}" for r in v.reasons)
         if v.hint:

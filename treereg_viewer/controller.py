@@ -49,7 +49,7 @@ GIVE_WAY_GAP_S = 2.5
 R = TypeVar("R", bound=StageResult)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class SnapshotPair:
     """Pair `index` of a snapshot as the app draws it: which scans it joins (`tgt` mapped onto `ref`,
     indices into the scans), the scans themselves, its label and its stage results, read by type.
@@ -149,8 +149,9 @@ class Snapshot:
         is scan k + 2 onto scan 1 (counting from 1)."""
         if not 0 <= k < self.n_pairs:
             raise IndexError(f"pair {k} of {self.n_pairs}")
-        p = self.pairs[k] if k < len(self.pairs) else Pair(0, k + 1)
-        return SnapshotPair(k, p.ref, p.tgt, self.scans[p.ref], self.scans[p.tgt], self.outputs)
+        p = self.pairs[k] if k < len(self.pairs) else Pair(ref=0, tgt=k + 1)
+        return SnapshotPair(index=k, ref=p.ref, tgt=p.tgt, ref_scan=self.scans[p.ref], tgt_scan=self.scans[p.tgt],
+                            outputs=self.outputs)
 
     def reference_pair(self, i: int) -> SnapshotPair | None:
         """Scan i's pair with the reference (whose transforms place scan i), None for the reference."""

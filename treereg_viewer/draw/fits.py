@@ -7,7 +7,7 @@ they were made at (`rigid.apply_transform`).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, cast
 
 import numpy as np
@@ -40,7 +40,7 @@ def fine_scans(snap: Snapshot, t: int) -> tuple[Scan, Scan]:
     return scans
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class FitRow:
     """One row of the fits table (and of the "Frame a fit" list): a fitted section worth a look."""
 
@@ -120,8 +120,9 @@ def fit_rows(snap: Snapshot, t: int, sl: SliceResult, sec: SectionsResult, ref: 
                     continue
                 if not plausible and not show_rejected:
                     continue
-                rows.append(FitRow(0, snap.scans[i].name, i, s, box(s.slice_index)))
-    rows = [FitRow(k + 1, r.scan, r.scan_index, r.section, r.slice_box) for k, r in enumerate(rows)]
+                rows.append(FitRow(number=0, scan=snap.scans[i].name, scan_index=i, section=s,
+                                   slice_box=box(s.slice_index)))
+    rows = [replace(r, number=k + 1) for k, r in enumerate(rows)]
     return rows, hidden
 
 

@@ -5,6 +5,7 @@ so, and a stem without crown is not said to have a crown that moved."""
 from __future__ import annotations
 
 import json
+import logging
 import re
 
 import numpy as np
@@ -122,3 +123,47 @@ def test_a_stem_without_crown_is_not_said_to_have_a_crown_that_moved():
     for f in fits:
         text = motion_sentence(f, "scan1.ply", "scan2.ply", 0.005)
         assert text.startswith("**The stem top stands 0.") and "crown moved" not in text.lower(), text
+
+
+def test_the_app_draws_every_stage_and_pair_beside_a_scan_of_only_ground(caplog):
+    """The run goes on past a scan that could not be prepared: the app meets its Skipped items on
+    every later stage (the projection's table named scans by their items)."""
+    import viser
+
+    from treereg_core.stages import STAGE_NAMES
+    from treereg_viewer.app import TreeregApp
+    from treereg_viewer.controller import Controller
+    from treereg_viewer.stages.base import TargetControl, pair_labels
+
+    scans = list(demo_case().scans)
+    p = scans[2].points
+    scans[2] = scans[2].with_points(p[p[:, 2] < p[:, 2].min() + 0.2])
+    server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    app = TreeregApp(server, Controller(scans), tabs="shared")
+
+    def idle() -> None:
+        assert app.controller.wait_idle(300.0) and app.drawer.wait_idle(60.0)
+
+    failures = {}
+    try:
+        idle()
+        snap = app.controller.snapshot
+        assert "it holds only ground" in snap.message and snap.output("graph") is not None
+        with caplog.at_level(logging.ERROR):
+            for name in STAGE_NAMES:
+                app.select_stage(name)
+                idle()
+                for label in pair_labels(snap):
+                    target = next((c for c in app.stages.controls[name] if isinstance(c, TargetControl)), None)
+                    if target is not None:
+                        target.dropdown.value = label
+                    else:
+                        app.viewer.select_target(label)
+                    idle()
+                    if "Drawing failed" in app.controller.snapshot.message:
+                        failures[(name, label)] = app.controller.snapshot.message
+        failures.update({("log", i): r.getMessage() for i, r in enumerate(caplog.records) if r.levelno >= logging.ERROR})
+    finally:
+        app.close()
+        server.stop()
+    assert not failures, failures

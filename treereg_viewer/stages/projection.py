@@ -72,7 +72,8 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
     bad = [f"**{md(snap.scans[i].name)}:** {md(it.message)}" for i, it in enumerate(seqs) if not getattr(it, "ok", True)]
     if bad:
         text += "\n\n" + "\n\n".join(bad)
-    table = metrics_table({s.scan_name: s.metrics for s in seqs})
+    # A scan that could not be prepared has a Skipped item here, named by its scan.
+    table = metrics_table({scan.name: s.metrics for scan, s in zip(snap.scans, seqs)})
     return handles, PanelContent(title("projection"), text=text, images=tuple(images), table=table)
 
 

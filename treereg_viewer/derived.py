@@ -17,7 +17,9 @@ import numpy as np
 
 from treereg_core.evaluate.cross_section import CrossSection, branch_section, stem_section
 from treereg_core.evaluate.residuals import overlap_residuals
+from treereg_core.evaluate.report import PairReport
 from treereg_core.fine.pose import FineResult
+from treereg_core.fine.slicing import SliceResult
 from treereg_core.geometry.rigid import apply_transform
 
 from .controller import Snapshot
@@ -68,9 +70,9 @@ def pose_transforms(snap: Snapshot, pose: str) -> list[np.ndarray | None]:
 
 def default_height(snap: Snapshot, target: int = 0) -> float | None:
     """The trunk: the lowest slice of the slices stage, else a little above the reference's lowest point."""
-    sl = snap.output("slices")
-    if sl is not None and target < len(sl.items) and getattr(sl.items[target], "ok", False):
-        return float(sl.items[target].heights_m[0])
+    sl = snap.pair(target).item("slices", SliceResult) if target < snap.n_pairs else None
+    if sl is not None and sl.ok:
+        return float(sl.heights_m[0])
     scans = prepared_scans(snap)
     if scans is None:
         return None
@@ -102,10 +104,10 @@ def target_bends(snap: Snapshot) -> list[Any]:
 
 def evaluated_branches(snap: Snapshot, target: int) -> list[Any]:
     """The branches the Result stage evaluated for a target (its fine evaluation's, bottom to top)."""
-    ev = snap.output("evaluation")
-    if ev is None or target >= len(ev.items) or not getattr(ev.items[target], "ok", False):
+    report = snap.pair(target).item("evaluation", PairReport) if target < snap.n_pairs else None
+    if report is None or not report.ok:
         return []
-    return list(ev.items[target].fine.branches)
+    return list(report.fine.branches)
 
 
 class Derived:

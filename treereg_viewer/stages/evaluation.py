@@ -17,6 +17,7 @@ import plotly.graph_objects as go
 import trimesh
 import viser
 
+from treereg_core.evaluate.report import PairReport
 from treereg_core.fine.pose import FineResult
 
 from ..checks import TRUTH_DISP_M, TRUTH_ROT_DEG, stage_warnings, truth_rows
@@ -106,9 +107,9 @@ POSE_NAMES = {"coarse": "coarse", "fine": "pairwise fine", "final": "final (join
 
 
 def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> Drawing:
-    out = snap.output("evaluation")
     t = target_index(snap, "evaluation", view)
-    report = out.items[t]
+    report = snap.pair(t).item("evaluation", PairReport)
+    assert report is not None, t  # the drawer draws a pair that was not skipped
     evs = report.by_method()
     method = METHOD_OF_POSE.get(view.result_pose, "fine")
     if method not in evs:

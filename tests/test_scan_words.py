@@ -7,13 +7,15 @@ from __future__ import annotations
 import json
 import logging
 import re
+import warnings
 
 import numpy as np
 import pytest
 
+from conftest import REAL_TREES, needs
 from hostile import cli
 from treereg_core.demo import DEMO_DIR, demo_case
-from treereg_core.io.scans import write_scan
+from treereg_core.io.scans import read_scan, write_scan
 from treereg_core.io.transforms import read_transforms
 from treereg_core.pipeline import register
 from treereg_core.prepare.vertical import scan_vertical
@@ -167,3 +169,22 @@ def test_the_app_draws_every_stage_and_pair_beside_a_scan_of_only_ground(caplog)
         app.close()
         server.stop()
     assert not failures, failures
+
+
+TREE_CLOUDS = ("adtree_tree7.xyz", "archi_Tree_2.xyz", "rtwig_cloud.xyz", "rtls_pc_tree.xyz")
+
+
+@needs(REAL_TREES / TREE_CLOUDS[0])
+def test_real_tree_clouds_are_not_called_tilted_and_a_real_station_turned_is():
+    """Whole trees merged from several scans (no ground near any scanner): a plane touching a tree's
+    side is no ground, so nothing is said. The real RIEGL station, level, says nothing until turned."""
+    for name in TREE_CLOUDS:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # their steps: not what is tested
+            assert scan_vertical(read_scan(REAL_TREES / name).points).note == "", name
+    station = REAL_TREES / "rtls_single_scan_scanner_at_origin.xyz.gz"
+    if station.exists():
+        p = read_scan(station).points
+        assert scan_vertical(p).note == ""
+        assert "(y-up?)" in scan_vertical(np.c_[p[:, 0], p[:, 2], -p[:, 1]]).note
+        assert "(upside down?)" in scan_vertical(p @ _rot_x(180.0).T).note

@@ -6,7 +6,8 @@ turn about z), so such a scan registers as if it showed another tree; its verdic
 The ground says where up is: a terrestrial scanner stands 0.3-3.5 m above it, so the plane holding
 most points within that distance of the scanner (the origin of the scan's frame) is the ground, and
 its normal towards the scanner is the scan's up; nothing lies beyond the ground (a plane through the
-tree has tree on both sides). A steep slope tilts that plane too, but not the
+tree has tree on both sides), and it covers an area, filled (a plane touching a tree's side, in a
+cloud that is not a scan, holds a strip of stem and scattered twigs). A steep slope tilts that plane too, but not the
 stem, which stands plumb on any slope: under a ground tilted moderately from z the stem's axis is
 the vertical (along z: a slope, nothing said); upside down or on its side (past 45 deg) no slope explains.
 Without such a plane (a tree cut out of a larger cloud) nothing is said.
@@ -28,6 +29,8 @@ _TOL_M, _MIN_SHARE = 0.05, 0.05
 _BEYOND_SHARE, _BEYOND_M = 0.02, 0.3
 #: A vertical this far from z (deg) is named; below it a scanner counts as levelled.
 _OFF_DEG = 10.0
+#: The ground spans at least this much each way (m), its cells of this size filling this share of it.
+_SPAN_M, _CELL_M, _FILL = 2.0, 0.25, 0.3
 #: The stem, 0.5-3 m above the ground, within this distance of its axis (m).
 _STEM_BAND_M, _STEM_RADIUS_M = (0.5, 3.0), 0.6
 
@@ -83,7 +86,21 @@ def _ground_plane(pts: np.ndarray, rng: np.random.Generator, iterations: int = 4
         normal, dist = -normal, -dist
     if not _HEIGHT_M[0] <= dist <= _HEIGHT_M[1] or np.mean(pts @ normal + dist < -_BEYOND_M) > _BEYOND_SHARE:
         return None
-    return normal, dist
+    return (normal, dist) if _covers(pts[on], normal) else None
+
+
+def _covers(on: np.ndarray, normal: np.ndarray) -> bool:
+    """Whether the points on a plane cover an area as ground does: at least `_SPAN_M` each way (5th to
+    95th percentile, in the plane), its `_CELL_M` cells filling `_FILL` of that box."""
+    e1 = np.cross(normal, [1.0, 0.0, 0.0] if abs(normal[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    uv = np.c_[on @ e1, on @ np.cross(normal, e1)]
+    lo, hi = np.percentile(uv, 5, axis=0), np.percentile(uv, 95, axis=0)
+    if (hi - lo).min() < _SPAN_M:
+        return False
+    inside = uv[((uv >= lo) & (uv <= hi)).all(axis=1)]
+    cells = np.unique(np.floor((inside - lo) / _CELL_M).astype(np.int64), axis=0)
+    return len(cells) >= _FILL * np.prod(np.ceil((hi - lo) / _CELL_M))
 
 
 def _stem_axis(pts: np.ndarray, up: np.ndarray, height: float) -> np.ndarray | None:

@@ -100,7 +100,7 @@ def _covers(on: np.ndarray, normal: np.ndarray) -> bool:
         return False
     inside = uv[((uv >= lo) & (uv <= hi)).all(axis=1)]
     cells = np.unique(np.floor((inside - lo) / _CELL_M).astype(np.int64), axis=0)
-    return len(cells) >= _FILL * np.prod(np.ceil((hi - lo) / _CELL_M))
+    return bool(len(cells) >= _FILL * np.prod(np.ceil((hi - lo) / _CELL_M)))
 
 
 def _stem_axis(pts: np.ndarray, up: np.ndarray, height: float) -> np.ndarray | None:

@@ -18,6 +18,7 @@ import typing
 import pytest
 
 from hostile import REPO, _env, changed, cli, fingerprint, one_line, sandbox  # noqa: F401  (sandbox: a fixture)
+from conftest import read
 from treereg_core import params as P
 from treereg_core.demo import DEMO_DIR
 from treereg_core.io.scans import read_points, write_scan
@@ -166,7 +167,7 @@ def test_the_apps_verify_and_placement_panels_say_a_verdict_rests_on_a_loosened_
 
     loose = SimpleNamespace(params=P.Params().with_value("verify", "min_margin", 0.02))
     tight = SimpleNamespace(params=P.Params().with_value("verify", "min_margin", 0.05))
-    assert _loosened_note(loose, "verified") == \
-        " ⚠ Verified under loosened thresholds (verify.min_margin 0.02 < default 0.03)."
+    assert read(_loosened_note(loose, "verified")).strip() == \
+        "⚠ Verified under loosened thresholds (verify.min_margin 0.02 < default 0.03)."
     assert _loosened_note(loose, "unverified") == ""  # a refusal needs no warning
     assert _loosened_note(tight, "verified") == "" and _loosened_note(SimpleNamespace(params=P.Params()), "verified") == ""

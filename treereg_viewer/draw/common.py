@@ -58,18 +58,24 @@ def breakable(text: str) -> str:
     return _BREAK_AFTER.sub("\\1<wbr>", text)
 
 
+#: A '|' not escaped yet: after an even run of backslashes (none included), which escape each other.
+_UNESCAPED_PIPE = re.compile(r"(?<!\\)((?:\\\\)*)\|")
+
+
 def md_table(header: tuple[str, ...], rows: list[tuple[Any, ...]]) -> str:
     """A markdown table; cells are str()-ed, '|' escaped, long words breakable (`breakable`).
 
     A cell is markdown: text from outside in it (a scan name, a message) is escaped by the caller
-    (`md`); `metrics_table` and `names_cell` do it for theirs."""
+    (`md`); `metrics_table` and `names_cell` do it for theirs. A '|' `md` escaped already is left as
+    it is: escaped again ("\\\\|"), viser's GFM tables (micromark) read an escaped backslash and a cell
+    break, and a name with a '|' would split its cell and show a backslash."""
     if not rows:
         return ""
 
     def cell(v: Any) -> str:
         if isinstance(v, float):
             v = f"{v:.4g}" if np.isfinite(v) else "–"  # never "nan" on screen
-        return breakable(str(v)).replace("|", "\\|")
+        return _UNESCAPED_PIPE.sub(r"\1\\|", breakable(str(v)))
 
     lines = ["| " + " | ".join(cell(h) for h in header) + " |", "|" + "---|" * len(header)]
     lines += ["| " + " | ".join(cell(v) for v in r) + " |" for r in rows]

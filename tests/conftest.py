@@ -51,3 +51,10 @@ def read(markdown: str) -> str:
 
     out = MarkdownIt("commonmark", {"html": True}).enable(["table", "strikethrough"]).render(markdown)
     return html.unescape(re.sub(r"<[^>]*>", "", out))
+
+
+def pytest_collection_modifyitems(config, items):
+    """Browser and soak tests are slow too: `pytest -m "not slow"` leaves them out (the inner loop)."""
+    for item in items:
+        if item.get_closest_marker("browser") or item.get_closest_marker("soak"):
+            item.add_marker(pytest.mark.slow)

@@ -53,6 +53,7 @@ def registered(request):
     server.stop()
 
 
+@pytest.mark.slow
 def test_every_stage_draws_every_offered_pair(registered, caplog):
     n, app = registered
     snap = app.controller.snapshot
@@ -122,6 +123,7 @@ def _gridded(scan, step_deg: float) -> tuple[np.ndarray, int, int]:
     return grid, rows, cols
 
 
+@pytest.mark.slow
 def test_a_posed_ptx_uploaded_registers_as_register_does(tmp_path):
     """An uploaded PTX keeps its pose (and its steps read off the grid): the app's transforms.json
     says what `treereg register` says for the same files."""

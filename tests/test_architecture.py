@@ -140,6 +140,7 @@ TYPED = ("treereg_core/stage.py", "treereg_core/stages", "treereg_core/pipeline.
              "matching", "coarse", "hypotheses", "slices", "arcs", "sections", "fine", "verify", "icp")))
 
 
+@pytest.mark.slow
 def test_the_stage_model_registry_and_pipeline_pass_mypy_strict(tmp_path):
     pytest.importorskip("mypy", reason="mypy is not installed (pip install -e '.[test]')")
     # Imported modules are read for their types, their own errors not reported (--follow-imports=silent).

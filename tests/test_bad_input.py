@@ -278,6 +278,7 @@ def _message(a: TreeregApp) -> str:
     return read(a.stages.message_md.content)
 
 
+@pytest.mark.slow
 def test_app_export_failure_then_success_leaves_no_stale_failure(app, tmp_path):
     fifo = tmp_path / "out"
     fifo.mkdir()

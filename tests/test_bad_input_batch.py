@@ -133,6 +133,7 @@ def test_resume_sees_a_scan_replaced_with_the_same_size_and_time(rerun, capsys):
     ("garbage transforms.json", r"its transforms\.json does not read \(not valid JSON.*\)"),
     ("garbage transforms.scan2.pdal.txt", r"its transforms\.scan2\.pdal\.txt does not read \(PDAL matrix: .*\)"),
 ])
+@pytest.mark.slow
 def test_resume_reruns_a_result_that_no_longer_reads(rerun, capsys, damage, why):
     camp, res = rerun
     action, name = damage.split()
@@ -184,6 +185,7 @@ def _alive(pids: list[int]) -> list[int]:
     return live
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("how", ["SIGTERM to batch", "Ctrl-C to its process group"])
 def test_sigterm_stops_batch_and_its_workers(tmp_path, how):
     camp = _campaign(tmp_path / "camp", ("tree1", "tree2"))

@@ -74,6 +74,7 @@ def test_the_issues_loosened_thresholds_are_refused_naming_the_key(sandbox, caps
     assert changed(before, fingerprint(sandbox)) == []
 
 
+@pytest.mark.slow
 def test_a_mirrored_scan_is_not_verified_with_every_threshold_at_its_loosest(loosest_run):
     r, out = loosest_run
     assert r.returncode == 1, r.stderr

@@ -59,6 +59,7 @@ def _transforms(out, tree):
     return got
 
 
+@pytest.mark.slow
 def test_batch_registers_every_tree_and_reports(campaign, tmp_path, capsys):
     out = tmp_path / "out"
     assert main(["batch", str(campaign), "--out", str(out), "--workers", "2"]) == 0  # coarse and fine
@@ -81,6 +82,7 @@ def test_batch_registers_every_tree_and_reports(campaign, tmp_path, capsys):
     assert "3 trees (3 run, 0 already done)" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_a_bad_tree_fails_alone_and_a_rerun_resumes(campaign, tmp_path, capsys):
     src = tmp_path / "trees"
     for t in ("tree1", "tree2"):
@@ -136,6 +138,7 @@ def test_manifest_with_steps_and_bad_manifests(campaign, tmp_path, capsys):
         assert len(err.splitlines()) == 1 and re.search(message, err), err
 
 
+@pytest.mark.slow
 def test_dask_cluster_gives_the_same_transforms(campaign, pooled, tmp_path, monkeypatch):
     distributed = pytest.importorskip("distributed")
     # The cluster's processes must import this checkout's treereg, as a real cluster runs the same install.

@@ -21,6 +21,7 @@ def case_dir(tmp_path_factory):
     return d, case
 
 
+@pytest.mark.slow
 def test_register_writes_transforms_close_to_truth(case_dir, tmp_path, capsys):
     d, case = case_dir
     out = tmp_path / "res" / "transforms.json"

@@ -40,6 +40,7 @@ def cases():
     return out
 
 
+@pytest.mark.slow
 def test_fine_from_perturbed_truth_ends_close_and_never_worse(cases):
     rng = np.random.default_rng(42)
     finals = []
@@ -203,6 +204,7 @@ def test_slices_are_taken_at_reference_heights_with_the_target_mapped(cases):
     assert all(np.array_equal(a, b) for a, b in zip(lifted.ref_indices, sl.ref_indices))
 
 
+@pytest.mark.slow
 def test_stems_that_line_up_outrank_a_surface_residual_of_barely_overlapping_views():
     """A pair whose two views barely overlap: the surfaces' residual and agreement both prefer the
     coarse pose, 14 mm off the stem; the fine pose lines the stems up (1 mm) and is kept."""

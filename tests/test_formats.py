@@ -58,6 +58,7 @@ def test_pose_quaternion_round_trip():
     assert np.allclose(pose_matrix(q, t), T, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_multi_scan_e57_from_another_tool_registers_and_our_e57_reopens_registered(tmp_path, capsys):
     case = demo_case()
     # Unnamed scans fall back to <stem>#k; the third scan carries a pose (georeferenced-sized).

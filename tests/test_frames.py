@@ -57,6 +57,7 @@ def _register_georeferenced(files, out):
     return read_transforms(out)
 
 
+@pytest.mark.slow
 def test_georeferenced_copies_register_to_the_same_transforms(demo_files, tmp_path):
     case, plain, geo, G, _, _ = demo_files
     assert main(["register", *plain, "--out", str(tmp_path / "plain.json"), *STEP]) == 0

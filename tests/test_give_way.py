@@ -3,10 +3,13 @@ within bounds: at most GIVE_WAY_MAX_S at a time, and not again before it has run
 
 from __future__ import annotations
 
+import pytest
+
 from treereg_core.demo import demo_case
 from treereg_viewer.controller import GIVE_WAY_GAP_S, GIVE_WAY_MAX_S, Controller
 
 
+@pytest.mark.slow
 def test_the_worker_pauses_for_a_tab_at_most_so_long_then_runs_on():
     demo = demo_case()
     ctl = Controller(list(demo.scans), truth=demo.truth)

@@ -32,6 +32,7 @@ def _run(case, workers, fork=False):
     return pipe
 
 
+@pytest.mark.slow
 def test_two_threads_give_the_transforms_and_verdicts_of_one_bit_for_bit(case):
     one, two = _run(case, 1), _run(case, 2)
     t1, t2 = one.transforms(), two.transforms()
@@ -43,6 +44,7 @@ def test_two_threads_give_the_transforms_and_verdicts_of_one_bit_for_bit(case):
     assert one.pair_metrics() == two.pair_metrics()
 
 
+@pytest.mark.slow
 def test_register_with_two_workers_writes_what_one_worker_writes(case, tmp_path):
     """The command line forks processes for its GIL-bound stages: still the same numbers."""
     folder = tmp_path / "case"

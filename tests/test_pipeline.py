@@ -15,6 +15,7 @@ def case():
     return benchmark_cases(3, seed=0, small=True)[1].build()
 
 
+@pytest.mark.slow
 def test_register_reaches_truth_and_caches(case):
     pipe = Pipeline(list(case.scans), Params(), case.truth())
     out = pipe.run("fine")
@@ -38,6 +39,7 @@ def test_register_reaches_truth_and_caches(case):
     assert all(pipe.status(s) == "stale" for s in STAGE_NAMES)
 
 
+@pytest.mark.slow
 def test_a_parameter_change_reruns_only_the_stages_that_depend_on_it(case):
     pipe = Pipeline(list(case.scans), Params(), case.truth())
     pipe.run("evaluation")
@@ -91,6 +93,7 @@ def _fail_pairs(pipe, stage, bad):
     pipe._out[stage] = StageOutput(stage, False, "only 2 of 900 tie points agree", items, out.seconds)
 
 
+@pytest.mark.slow
 def test_one_failed_pair_does_not_stop_the_others_and_its_scan_is_placed_through_them(case):
     """With three scans, a pair whose coarse stage fails is skipped by the later stages while the other
     pairs go on; its scan is still placed, through its pair with the third scan, and verified."""
@@ -126,6 +129,7 @@ def test_a_scan_no_pair_reaches_fails_and_gets_no_transform(case):
 PAIR_LABELS = ["scan2.ply -> scan1.ply", "scan3.ply -> scan1.ply", "scan3.ply -> scan2.ply"]
 
 
+@pytest.mark.slow
 def test_a_run_tells_its_subscribers_each_stage_it_computes_in_order(case):
     """Per stage computed: started, progress, one item per scan or pair in order, finished; cached
     stages are silent; the run's fraction climbs from 0 to 1 over the stages computed."""

@@ -85,6 +85,7 @@ def test_the_view_commands_reader_names_scans_by_folder_only_where_needed(statio
     assert [s.name for s in read_scans([files[0], str(tmp_path / "x" / "scan2.ply")], Params())] == ["scan1.ply", "scan2.ply"]
 
 
+@pytest.mark.slow
 def test_register_names_them_in_transforms_json_the_merged_clouds_and_the_exports(stations, tmp_path, capsys):
     out = tmp_path / "res" / "t.json"
     merged = tmp_path / "res" / "m.las"

@@ -59,6 +59,7 @@ def _rot_x(deg: float) -> np.ndarray:
     (1, lambda p: np.c_[p[:, 0], p[:, 2], -p[:, 1]], r"the scan's vertical is (89|90|91)° off z \(y-up\?\)"),
     (0, lambda p: p @ _rot_x(25.0).T, r"the scan's vertical is 2[4-6]° off z \(a scanner not levelled\?\)"),
 ], ids=["tilted 25", "upside down", "y-up", "reference tilted 25"])
+@pytest.mark.slow
 def test_a_scan_whose_vertical_is_not_z_says_so(which, how, pattern):
     scans = list(demo_case().scans[:2])
     off = scans[which]
@@ -95,6 +96,7 @@ def test_steep_ground_under_a_levelled_scanner_is_not_a_tilted_scan():
     assert scan_vertical((p[p[:, 2] > p[:, 2].min() + 0.5]) @ _rot_x(25.0).T).note == ""
 
 
+@pytest.mark.slow
 def test_a_stem_without_crown_is_not_said_to_have_a_crown_that_moved():
     """The demo (our simulator's tree, in still air) cut below its crown: the bend the fine stage fits
     to the bare stem is not called the crown's motion, nor taken for wind."""
@@ -127,6 +129,7 @@ def test_a_stem_without_crown_is_not_said_to_have_a_crown_that_moved():
         assert text.startswith("**The stem top stands 0.") and "crown moved" not in text.lower(), text
 
 
+@pytest.mark.slow
 def test_the_app_draws_every_stage_and_pair_beside_a_scan_of_only_ground(caplog):
     """The run goes on past a scan that could not be prepared: the app meets its Skipped items on
     every later stage (the projection's table named scans by their items)."""
@@ -174,6 +177,7 @@ def test_the_app_draws_every_stage_and_pair_beside_a_scan_of_only_ground(caplog)
 TREE_CLOUDS = ("adtree_tree7.xyz", "archi_Tree_2.xyz", "rtwig_cloud.xyz", "rtls_pc_tree.xyz")
 
 
+@pytest.mark.slow
 @needs(REAL_TREES / TREE_CLOUDS[0])
 def test_real_tree_clouds_are_not_called_tilted_and_a_real_station_turned_is():
     """Whole trees merged from several scans (no ground near any scanner): a plane touching a tree's

@@ -102,6 +102,7 @@ def _same(a, b) -> bool:
     return bool(a == b)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("group", GROUPS, ids="+".join)
 def test_a_parameter_change_gives_what_a_fresh_run_gives(windy, group):
     case, base = windy

@@ -86,6 +86,7 @@ def test_a_scan_cut_to_one_tree_is_left_as_it_is():
         assert ps.stem_xy is None and "all points kept" in ps.target
 
 
+@pytest.mark.slow
 def test_plot_registers_and_is_verified_with_the_default_target(plot):
     reg = register(list(plot.scans), Params())
     assert reg.ok

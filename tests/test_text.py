@@ -77,7 +77,10 @@ def test_md_table_leaves_an_escaped_pipe_as_it_is():
 
 def test_md_sentence_and_html():
     assert _paragraph_text(md_sentence("the <b>scan</b> failed")) == "The <b>scan</b> failed."
-    assert html('<img src=x onerror="a()">') == "&lt;img src=x onerror=&quot;a()&quot;&gt;"
+    # plotly decodes numeric entities, and only a few named ones (not &quot;); '%{y}' in a hover
+    # template would be a value.
+    assert html('<img src=x onerror="a()">') == "&lt;img src=x onerror=&#34;a()&#34;&gt;"
+    assert html("it's 100% %{y}") == "it&#39;s 100&#37; &#37;{y}"
     assert html("a\nb") == "a\\nb"
 
 

@@ -46,6 +46,7 @@ def _no_control(text: str) -> None:
 
 
 # ---- names on the terminal ------------------------------------------------------------------------
+@pytest.mark.slow
 def test_hostile_scan_names_forge_no_line_and_reach_the_terminal_escaped(case_dir, tmp_path, capsys):
     d = tmp_path / "scans"
     d.mkdir()
@@ -163,6 +164,7 @@ def test_a_rerun_removes_the_exports_of_a_scan_it_no_longer_places(case_dir, tmp
          *(p.name for p in theirs)])
 
 
+@pytest.mark.slow
 def test_a_batch_rerun_removes_the_matrices_its_tree_no_longer_has(case_dir, tmp_path, capsys):
     tree, out = tmp_path / "camp" / "tree1", tmp_path / "out"
     tree.mkdir(parents=True)

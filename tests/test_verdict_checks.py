@@ -169,6 +169,7 @@ def two_trees():
     return [a.scans[0], Scan(s.points, "other_tree.ply", s.angular_step_deg)]
 
 
+@pytest.mark.slow
 def test_a_scan_of_another_tree_ends_failed_and_is_not_placed(two_trees):
     pipe = Pipeline(two_trees, Params())
     pipe.run("graph")

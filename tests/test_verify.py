@@ -177,6 +177,7 @@ def test_a_refused_scan_with_a_doubtful_step_estimate_says_to_give_the_steps(cas
     assert hint.startswith("give the instrument's angular steps (--angular-step H V"), hint
 
 
+@pytest.mark.slow
 def test_the_command_line_writes_verified_scans_only_and_exits_1_for_the_others(case, other_tree, tmp_path, capsys):
     d = tmp_path / "case"
     write_case(case, d)
@@ -216,6 +217,7 @@ def test_the_command_line_writes_verified_scans_only_and_exits_1_for_the_others(
     assert "| scan2.ply -> scan1.ply | verified |" in table
 
 
+@pytest.mark.slow
 def test_a_hypothesis_picked_by_hand_becomes_the_result_and_says_so(case):
     pipe = Pipeline(list(case.scans[:2]), Params(), case.truth())
     pipe.run("graph")
@@ -250,6 +252,7 @@ def test_the_hypotheses_say_how_many_ransac_modes_had_too_little_support_to_be_s
 
 
 # ---- symmetric crowns ------------------------------------------------------------------------------
+@pytest.mark.slow
 @pytest.mark.parametrize("fold", [3, 4])
 def test_a_crown_alike_from_several_headings_is_never_verified_at_a_wrong_one(fold):
     """A trunk with identical branches every 360/fold degrees: the scans cannot tell their heading

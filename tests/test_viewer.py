@@ -91,6 +91,7 @@ def small_app(case):
     server.stop()
 
 
+@pytest.mark.slow
 def test_app_runs_every_stage_and_matches_truth(env, case):
     server, app = env
     snap = app.controller.snapshot
@@ -219,6 +220,7 @@ def test_the_pair_between_two_targets_can_be_chosen(env, case):
     _idle(app)
 
 
+@pytest.mark.slow
 def test_parameter_change_reruns_only_that_stage_and_later(env, case):
     server, app = env
     ctl = app.controller
@@ -275,6 +277,7 @@ def test_invalid_parameter_is_rejected_and_the_input_shows_what_is_in_force(env)
     assert all(ctl.snapshot.output(s) is before.output(s) for s in STAGE_NAMES)
 
 
+@pytest.mark.slow
 def test_an_arcs_parameter_reruns_arcs_and_what_follows_never_slices(small_app):
     app = small_app
     ctl = app.controller
@@ -445,6 +448,7 @@ def test_good_upload_adds_a_scan_in_the_next_colour(small_app, case):
     assert app.controller.snapshot.error and "reference" in app.controller.snapshot.message
 
 
+@pytest.mark.slow
 def test_paper_preset_runs_and_its_failure_is_explained(small_app, case):
     """The paper's literal settings: the app says what they change and why they fail; on the demo
     the paper's plain SVD turns scan 3 over, which the coarse stage rejects with advice; scan 2's
@@ -763,6 +767,7 @@ def test_the_tour_sets_stage_and_panel_and_ends(env):
     _idle(app)
 
 
+@pytest.mark.slow
 def test_a_run_publishes_each_stage_as_it_finishes(small_app):
     """A tab on the Arcs stage sees its new arcs before fine and evaluation have run."""
     app = small_app

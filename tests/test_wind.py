@@ -143,6 +143,7 @@ def test_motion_needed_is_the_allowance_that_makes_the_views_agree():
     assert _motion_needed(d, 14, 0.95) == pytest.approx(0.2)  # 10 agree: every one must have moved
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("wind", [0.15])
 def test_a_swayed_pair_is_verified_and_right_and_says_how_far_the_crown_moved(wind):
     case = _case(wind_m=wind)
@@ -158,6 +159,7 @@ def test_a_swayed_pair_is_verified_and_right_and_says_how_far_the_crown_moved(wi
     assert disp_rigid > 3 * disp and disp_rigid > 0.01
 
 
+@pytest.mark.slow
 def test_a_pair_with_mixed_pixels_is_verified_and_right():
     case = _case(mixed_pixels=0.4)
     _, v, rot, disp = _pair(case)

@@ -11,7 +11,8 @@ uploads: each goes through one of these functions wherever the app puts it into 
   CommonMark defines as that character, literally: no tag, entity, link, image, emphasis, code
   span or table cell break can start inside the text, and it reads exactly as given; GFM's
   autolinked addresses are split by an empty `<wbr>`.
-- `html(text)`: for plotly's titles, axis titles and hover text (HTML entities, which plotly decodes).
+- `html(text)`: for plotly's titles, axis titles and hover text (HTML entities, which plotly decodes:
+  numeric ones for quotes and `%`, see `html`).
 
 Both first show control characters as escapes (`treereg_core.text.shown`): a newline in a name
 cannot start a markdown block, and the text stays one line.
@@ -43,8 +44,10 @@ def md(text: object) -> str:
 
 
 def html(text: object) -> str:
-    """`text` as HTML text (plotly titles and hover text): `<`, `>`, `&` and quotes as entities."""
-    return _html.escape(shown(text), quote=True)
+    """`text` as HTML text (plotly titles and hover text): `<`, `>`, `&` as entities; quotes and `%` as
+    numeric ones. plotly decodes numeric entities but only a few named ones (no `&quot;`, which it
+    showed as such), and reads `%{y}` in a hover template as a value: `&#37;` keeps it text."""
+    return _html.escape(shown(text), quote=False).replace('"', "&#34;").replace("'", "&#39;").replace("%", "&#37;")
 
 
 def md_sentence(text: object) -> str:

@@ -134,6 +134,13 @@ class Snapshot:
     def output(self, stage: str) -> StageOutput | None:
         return self.outputs.get(stage)
 
+    def scan_item(self, stage: str, i: int, kind: type[R]) -> R | None:
+        """Scan i's item of per-scan `stage` as a `kind`; None when the stage has no output for it
+        or the item is not one (a `Skipped` scan). A pair's scans: `pair(k).scan_items`."""
+        if core_stage(stage).per != "scan":
+            raise ValueError(f"{stage} is a per-pair stage: read it with pair(k).item")
+        return _item_as(self.outputs.get(stage), i, kind)
+
     @property
     def scan_names(self) -> list[str]:
         return [s.name for s in self.scans]

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import re
-from typing import Any, Iterable
+from typing import Any, Iterable, Mapping
 
 import numpy as np
 import viser
@@ -95,7 +95,7 @@ def metric_text(m: Metric) -> str:
     return m.formatted()
 
 
-def metrics_table(columns: dict[str, Iterable[Metric]]) -> str:
+def metrics_table(columns: Mapping[str, Iterable[Metric]]) -> str:
     """Metric rows side by side: one column per label (e.g. per target scan), one row per metric;
     at most COLUMNS_PER_TABLE columns per table."""
     cols = {md(k): {md(m.description): md(metric_text(m)) for m in v} for k, v in columns.items()}

@@ -15,11 +15,13 @@ Only drawing: every number comes from the CrossSection.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Sequence, cast
 
 import numpy as np
 import plotly.graph_objects as go
+import viser
 
+from treereg_core.evaluate.branches import BranchError
 from treereg_core.evaluate.cross_section import CrossSection, ScanCut
 
 from ..controller import Snapshot
@@ -27,8 +29,11 @@ from ..palette import CATEGORICAL, GREY, hex_color, scan_color
 from ..view_panel import PanelContent
 from ..text import html, md, md_sentence
 from ..view_state import ViewState
-from .common import md_table, plural
+from .common import Handles, md_table, plural
 from .fits import within
+
+#: A plotly figure's layout, trace or axis as plain JSON-like data (see `_grid`).
+Plain = dict[str, Any]
 
 #: Registrations as people read them.
 POSE_TITLES = {"coarse": "Coarse", "fine": "Fine", "icp": "ICP"}
@@ -59,7 +64,7 @@ def _centre(cs: CrossSection, layer: int) -> np.ndarray:
         return np.zeros(2)
     allp = np.concatenate(uv)
     lo, hi = np.percentile(allp, 0.5, axis=0), np.percentile(allp, 99.5, axis=0)
-    return (lo + hi) / 2.0
+    return np.asarray((lo + hi) / 2.0)
 
 
 def drawable(cs: CrossSection, box: tuple[np.ndarray, np.ndarray], sc: ScanCut, k: int) -> bool:
@@ -71,7 +76,7 @@ def drawable(cs: CrossSection, box: tuple[np.ndarray, np.ndarray], sc: ScanCut, 
     return within(cs.to_uv(s.centre_m)[0], s.radius_m, *box)
 
 
-def _box(layer_scans: Any) -> tuple[np.ndarray, np.ndarray]:
+def _box(layer_scans: Sequence[ScanCut]) -> tuple[np.ndarray, np.ndarray]:
     uv = [sc.uv for sc in layer_scans if len(sc.uv)]
     if not uv:
         return np.zeros(2), np.zeros(2)
@@ -79,11 +84,11 @@ def _box(layer_scans: Any) -> tuple[np.ndarray, np.ndarray]:
     return allp.min(axis=0), allp.max(axis=0)
 
 
-def _grid(rows: int, cols: int, titles: list[str], hgap: float = 0.08, vgap: float = 0.12) -> tuple[dict, list[tuple[str, str]]]:
+def _grid(rows: int, cols: int, titles: list[str], hgap: float = 0.08, vgap: float = 0.12) -> tuple[Plain, list[tuple[str, str]]]:
     """A plotly layout with a rows x cols grid of axes and a title over each cell; returns the layout
     and each cell's (x axis, y axis) names, row by row. Plain dicts: plotly's `make_subplots` and
     validated figures cost ten times more, and the inspector redraws as its slider moves."""
-    layout: dict[str, Any] = {"annotations": []}
+    layout: Plain = {"annotations": []}
     w = (1.0 - hgap * (cols - 1)) / cols
     h = (1.0 - vgap * (rows - 1)) / rows
     cells = []
@@ -102,12 +107,14 @@ def _grid(rows: int, cols: int, titles: list[str], hgap: float = 0.08, vgap: flo
     return layout, cells
 
 
-def _axis(layout: dict, name: str) -> dict:
-    return layout["xaxis" if name == "x" else f"xaxis{name[1:]}"] if name.startswith("x") else \
+def _axis(layout: Plain, name: str) -> Plain:
+    axis = layout["xaxis" if name == "x" else f"xaxis{name[1:]}"] if name.startswith("x") else \
         layout["yaxis" if name == "y" else f"yaxis{name[1:]}"]
+    assert isinstance(axis, dict)  # `_grid` made it
+    return axis
 
 
-def _figure(traces: list[dict], layout: dict) -> go.Figure:
+def _figure(traces: list[Plain], layout: Plain) -> go.Figure:
     return go.Figure({"data": traces, "layout": layout}, _validate=False)
 
 
@@ -120,7 +127,7 @@ def top_view_figure(cs: CrossSection, snap: Snapshot, layers: list[int], show_re
     half = max(_extent(cs, lay) for lay in layers)
     cm = half < 0.6  # centimetres read better on a stem; metres across a crown
     unit, f = ("cm", 100.0) if cm else ("m", 1.0)
-    traces: list[dict] = []
+    traces: list[Plain] = []
     shown_names: set[str] = set()
     for r, lay in enumerate(layers):
         c0 = _centre(cs, lay)
@@ -166,18 +173,17 @@ def ring_figure(cs: CrossSection, layer: int) -> go.Figure | None:
     """Every scan's points unrolled along the reference's main circle, one column per registration:
     angle around its centre across, distance from the circle up (mm). A target off by a few
     millimetres, invisible in the top view, stands out here as a band away from zero."""
-    profiles = [(pc.pose, cs.ring(pc.pose, layer)) for pc in cs.poses]
-    profiles = [(pose, r) for pose, r in profiles if r is not None]
+    profiles = [(pc, ring) for pc in cs.poses if (ring := cs.ring(pc.pose, layer)) is not None]
     if not profiles:
         return None
-    layout, cells = _grid(1, len(profiles), [POSE_TITLES.get(pose, pose) for pose, _ in profiles], hgap=0.06)
-    traces: list[dict] = []
+    layout, cells = _grid(1, len(profiles), [POSE_TITLES.get(pc.pose, pc.pose) for pc, _ in profiles], hgap=0.06)
+    traces: list[Plain] = []
     top = 0.0
-    for c, (pose, ring) in enumerate(profiles):
+    for c, (pc, ring) in enumerate(profiles):
         xa, ya = cells[c]
-        for sc in cs.pose(pose).layers[layer].scans:
+        for sc in pc.layers[layer].scans:
             a, d = ring.angle_deg.get(sc.scan), ring.offset_m.get(sc.scan)
-            if a is None or not len(a):
+            if a is None or d is None or not len(a):
                 continue
             top = max(top, float(np.percentile(np.abs(d), 98)))
             traces.append(dict(type="scattergl", x=a, y=d * 1000.0, mode="markers", xaxis=xa, yaxis=ya, showlegend=False,
@@ -206,7 +212,7 @@ def raster_figure(cs: CrossSection, pose: str, layer: int) -> go.Figure | None:
         return None
     layout, cells = _grid(1, len(cuts), [html(f"{sc.index + 1}: {sc.scan} · {plural(sc.n_arcs, 'arc')}") for sc in cuts],
                           hgap=0.05)
-    traces: list[dict] = []
+    traces: list[Plain] = []
     for c, sc in enumerate(cuts):
         xa, ya = cells[c]
         labels = np.asarray(sc.labels)
@@ -216,7 +222,7 @@ def raster_figure(cs: CrossSection, pose: str, layer: int) -> go.Figure | None:
         colors[labels == 0] = scan_color(sc.index)
         traces.append(dict(type="scattergl", x=sc.cells[:, 0], y=sc.cells[:, 1], mode="markers", xaxis=xa, yaxis=ya,
                            showlegend=False,
-                           marker=dict(symbol="square", size=5, color=[hex_color(tuple(int(v) for v in row)) for row in colors]),
+                           marker=dict(symbol="square", size=5, color=[hex_color((int(r), int(g), int(b))) for r, g, b in colors]),
                            text=[f"arc {lab + 1}" if lab >= 0 else "too small for an arc" for lab in labels],
                            hovertemplate="%{text}<extra></extra>"))
         _axis(layout, xa).update(title=dict(text="α (steps)"), autorange="reversed")  # as seen from the scanner
@@ -234,7 +240,7 @@ def _main(sc: ScanCut) -> int | None:
 
 def check_rows(cs: CrossSection, layer: int) -> list[tuple[str, ...]]:
     """Per registration and scan: arcs, the main (largest plausible) section, its 4.2 check and offset."""
-    rows = []
+    rows: list[tuple[str, ...]] = []
     for pc in cs.poses:
         offsets = pc.offsets_m[layer]
         below_layer = pc.layers[layer - 1] if layer > 0 else None
@@ -277,7 +283,7 @@ def verdict(cs: CrossSection, layer: int) -> str:
     return " ".join(parts)
 
 
-def render(snap: Snapshot, view: ViewState, cs: CrossSection | None, branch: Any = None) -> PanelContent:
+def render(snap: Snapshot, view: ViewState, cs: CrossSection | None, branch: BranchError | None = None) -> PanelContent:
     """The inspector's panel content for `cs` (None: nothing to cut yet)."""
     if cs is None:
         text = ("*The cross-section needs a registration: run the pipeline up to 4 Coarse at least.*"
@@ -296,7 +302,7 @@ def render(snap: Snapshot, view: ViewState, cs: CrossSection | None, branch: Any
                  f"{branch.radius_m * 100:.0f} cm plus the margin of the axis.")
     mid = layers[-1] if branch is None else len(layers) // 2
     text = where + " " + verdict(cs, mid)
-    plots = [(top_view_figure(cs, snap, layers, view.show_rejected), len(cs.poses) / max(len(layers), 1) * 0.85)]
+    plots: list[tuple[go.Figure, float]] = [(top_view_figure(cs, snap, layers, view.show_rejected), len(cs.poses) / max(len(layers), 1) * 0.85)]
     ring = ring_figure(cs, mid)
     if ring is not None:
         plots.append((ring, 2.6))
@@ -318,7 +324,7 @@ def render(snap: Snapshot, view: ViewState, cs: CrossSection | None, branch: Any
     return PanelContent(head, text=text, plots=tuple(plots), table=notes + "\n\n" + table)
 
 
-def draw_marker(scene: Any, root: str, cs: CrossSection | None, branch: Any = None) -> list[Any]:
+def draw_marker(scene: viser.SceneApi, root: str, cs: CrossSection | None, branch: BranchError | None = None) -> Handles:
     """Where the cut lies in 3-D: a yellow band around each shown layer (its slab's thickness, a
     little wider than the section), visible from the side as from above."""
     import trimesh
@@ -342,6 +348,7 @@ def draw_marker(scene: Any, root: str, cs: CrossSection | None, branch: Any = No
         meshes.append(trimesh.creation.annulus(r_min=r, r_max=r + max(0.01, 0.05 * r), height=2 * half,
                                                segment=np.stack([centre - cs.axis * half, centre + cs.axis * half]),
                                                sections=48))
-    mesh = trimesh.util.concatenate(meshes)
+    # trimesh's stubs type concatenate's result as any Geometry; of Trimeshes it is a Trimesh.
+    mesh = cast(trimesh.Trimesh, trimesh.util.concatenate(meshes))
     return [scene.add_mesh_simple(f"{root}/cut", mesh.vertices.astype(np.float32), mesh.faces.astype(np.int32),
                                   color=HIGHLIGHT, opacity=0.6, side="double")]

@@ -7,16 +7,19 @@ a pose update of one node, not a resend of its points.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Mapping
 
 import numpy as np
 import viser
+
+from treereg_core.prepare.ground import PreparedScan
+from treereg_core.verify.graph import Placement
 
 from ..controller import Snapshot
 from ..palette import GREY, MIXED, MOVED, NO_RESIDUAL, residual_colors, scan_color
 from ..stages import POSE_STAGE, registered, view_of
 from ..view_state import ViewState
-from .common import display_subset, pose_kwargs, target_pose
+from .common import Handles, display_subset, pose_kwargs, target_pose
 
 #: Points a stage removed (ground, crop) are drawn lighter than kept points.
 CROPPED = (205, 205, 205)
@@ -78,10 +81,10 @@ def verdict_shown(snap: Snapshot, view: ViewState, i: int) -> str:
     (drawn at its best guess, ghosted and labelled) or "failed" (labelled; not drawn where the scans
     stand at their final placement, ghosted at a pair's own pose for inspection)."""
     # The placement's verdicts only: before it has run a scan has none (not "unverified").
-    graph = snap.output("graph")
-    if i == 0 or not registered(view.stage) or graph is None or i >= len(graph.items):
+    placement = snap.scan_item("graph", i, Placement)
+    if i == 0 or not registered(view.stage) or placement is None:
         return ""
-    verdict = graph.items[i].verdict
+    verdict = placement.verdict
     return verdict if verdict in ("unverified", "failed") else ""
 
 
@@ -115,31 +118,30 @@ def scan_layer_key(snap: Snapshot, view: ViewState) -> tuple[Any, ...]:
 
 
 def draw_scan_layer(scene: viser.SceneApi, snap: Snapshot, view: ViewState,
-                    residuals: list[np.ndarray] | None = None, moved: list[np.ndarray] | None = None) -> list[Any]:
+                    residuals: list[np.ndarray] | None = None, moved: list[np.ndarray] | None = None) -> Handles:
     """Every scan's points in its colour (ground grey on stage 1) or, given `residuals` (per scan,
     the distances of its displayed points to the other scans), coloured by distance, the points that
     `moved` with the wind in their own colour; its station axes and name. On the Scans stage the
     mixed pixels the preparation removed are drawn too, when the view asks."""
-    handles: list[Any] = []
-    prepared = snap.output("prepare")
+    handles: Handles = []
     apart = not registered(view.stage)
     for i, scan in enumerate(snap.scans):
-        prep = prepared.items[i] if prepared is not None and i < len(prepared.items) else None
+        prep = snap.scan_item("prepare", i, PreparedScan)
         color = np.array(scan_color(i), dtype=np.uint8)
         if context_only(view):  # slices, arcs and fits are the subject: the scans fade to a tint
             color = (0.3 * color + 0.7 * 255).astype(np.uint8)
         mixed = None
-        if view.stage == "prepare" or prep is None or not getattr(prep, "ok", False):
+        if view.stage == "prepare" or prep is None or not prep.ok:
             # The Scans stage shows the station as the stages take it (at the working resolution),
             # with what preparation removes in grey and, on request, its mixed pixels.
-            station = getattr(prep, "station", None) if prep is not None else None
+            station = prep.station if prep is not None else None
             pts = station.points if station is not None else scan.points
             idx = display_subset(len(pts), view.max_points, seed=i)
             colors = np.broadcast_to(color, (len(idx), 3)).copy()
-            if prep is not None and getattr(prep, "kept_mask", None) is not None and len(prep.kept_mask) == len(pts):
+            if prep is not None and len(prep.kept_mask) == len(pts):
                 colors[~prep.kept_mask[idx]] = CROPPED
                 colors[prep.ground_mask[idx]] = GREY
-            removed = getattr(prep, "mixed_points", None) if prep is not None else None
+            removed = prep.mixed_points if prep is not None else None
             if view.stage == "prepare" and view.show_mixed and removed is not None and len(removed):
                 mixed = removed[display_subset(len(removed), view.max_points // 4, seed=i)]
         else:
@@ -159,7 +161,8 @@ def draw_scan_layer(scene: viser.SceneApi, snap: Snapshot, view: ViewState,
         if mark == "failed" and stage_pose(view) == "final":
             # Not placed: nothing to draw where the registered scans stand; the label stands above the
             # reference's tree (in the reference frame, not under this scan's node).
-            ref_pts = prepared.items[0].scan.points if prepared is not None and prepared.items[0].ok else pts
+            reference = snap.scan_item("prepare", 0, PreparedScan)
+            ref_pts = reference.scan.points if reference is not None and reference.ok else pts
             text, where = _verdict_label(snap, view, i, mark, ref_pts[display_subset(len(ref_pts), 5000, seed=1)])
             handles.append(scene.add_label(f"/scans/verdict{i}", text, position=where, anchor="bottom-center"))
             continue
@@ -170,7 +173,7 @@ def draw_scan_layer(scene: viser.SceneApi, snap: Snapshot, view: ViewState,
             full = np.broadcast_to(np.asarray(colors, dtype=float).reshape(-1, 3), (len(idx), 3))[::GHOST_STRIDE]
             idx = idx[::GHOST_STRIDE]
             colors = (full * (1 - GHOST_LIGHT) + 255 * GHOST_LIGHT).astype(np.uint8)
-        if see_through(view) and prep is not None and getattr(prep, "ok", False):
+        if see_through(view) and prep is not None and prep.ok:
             # Gaussian splats blend: half-transparent discs of about the point size.
             n = len(idx)
             sigma = view.point_size  # world-sized: much smaller and a distant tree renders below a pixel
@@ -204,7 +207,7 @@ def draw_scan_layer(scene: viser.SceneApi, snap: Snapshot, view: ViewState,
     return handles
 
 
-def apply_poses(handles: dict[int, Any], poses: list[np.ndarray]) -> None:
+def apply_poses(handles: Mapping[int, viser.SceneNodeHandle], poses: list[np.ndarray]) -> None:
     """Move the scan frames (cheap: no points are sent)."""
     for i, T in enumerate(poses):
         h = handles.get(i)

@@ -10,19 +10,20 @@ errors; the per-branch table. In 3-D: each evaluated branch layer as a ring, wit
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Mapping
 
 import numpy as np
 import plotly.graph_objects as go
 import trimesh
 import viser
 
+from treereg_core.evaluate.branches import BranchError, EvaluationResult
 from treereg_core.evaluate.report import PairReport
 from treereg_core.fine.pose import FineResult
 
 from ..checks import TRUTH_DISP_M, TRUTH_ROT_DEG, stage_warnings, truth_rows
 from ..controller import Snapshot
-from ..draw.common import Drawing, md_table, metrics_table, pair_label, target_index, title
+from ..draw.common import Drawing, Handles, md_table, metrics_table, pair_label, target_index, title
 from ..draw.motion import motion_sentence, profile_figure
 from ..palette import HIGHLIGHT, residual_legend, scan_color
 from ..view_panel import PanelContent
@@ -35,12 +36,12 @@ from .base import AppStage, ControlHost, StageControls, StageView, TargetControl
 METHOD_COLORS = {"coarse": "#9e9e9e", "fine": "#1e8c3c", "ICP": "#3050c8"}
 
 
-def branch_rows(ev: Any) -> list[Any]:
+def branch_rows(ev: EvaluationResult) -> list[BranchError]:
     """The evaluation's per-branch rows (empty if it has none)."""
-    return list(getattr(ev, "branches", ()) or ())
+    return list(ev.branches)
 
 
-def branch_figure(evs: dict[str, Any], target: str) -> go.Figure | None:
+def branch_figure(evs: Mapping[str, EvaluationResult], target: str) -> go.Figure | None:
     """Grouped bars: mean centre distance per branch, one colour per registration (paper Figs. 13-14)."""
     fig = go.Figure()
     any_rows = False
@@ -64,14 +65,15 @@ def branch_figure(evs: dict[str, Any], target: str) -> go.Figure | None:
     return fig
 
 
-def branch_rings(scene: viser.SceneApi, root: str, ev: Any, color: tuple[int, int, int]) -> list[Any]:
+def branch_rings(scene: viser.SceneApi, root: str, ev: EvaluationResult, color: tuple[int, int, int]) -> Handles:
     """The evaluated branches, visible: a yellow ring around the branch at each evaluated layer, the
     reference's and the target's layer centres, the segments joining them (the d_i of eq. 8, often
     only millimetres long) and the branch's number."""
     rows = [b for b in branch_rows(ev) if len(b.distances_m)]
     if not rows:
         return []
-    verts, faces = [], []
+    verts: list[np.ndarray] = []
+    faces: list[np.ndarray] = []
     for b in rows:
         axis = np.asarray(b.axis, dtype=float)
         for c in b.ref_centres_m:
@@ -81,7 +83,7 @@ def branch_rings(scene: viser.SceneApi, root: str, ev: Any, color: tuple[int, in
             verts.append(ring.vertices)
     ref = np.concatenate([b.ref_centres_m for b in rows]).astype(np.float32)
     tgt = np.concatenate([b.tgt_centres_m for b in rows]).astype(np.float32)
-    handles = [
+    handles: Handles = [
         scene.add_mesh_simple(f"{root}/branches", np.concatenate(verts).astype(np.float32),
                               np.concatenate(faces).astype(np.int32), color=HIGHLIGHT, opacity=0.95, side="double"),
         scene.add_line_segments(f"{root}/d", np.stack([ref, tgt], axis=1), HIGHLIGHT, thickness=3.0,
@@ -92,9 +94,9 @@ def branch_rings(scene: viser.SceneApi, root: str, ev: Any, color: tuple[int, in
                               precision="float32"),
     ]
     for b in rows:
-        top = b.ref_centres_m[-1]
+        x, y, z = (float(v) for v in b.ref_centres_m[-1] + np.array([0.0, 0.0, b.radius_m + 0.08]))
         handles.append(scene.add_label(f"{root}/label{b.index}", f"branch {b.index + 1}: d̄ {b.mean_m * 1000:.1f} mm",
-                                       position=tuple(float(v) for v in top + np.array([0.0, 0.0, b.radius_m + 0.08]))))
+                                       position=(x, y, z)))
     return handles
 
 
@@ -118,24 +120,25 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
     text = f"Targets shown at their **{shown_at}** pose. "
     fine = snap.output("fine")
     notes = []
-    if fine is not None:
-        for k, f in enumerate(fine.items):
-            if f.ok and not f.accepted and f.message:
-                notes.append(f"{md(pair_label(snap, k))}: {md(f.message)}.")
+    # Each pair's fine result (None for a skipped pair).
+    fines = [snap.pair(k).item("fine", FineResult) for k in range(len(fine.items))] if fine is not None else []
+    for k, f in enumerate(fines):
+        if f is not None and f.ok and not f.accepted and f.message:
+            notes.append(f"{md(pair_label(snap, k))}: {md(f.message)}.")
     if snap.truth:
         text += "Errors against truth come from the case's `truth.json`."
     else:
         text += "No truth is known for these scans: the paper's branch measure d̄ is the yardstick."
     text += (" Yellow rings in 3-D mark the evaluated branch layers, labelled with their mean centre distance d̄; "
              "pick a branch under *Section of* in the cross-section view to see its layers.")
-    images = []
+    images: list[tuple[np.ndarray, str]] = []
     if view.result_colour == "residual":
         text += (f"\n\nEach point is coloured by its distance to the other scans' surface (0 to "
                  f"{view.residual_max_m * 1000:.0f} mm and beyond); light grey: no other scan's point within "
                  f"{max(30, 1.5 * view.residual_max_m * 1000):.0f} mm (seen by its own scan only).")
         images.append((residual_legend(view.residual_max_m),
                        f"0 mm — {view.residual_max_m * 1000 / 2:.0f} mm — {view.residual_max_m * 1000:.0f} mm and more"))
-        if any(getattr(f, "bend", None) is not None for f in (fine.items if fine is not None else ())):
+        if any(f is not None and f.bend is not None for f in fines):
             text += (f" **Pink: moved with the wind**: farther than {view.residual_max_m * 1000:.0f} mm from the other "
                      "scans as registered, within it once each target's crown motion (its stem's fitted bend) is taken "
                      "out. Red points do not fit even then.")
@@ -152,7 +155,7 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
     text += "".join(f"\n\n{w}" for w in stage_warnings(snap).get("evaluation", []))
     if not report.ok and report.message:
         text += f"\n\n**Evaluation:** {md(report.message)}"
-    plots = []
+    plots: list[tuple[go.Figure, float]] = []
     pair = snap.pair(t)
     fine_item = pair.item("fine", FineResult)
     ref_name, tgt_name = pair.ref_scan.name, pair.tgt_scan.name
@@ -169,7 +172,7 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
     # One row per metric, one column per registration of the chosen target (the paper's Table 2 layout).
     columns = {label: ev.metrics for label, ev in evs.items()}
     table = metrics_table(columns) if report.ok else ""
-    rows = []
+    rows: list[tuple[str, int, str, str, str, str]] = []
     for label, ev in evs.items():
         for b in branch_rows(ev):
             d = ", ".join(f"{x * 1000:.1f}" for x in b.distances_m)
@@ -203,8 +206,9 @@ class ResultControls(StageControls):
         self.residual_max.on_update(lambda _: host.set_view(residual_max_m=float(self.residual_max.value) / 1000.0))
 
     def show_view(self, view: ViewState, snap: Snapshot) -> None:
-        self.colour.value = next(k for k, v in RESULT_COLOURS.items() if v == view.result_colour)
-        self.residual_max.value = max(2, min(100, round(view.residual_max_m * 1000)))
+        # viser's dropdown and slider redeclare `value` with a getter only; the base class's setter applies.
+        self.colour.value = next(k for k, v in RESULT_COLOURS.items() if v == view.result_colour)  # type: ignore[misc]
+        self.residual_max.value = max(2, min(100, round(view.residual_max_m * 1000)))  # type: ignore[misc]
 
 
 STAGE = AppStage(

@@ -4,11 +4,11 @@ coloured by verdict, loop errors on hover). All numbers come from the results; t
 
 from __future__ import annotations
 
-from typing import Any
-
 import numpy as np
 import plotly.graph_objects as go
 import viser
+
+from treereg_core.verify.graph import Edge, Placement
 
 from ..controller import Snapshot
 from ..draw.common import Drawing, md_table, title
@@ -30,9 +30,10 @@ def graph_figure(snap: Snapshot) -> go.Figure | None:
     graph = snap.output("graph")
     if graph is None or not graph.items:
         return None
-    pos = {i: np.asarray(pl.T_ref_scan)[:2, 3] for i, pl in enumerate(graph.items) if pl.T_ref_scan is not None}
+    placements = graph.items_as(Placement)
+    pos = {i: np.asarray(pl.T_ref_scan)[:2, 3] for i, pl in enumerate(placements) if pl.T_ref_scan is not None}
     fig = go.Figure()
-    for e in graph.items[0].edges:
+    for e in placements[0].edges:
         if e.i not in pos or e.j not in pos:
             continue
         a, b = pos[e.i], pos[e.j]
@@ -47,7 +48,7 @@ def graph_figure(snap: Snapshot) -> go.Figure | None:
     fig.add_trace(go.Scatter(
         x=xs, y=ys, mode="markers+text", text=[f"{i + 1}" for i in pos], textposition="top center",
         marker=dict(size=14, color=[hex_color(scan_color(i)) for i in pos], line=dict(width=2, color="white")),
-        hovertext=[html(f"{snap.scans[i].name}: {graph.items[i].verdict}") for i in pos], hoverinfo="text", showlegend=False))
+        hovertext=[html(f"{snap.scans[i].name}: {placements[i].verdict}") for i in pos], hoverinfo="text", showlegend=False))
     fig.update_layout(margin=dict(l=40, r=10, t=30, b=40), title=dict(text="Stations (top view) and registered pairs",
                       font=dict(size=12)), xaxis_title="x (m, reference frame)", yaxis_title="y (m)",
                       yaxis=dict(scaleanchor="x", scaleratio=1))
@@ -56,29 +57,32 @@ def graph_figure(snap: Snapshot) -> go.Figure | None:
 
 def render_graph(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> Drawing:
     graph = snap.output("graph")
-    rows, why = [], []
-    for i, (s, pl) in enumerate(zip(snap.scans, graph.items)):
+    assert graph is not None  # the drawer draws a stage that has an output
+    placements = graph.items_as(Placement)
+    rows: list[tuple[str, str, str]] = []
+    why: list[str] = []
+    for i, (s, pl) in enumerate(zip(snap.scans, placements)):
         via = ", ".join(str(v + 1) for v in pl.via) or "–"
         rows.append((f"{i + 1}: {md(s.name)}", verdict_badge(pl.verdict), via))
         if pl.verdict != "verified":
             hint = f" Try: {md(pl.hint)}." if pl.hint else ""
             why.append(f"- **{verdict_badge(pl.verdict)} {md(s.name)}:** " + md("; ".join(pl.reasons)) + "." + hint)
-    n_ok = sum(pl.verdict == "verified" for pl in graph.items)
-    text = (f"{n_ok} of {len(graph.items)} scans verified ({VERDICT_LEGEND}). Verified and unverified scans are drawn "
+    n_ok = sum(pl.verdict == "verified" for pl in placements)
+    text = (f"{n_ok} of {len(placements)} scans verified ({VERDICT_LEGEND}). Verified and unverified scans are drawn "
             "at their placement, an unverified one pale (fewer, lighter points) and labelled a best guess; a failed one is not "
             "drawn. Solid edges: verified pairs used in the joint solve; dotted: pairs left out (unverified, failed, "
             "or dropped because a loop did not close).") + loosened_note(snap, "verified" if n_ok > 1 else "")
     if why:
         text += "\n\n" + "\n".join(why)
-    plots = []
+    plots: list[tuple[go.Figure, float]] = []
     fig = graph_figure(snap)
     if fig is not None and len(snap.scans) > 2:
         plots.append((fig, 1.3))
     table = md_table(("scan", "verdict", "placed through scans"), rows)
-    edges = graph.items[0].edges if graph.items else ()
+    edges = placements[0].edges if placements else ()
     limit = snap.params.verify.max_loop_m
     if edges:
-        def loop(e: Any) -> str:
+        def loop(e: Edge) -> str:
             if not np.isfinite(e.loop_error_m):
                 return "–"
             ok = e.loop_error_m <= limit

@@ -4,13 +4,13 @@ and which tree it took; in 3-D each scan's target stem (the scan layer draws the
 
 from __future__ import annotations
 
-from typing import Any
-
 import numpy as np
 import viser
 
+from treereg_core.prepare.ground import PreparedScan
+
 from ..controller import Snapshot
-from ..draw.common import Drawing, md_table, not_ready_text, title
+from ..draw.common import Drawing, Handles, md_table, not_ready_text, title
 from ..palette import GREY, scan_color
 from ..view_panel import PanelContent
 from ..text import md
@@ -22,21 +22,24 @@ from .base import AppStage, ControlHost, StageControls, StageView, TourStep
 SCANNER_FOOT_Z = -1.5
 
 
-def _stem_markers(scene: viser.SceneApi, root: str, snap: Snapshot) -> list[Any]:
+def _stem_markers(scene: viser.SceneApi, root: str, snap: Snapshot) -> Handles:
     """The target tree of each scan (a tall line at its stem, in the scan's colour, labelled) and the
     other stems found at breast height (short grey lines), in each scan's own frame."""
     prepared = snap.output("prepare")
-    handles: list[Any] = []
+    handles: Handles = []
     if prepared is None:
         return handles
-    for i, prep in enumerate(prepared.items):
-        stems = getattr(prep, "stems", None)
-        if stems is not None and len(stems):
+    for i in range(len(prepared.items)):
+        prep = snap.scan_item("prepare", i, PreparedScan)
+        if prep is None:
+            continue
+        stems = prep.stems
+        if len(stems):
             base = prep.ground_z(stems[:, :2], SCANNER_FOOT_Z)
             segs = np.stack([np.column_stack([stems[:, :2], base]), np.column_stack([stems[:, :2], base + 2.0])], axis=1)
             handles.append(scene.add_line_segments(f"{root}/s{i}/stems", segs, GREY, thickness=2.0, thickness_units="screen"))
-        xy = getattr(prep, "stem_xy", None)
-        if xy is not None and getattr(prep, "target", ""):
+        xy = prep.stem_xy
+        if xy is not None and prep.target:
             z = float(prep.ground_z(np.asarray([xy]), SCANNER_FOOT_Z)[0])
             seg = np.array([[[xy[0], xy[1], z], [xy[0], xy[1], z + 12.0]]])
             handles.append(scene.add_line_segments(f"{root}/s{i}/target", seg, scan_color(i), thickness=5.0,
@@ -52,25 +55,23 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
     rows = []
     stood_down: list[str] = []
     for i, scan in enumerate(snap.scans):
-        prep = prepared.items[i] if prepared is not None and i < len(prepared.items) else None
+        prep = snap.scan_item("prepare", i, PreparedScan)
         # The instrument's steps in force: the parameter's when one is set (it replaces the
         # estimate in the prepare stage), else the scan's own (read off its grid, or estimated).
         given = snap.params.prepare.angular_step_deg
         phi, vphi = given or scan.angular_step_deg
         kept = ground = target = mixed = ""
         if prep is not None:
-            removed = getattr(prep, "mixed_points", None)
-            mixed = f"{len(removed):,}" if removed is not None and snap.params.prepare.mixed_pixels else "off"
+            mixed = f"{len(prep.mixed_points):,}" if snap.params.prepare.mixed_pixels else "off"
             # The filter stood down on this scan (no regular grid, a surface rougher than it): say why.
-            why = getattr(prep, "mixed_not_filtered", "")
+            why = prep.mixed_not_filtered
             if why:
                 mixed = "not filtered"
                 stood_down.append(f"{md(scan.name)}: mixed pixels {md(why)}.")
-            kept = f"{prep.scan.n_points:,}" if getattr(prep, "scan", None) is not None else ""
-            if getattr(prep, "ground_mask", None) is not None:
-                ground = f"{int(np.count_nonzero(prep.ground_mask)):,}"
-            xy = getattr(prep, "stem_xy", None)
-            target = (f"stem at {xy[0]:.2f}, {xy[1]:.2f}" if xy is not None and getattr(prep, "target", "")
+            kept = f"{prep.scan.n_points:,}"
+            ground = f"{int(np.count_nonzero(prep.ground_mask)):,}"
+            xy = prep.stem_xy
+            target = (f"stem at {xy[0]:.2f}, {xy[1]:.2f}" if xy is not None and prep.target
                       else "every point (no stem picked)")
         step = scan.step
         how = "" if given or step is None or step.source == "given" else (" (grid)" if step.source == "grid" else f" (est., {step.confidence:.2f})")
@@ -92,8 +93,9 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
         if snap.params.prepare.mixed_pixels:
             text += (" Near-black: mixed pixels, returns strung out behind a stem's or branch's edge (the beam "
                      "straddled it), removed before anything else; the free-space test is blind where they were.")
-        chosen = getattr(prepared.items[0], "target", "") if prepared.items else ""
-        if chosen and getattr(prepared.items[0], "stem_xy", None) is not None:
+        reference = snap.scan_item("prepare", 0, PreparedScan)
+        chosen = reference.target if reference is not None else ""
+        if chosen and reference is not None and reference.stem_xy is not None:
             text += (f"\n\n**Target tree:** {md(chosen)}. The tall line marks it in every scan, grey lines the other stems; "
                      "to take another tree, type its stem's x, y (reference scan's frame) into *tree at* below.")
     if snap.truth:
@@ -111,7 +113,8 @@ class MixedControl(StageControls):
         self.checkbox.on_update(lambda _: host.set_view(show_mixed=bool(self.checkbox.value)))
 
     def show_view(self, view: ViewState, snap: Snapshot) -> None:
-        self.checkbox.value = view.show_mixed
+        # viser's checkbox redeclares `value` with a getter only; the base class's setter applies.
+        self.checkbox.value = view.show_mixed  # type: ignore[misc]
 
 
 STAGE = AppStage(

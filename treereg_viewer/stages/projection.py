@@ -7,13 +7,14 @@ In 3-D, optionally, each prepared cloud rotated as it was for that image (a pose
 
 from __future__ import annotations
 
-from typing import Any
-
 import numpy as np
 import viser
 
+from treereg_core.coarse.sequences import ImageSequence
+from treereg_core.prepare.ground import PreparedScan
+
 from ..controller import Snapshot
-from ..draw.common import Drawing, display_subset, metrics_table, pose_kwargs, title
+from ..draw.common import Drawing, Handles, display_subset, metrics_table, pose_kwargs, title
 from ..draw.images import binary_to_rgb, fit_factor, fit_width, hstack, upscale, vstack
 from ..palette import scan_color
 from ..view_panel import PanelContent
@@ -22,37 +23,44 @@ from ..view_state import ViewState
 from .base import AppStage, ControlHost, StageControls, StageView, TourStep
 
 
-def step_index(seq: Any, step: int) -> int:
+def step_index(seq: ImageSequence, step: int) -> int:
     """The view's step, clamped to this sequence (sequences of different scans may differ in length)."""
     return int(np.clip(step, 0, len(seq.angles_deg) - 1))
 
 
 def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> Drawing:
-    seqs = snap.output("projection").items
-    tiles, names = [], []
-    handles: list[Any] = []
+    out = snap.output("projection")
+    assert out is not None  # the drawer draws a stage that has an output
+    seqs = out.items
+    tiles: list[np.ndarray] = []
+    names: list[str] = []
+    handles: Handles = []
     prepared = snap.output("prepare")
-    for i, seq in enumerate(seqs):
-        if not getattr(seq, "ok", True) or not len(seq.angles_deg):
+    for i in range(len(seqs)):
+        # A scan that could not be prepared has a Skipped item (not ok), drawn as nothing.
+        seq = snap.scan_item("projection", i, ImageSequence)
+        if seq is None or not seq.ok or not len(seq.angles_deg):
             continue
         k = step_index(seq, view.projection_step)
         tiles.append(binary_to_rgb(seq.images[k], scan_color(i)))
         names.append(f"{md(seq.scan_name)} ({seq.angles_deg[k]:+.0f}°)")
         if view.projection_3d and prepared is not None:
-            pts = prepared.items[i].scan.points
+            pts = prepared.item(i, PreparedScan).scan.points
             idx = display_subset(len(pts), view.max_points, seed=100 + i)
-            light = tuple(int(0.5 * c + 127) for c in scan_color(i))
+            r, g, b = scan_color(i)
+            light = (int(0.5 * r + 127), int(0.5 * g + 127), int(0.5 * b + 127))
+            pose = pose_kwargs(seq.rotation(k))
             handles.append(scene.add_point_cloud(
                 f"{root}/rotated{i}", pts[idx], light, point_size=view.point_size,
-                point_shape="circle", precision="float32", **pose_kwargs(seq.rotation(k)),
+                point_shape="circle", precision="float32", wxyz=pose["wxyz"], position=pose["position"],
             ))
             handles.append(scene.add_frame(
                 f"{root}/axis{i}", axes_length=0.6, axes_radius=0.03,
                 position=(seq.centre_xy[0], seq.centre_xy[1], 0.0),
             ))
-    first = seqs[0]
+    first = out.item(0, ImageSequence)  # the reference's: never skipped (the run stops without it)
     k0 = step_index(first, view.projection_step)
-    images = []
+    images: list[tuple[np.ndarray, str]] = []
     if tiles:
         # Tree images are tall and narrow: side by side unless that makes a very wide strip.
         side = sum(t.shape[1] for t in tiles) <= 2 * max(t.shape[0] for t in tiles)
@@ -69,7 +77,7 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
         f"A pixel covers {pp.pixel_factor:g} angular steps each way (projection.pixel_factor). Black in the paper, "
         "here each scan's colour: pixels holding points; white: empty pixels. Shown upright, as seen from the scanner."
     )
-    bad = [f"**{md(snap.scans[i].name)}:** {md(it.message)}" for i, it in enumerate(seqs) if not getattr(it, "ok", True)]
+    bad = [f"**{md(snap.scans[i].name)}:** {md(it.message)}" for i, it in enumerate(seqs) if not it.ok]
     if bad:
         text += "\n\n" + "\n\n".join(bad)
     # A scan that could not be prepared has a Skipped item here, named by its scan.
@@ -91,18 +99,20 @@ class StepControls(StageControls):
     def show_view(self, view: ViewState, snap: Snapshot) -> None:
         step = view.projection_step + 1
         if self.slider.value != step and step <= self.slider.max:
-            self.slider.value = step
-        self.in_3d.value = view.projection_3d
+            # viser's slider and checkbox redeclare `value` with a getter only; the base class's setter applies.
+            self.slider.value = step  # type: ignore[misc]
+        self.in_3d.value = view.projection_3d  # type: ignore[misc]
 
     def show_snapshot(self, snap: Snapshot, view: ViewState) -> None:
         proj = snap.output("projection")
         if proj is None or not proj.items:
             return
-        n = max(len(getattr(s, "angles_deg", ())) for s in proj.items)
+        seqs = [snap.scan_item("projection", i, ImageSequence) for i in range(len(proj.items))]
+        n = max(len(s.angles_deg) if s is not None else 0 for s in seqs)
         if n > 1 and self.slider.max != n:
-            zero = next((k for k, a in enumerate(proj.items[0].angles_deg) if abs(a) < 1e-9), 0)
+            zero = next((k for k, a in enumerate(proj.item(0, ImageSequence).angles_deg) if abs(a) < 1e-9), 0)
             self.slider.max = n
-            self.slider.value = min(zero, n - 1) + 1
+            self.slider.value = min(zero, n - 1) + 1  # type: ignore[misc]  # viser: a getter only, as above
             # A new sequence starts at the unrotated view: the view follows, even while the panel is quiet.
             self.host.app.set_view(projection_step=min(zero, n - 1))
 

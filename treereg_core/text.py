@@ -35,8 +35,3 @@ def shown(text: object) -> str:
     """`text` as one line of printable characters: controls, bidirectional overrides and
     undecodable bytes written as escapes (`"a\\nb"` -> `"a\\\\nb"`); everything else kept."""
     return _HIDDEN.sub(_escape, str(text))
-
-
-def has_hidden(text: str) -> bool:
-    """True when `shown(text)` differs from `text`."""
-    return _HIDDEN.search(text) is not None

@@ -23,6 +23,7 @@ from .coarse.estimate import CoarseResult
 from .coarse.sequences import ImageSequence
 from .coarse.similarity import scan_similarity
 from .fine.pose import FineResult
+from .prepare.level import as_given
 from .stage import (Event, Events, ItemFinished, Pair, Skipped, Stage, StageContext, StageFinished, StageOutput,
                     StageProgress, StageResult, StageStarted)
 from .stages import STAGE_NAMES, STAGES, affected_by, downstream, stage
@@ -222,15 +223,23 @@ class Pipeline:
         joint placement when the graph stage ran, else the fine or coarse result of the scan's pair
         with the reference. The reference maps to the identity; scans with nothing are left out."""
         graph = self._out.get("graph")
+        # The stages register levelled scans (prepare/level.py): what users get is of the scans as given.
         if graph is not None:
-            return {s.name: it.T_ref_scan for s, it in zip(self.scans, graph.items_as(Placement))
+            return {s.name: self._as_given(it.T_ref_scan, 0, i) for i, (s, it) in enumerate(zip(self.scans, graph.items_as(Placement)))
                     if it.T_ref_scan is not None}
         out = {self.scans[0].name: np.eye(4)}
         for k, p in enumerate(self.pairs):
             T = self._pair_transform(k) if p.ref == 0 else None
             if T is not None:
-                out[self.scans[p.tgt].name] = T
+                out[self.scans[p.tgt].name] = self._as_given(T, p.ref, p.tgt)
         return out
+
+    def _as_given(self, T: np.ndarray, ref: int, tgt: int) -> np.ndarray:
+        """A transform between two prepared (levelled) scans as one between the scans as given."""
+        prep = self._out.get("prepare")
+        level = [getattr(prep.items[j], "T_level", None) if prep is not None and j < len(prep.items) else None
+                 for j in (ref, tgt)]
+        return T if level[0] is None and level[1] is None else as_given(T, level[0], level[1])
 
     def _pair_transform(self, k: int) -> np.ndarray | None:
         """Pair k's fine transform if it succeeded, else its coarse one, else None."""

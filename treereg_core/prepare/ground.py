@@ -53,6 +53,9 @@ class PreparedScan:
     mixed_not_filtered : why the mixed-pixel filter stood down on this scan ("" when it ran or is off).
     reason, hint : when not `ok`, why the scan could not be prepared (without its name: the reason of
         its verdict) and what to do; `message` is both, after its name.
+    T_level : 4 x 4 rotation about the scanner (levelled <- as given) when the scan's up was not its z
+        (`prepare.level`): then `scan`, `station`, `mixed_points`, `plane`, `stems` and `stem_xy` are of
+        the levelled scan, and so is every later stage's transform; None = the scan as given.
     """
 
     ok: bool
@@ -71,6 +74,7 @@ class PreparedScan:
     mixed_not_filtered: str = ""
     reason: str = ""
     hint: str = ""
+    T_level: np.ndarray | None = None
 
     def ground_z(self, xy: np.ndarray, default: float) -> np.ndarray:
         """Height of the ground plane below the points `xy` (K x 2, the scan's frame); `default`

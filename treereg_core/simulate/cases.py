@@ -72,7 +72,12 @@ class CaseSpec:
     ground_front_m : each scan's window reaches down to the ground this far in front of the trunk
         (the ground nearer the scanner is not scanned: it would be most of the points).
     second_tree : a smaller tree 3.5-6 m from the first, in the scans' view.
-    tilt_deg : instruments tilted by half to all of this angle (not perfectly levelled).
+    tilt_deg : instruments tilted by half to all of this angle (not perfectly levelled; up to 15 deg:
+        scanners without a tilt compensator stand several degrees off level).
+    tilt_exact : every instrument tilted by exactly `tilt_deg` (about an axis of its own).
+    tilt_mount : 0, or k: one more scan (the last) taken at station k's position (0.15 m higher) with
+        the scanner turned `tilt_mount_deg` about a horizontal axis, as a tilt mount turns it to see the
+        canopy; its window is the tree and the ground in front of it.
     range_sigma_m, dropout : range noise (along the ray) and fraction of lost returns.
     station_distance_m, separation_deg, instrument_height_m : stations at this horizontal distance
         from the trunk, this azimuth apart (scan 2 one way from scan 1, scan 3 the other way), with
@@ -108,6 +113,9 @@ class CaseSpec:
     ground_front_m: float = 2.0
     second_tree: bool = False
     tilt_deg: float = 0.0
+    tilt_exact: bool = False
+    tilt_mount: int = 0
+    tilt_mount_deg: float = 90.0
     range_sigma_m: float = 0.003
     dropout: float = 0.02
     station_distance_m: tuple[float, float] = (8.0, 15.0)
@@ -139,7 +147,7 @@ class CaseSpec:
             pair(name)
         phi, vphi = self.angular_step_deg
         step_lo, step_hi = ANGULAR_STEP_RANGE_DEG
-        for name in ("range_sigma_m", "dropout", "lean_deg", "tilt_deg", "ground_slope_deg", "ground_radius_m",
+        for name in ("range_sigma_m", "dropout", "lean_deg", "tilt_deg", "tilt_mount_deg", "ground_slope_deg", "ground_radius_m",
                      "ground_front_m", "wind_m", "flutter", "mixed_pixels"):
             if not np.isfinite(getattr(self, name)):
                 raise ConfigError(f"{name}: {getattr(self, name)} is not a finite number")
@@ -154,7 +162,10 @@ class CaseSpec:
             (self.height_range_m[0] >= 1.0, "height_range_m: heights below 1 m are not trees"),
             (0 <= self.lean_deg <= 45, f"lean_deg: {self.lean_deg} is outside 0-45 deg"),
             (0 <= self.ground_slope_deg <= 30, f"ground_slope_deg: {self.ground_slope_deg} is outside 0-30 deg"),
-            (0 <= self.tilt_deg <= 10, f"tilt_deg: {self.tilt_deg} is outside 0-10 deg"),
+            (0 <= self.tilt_deg <= 15, f"tilt_deg: {self.tilt_deg} is outside 0-15 deg"),
+            (0 <= self.tilt_mount <= self.n_stations, f"tilt_mount: {self.tilt_mount} is not 0 or a station (1-{self.n_stations})"),
+            (self.n_stations + (self.tilt_mount > 0) <= MAX_STATIONS, f"tilt_mount: one more scan than {MAX_STATIONS}"),
+            (0 <= self.tilt_mount_deg <= 180, f"tilt_mount_deg: {self.tilt_mount_deg} is outside 0-180 deg"),
             (0 <= self.range_sigma_m <= 1, f"range_sigma_m: {self.range_sigma_m} is outside 0-1 m"),
             (0 <= self.dropout < 1, f"dropout: {self.dropout} is outside [0, 1)"),
             (self.station_distance_m[0] > 0.5, "station_distance_m: stations must stand more than 0.5 m from the trunk"),
@@ -193,7 +204,9 @@ class CaseSpec:
         if self.lean_deg:
             flags.append(f"lean {self.lean_deg:g} deg")
         if self.tilt_deg:
-            flags.append(f"tilt {self.tilt_deg:g} deg")
+            flags.append(f"tilt {self.tilt_deg:g} deg" if self.tilt_exact else f"tilt up to {self.tilt_deg:g} deg")
+        if self.tilt_mount:
+            flags.append(f"tilt mount {self.tilt_mount_deg:g} deg at station {self.tilt_mount}")
         if self.wind_m:
             flags.append(f"wind {self.wind_m * 100:g} cm")
         if self.mixed_pixels:
@@ -206,7 +219,7 @@ class CaseSpec:
     @property
     def awkward(self) -> bool:
         """Leaves, a bent trunk, ground or a tilted instrument: the harder cases."""
-        return bool(self.leaves or self.bent or self.ground or self.tilt_deg > 0 or self.second_tree)
+        return bool(self.leaves or self.bent or self.ground or self.tilt_deg > 0 or self.second_tree or self.tilt_mount)
 
 
 @dataclass(frozen=True, eq=False)
@@ -382,13 +395,46 @@ def _make_stations(spec: CaseSpec, ground_height, rng: np.random.Generator) -> l
         z = float(ground_height(xy)) + rng.uniform(*spec.instrument_height_m)
         heading = float(rng.uniform(0, 360))
         # Drawn whether or not there is a tilt, so that switching it on keeps the other draws.
-        tilt = float(spec.tilt_deg * rng.uniform(0.5, 1.0))
+        tilt = float(spec.tilt_deg * (1.0 if spec.tilt_exact else rng.uniform(0.5, 1.0)))
+        if spec.tilt_exact:
+            rng.uniform(0.5, 1.0)  # the same draws either way
         tilt_axis = float(rng.uniform(0, 360))
         # The instrument's frame: turned by its heading, then tipped slightly off level.
         R = rotation_z(heading) @ tilt_rotation(tilt, tilt_axis)
         pos = np.array([xy[0], xy[1], z])
         out.append(Station(pos, heading, tilt, tilt_axis, make_transform(R, pos)))
+    if spec.tilt_mount:
+        # Drawn after every station's: a tilt mount leaves the other stations as they were.
+        base = out[spec.tilt_mount - 1]
+        heading = float(rng.uniform(0, 360))
+        # Turned about a horizontal axis within 30 deg of the way to the tree, so the tree stays off the
+        # scanner's poles (a real tilt-mount scan is a full sphere; the simulated one is a window).
+        axis = float(base.azimuth_deg + 180.0 + rng.uniform(-30.0, 30.0))
+        R = tilt_rotation(spec.tilt_mount_deg, axis) @ rotation_z(heading)
+        pos = base.position_m + np.array([0.0, 0.0, 0.15])
+        out.append(Station(pos, heading, spec.tilt_mount_deg, axis, make_transform(R, pos)))
     return out
+
+
+def _mount_window(scene: Scene, st: Station, T_scan_world: np.ndarray, front_m: float) -> tuple[float, float, float, float]:
+    """The window (deg: azimuth lo, hi; elevation lo, hi) of a turned scanner: the angular hull of the
+    tree's bounds and of the ground in front of the scanner (from `front_m` before the trunk on), with
+    a margin."""
+    lo, hi = scene.points_bounds()
+    grid = np.stack(np.meshgrid(*(np.linspace(a, b, 6) for a, b in zip(lo, hi)), indexing="ij"), -1).reshape(-1, 3)
+    d = st.distance_m
+    toward = -st.position_m[:2] / max(d, 1e-9)
+    side = np.array([-toward[1], toward[0]])
+    along, across = np.meshgrid(np.linspace(max(d - front_m, 0.5), d + 3.0, 12), np.linspace(-4.0, 4.0, 9))
+    xy = st.position_m[:2] + along.reshape(-1, 1) * toward + across.reshape(-1, 1) * side
+    z = np.array([scene.ground.height_at(q) for q in xy]) if scene.ground is not None else np.zeros(len(xy))
+    pts = apply_transform(T_scan_world, np.vstack([grid, np.c_[xy, z]]))
+    alpha = np.degrees(np.arctan2(pts[:, 1], pts[:, 0]))
+    beta = np.degrees(np.arctan2(pts[:, 2], np.hypot(pts[:, 0], pts[:, 1])))
+    c = np.degrees(np.arctan2(pts[:, 1].mean(), pts[:, 0].mean()))
+    rel = (alpha - c + 180.0) % 360.0 - 180.0
+    m = 3.0
+    return (float(c + rel.min() - m), float(c + rel.max() + m), float(beta.min() - m), float(beta.max() + m))
 
 
 def _draw_shape(spec: CaseSpec, rng: np.random.Generator) -> TreeShape:
@@ -438,8 +484,9 @@ def _build(spec: CaseSpec, progress: Progress | None) -> SimulatedCase:
     # Independent streams, so that e.g. switching leaves on keeps the same stations and noise.
     s_tree, s_stations, s_ground, s_other, s_noise, s_wind = ss.spawn(6)
     rng_tree, rng_stations, rng_ground, rng_other = (np.random.default_rng(s) for s in (s_tree, s_stations, s_ground, s_other))
-    rng_noise = [np.random.default_rng(s) for s in s_noise.spawn(spec.n_stations)]
-    rng_wind = [np.random.default_rng(s) for s in s_wind.spawn(spec.n_stations)]
+    n_scans = spec.n_stations + (spec.tilt_mount > 0)
+    rng_noise = [np.random.default_rng(s) for s in s_noise.spawn(n_scans)]
+    rng_wind = [np.random.default_rng(s) for s in s_wind.spawn(n_scans)]
     trees: tuple[TreeInfo, ...] = ()
     scene: Scene | None = None
     cloud: np.ndarray | None = None
@@ -492,9 +539,11 @@ def _build(spec: CaseSpec, progress: Progress | None) -> SimulatedCase:
             lab = np.full(len(pts), -1, dtype=np.int8)
         else:
             near = max(st.distance_m - spec.ground_front_m, 0.0)
+            mount = spec.tilt_mount > 0 and k == len(stations) - 1
             rs = scan_scene(seen.transformed(T_scan_world), spec.angular_step_deg, rng,
                             spec.range_sigma_m, spec.dropout, ground_near_m=near, progress=sub,
-                            mixed_pixels=spec.mixed_pixels)
+                            mixed_pixels=spec.mixed_pixels,
+                            window_deg=_mount_window(seen, st, T_scan_world, spec.ground_front_m) if mount else None)
             pts, lab = rs.points, rs.labels
             n_rays += rs.n_rays
             if spec.mixed_pixels > 0:

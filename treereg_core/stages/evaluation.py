@@ -9,8 +9,9 @@ from ..evaluate.report import PairReport, evaluate_registration
 from ..fine.fitting import CylinderFit
 from ..fine.pose import FineResult
 from ..geometry.rigid import invert
+from ..prepare.level import as_levelled
 from ..stage import Stage, StageContext, StageResult
-from .common import pair_label, scan_of
+from .common import pair_label, prepared, scan_of
 
 
 def run(ctx: StageContext) -> list[StageResult | None]:
@@ -23,7 +24,9 @@ def run(ctx: StageContext) -> list[StageResult | None]:
             branches[p.ref] = find_branches(ref, evaluation=ctx.params.evaluation)
         T_true = None
         if ctx.truth and tgt.name in ctx.truth and ref.name in ctx.truth:
-            T_true = invert(ctx.truth[ref.name]) @ ctx.truth[tgt.name]
+            # The truth is of the scans as given; every stage's transform of the levelled ones.
+            T_true = as_levelled(invert(ctx.truth[ref.name]) @ ctx.truth[tgt.name], prepared(ctx, p.ref).T_level,
+                                 prepared(ctx, p.tgt).T_level)
         return evaluate_registration(ref, tgt, ctx.item("coarse", k, CoarseResult).T_ref_target,
                                      ctx.item("fine", k, FineResult).T_ref_target,
                                      _icp_result(ctx, k), evaluation=ctx.params.evaluation,

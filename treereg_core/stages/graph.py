@@ -8,6 +8,7 @@ from typing import Callable
 import numpy as np
 
 from ..geometry.rigid import invert, mean_displacement, rotation_error_deg
+from ..prepare.level import as_given
 from ..prepare.vertical import scan_vertical
 from ..results import Metric
 from ..stage import Stage, StageContext, StageResult
@@ -93,8 +94,10 @@ def _with_truth(ctx: StageContext, i: int, pl: Placement) -> Placement:
     if not ctx.truth or pl.T_ref_scan is None or scan.name not in ctx.truth or ref.name not in ctx.truth:
         return pl
     T_true = invert(ctx.truth[ref.name]) @ ctx.truth[scan.name]
-    rows = (Metric("rotation error against truth", "deg", rotation_error_deg(pl.T_ref_scan, T_true)),
-            Metric("mean displacement against truth", "m", mean_displacement(pl.T_ref_scan, T_true, scan.points)))
+    # The truth is of the scans as given; the placement of the levelled ones (prepare/level.py).
+    T = as_given(pl.T_ref_scan, prepared(ctx, 0).T_level, prepared(ctx, i).T_level)
+    rows = (Metric("rotation error against truth", "deg", rotation_error_deg(T, T_true)),
+            Metric("mean displacement against truth", "m", mean_displacement(T, T_true, scan.points)))
     return replace(pl, metrics=pl.metrics + rows)
 
 

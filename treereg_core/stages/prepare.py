@@ -1,13 +1,18 @@
-"""The prepare stage: each station at the working resolution, its mixed pixels removed, the ground
-removed, the target tree found (across all scans at once) and the scan cropped to it."""
+"""The prepare stage: each station at the working resolution, its mixed pixels removed, levelled when
+its up is not its z (`prepare.level`: `PreparedScan.T_level`), the ground removed, the target tree
+found (across all scans at once) and the scan cropped to it."""
 
 from __future__ import annotations
 
 from dataclasses import replace
 
+import numpy as np
+
 from ..prepare.ground import PreparedScan, prepare_scans
+from ..prepare.level import Levelling, find_levelling, levelled
 from ..prepare.mixed import remove_mixed
 from ..prepare.resolution import working_resolution
+from ..results import Metric
 from ..scan import Scan
 from ..parallel import SIDE_BY_SIDE_POINTS
 from ..stage import Stage, StageContext, StageResult
@@ -34,12 +39,32 @@ def run(ctx: StageContext) -> list[StageResult | None]:
     mixed = [remove_mixed(w.scan, enabled=pp.mixed_pixels, tolerance_m=pp.mixed_tolerance_m, slope=pp.mixed_slope,
                           dense_share=pp.mixed_dense_share, max_share=pp.mixed_max_share)
              for w in work]
+    # A scan whose up is not its z is turned about its scanner so that it is (prepare/level.py): every
+    # later stage works on levelled scans; the transforms users see are composed back (`as_given`).
+    ctx.progress(0.85, "levelling")
+    levels = [find_levelling(m.scan.points, m.scan.pose, min_deg=pp.level_min_deg, agree_deg=pp.level_agree_deg)
+              if pp.level else Levelling(None, float("nan"), "") for m in mixed]
+    stations = [levelled(m.scan, lv.R) if lv.R is not None else m.scan for m, lv in zip(mixed, levels)]
     ctx.progress(0.9, "ground, stems and the target tree")
-    preps = prepare_scans([m.scan for m in mixed], **ctx.params.pick("prepare", "target"))
-    return [replace(p, station=m.scan, mixed_points=w.scan.points[m.mixed], mixed_not_filtered=m.not_filtered,
-                    metrics=(w.metrics if w.reduced else ()) + m.metrics + p.metrics)
-            for w, m, p in zip(work, mixed, preps)]
+    target = ctx.params.target
+    if levels[0].R is not None and target.tree_at is not None:  # given in the reference's frame as given
+        target = replace(target, tree_at=tuple(float(v) for v in (levels[0].R @ [*target.tree_at, 0.0])[:2]))
+    preps = prepare_scans(stations, prepare=pp, target=target)
+    return [replace(p, station=st, mixed_points=_turned(w.scan.points[m.mixed], lv.R), mixed_not_filtered=m.not_filtered,
+                    T_level=lv.T, metrics=(w.metrics if w.reduced else ()) + m.metrics + _level_metrics(lv) + p.metrics)
+            for w, m, p, st, lv in zip(work, mixed, preps, stations, levels)]
 
 
-STAGE = Stage("prepare", "Scans", "Each station at the working resolution; the ground removed, the target tree found and the scan cropped to it.",
+def _turned(points: np.ndarray, R: np.ndarray | None) -> np.ndarray:
+    return points if R is None else points @ R.T
+
+
+def _level_metrics(lv: Levelling) -> tuple[Metric, ...]:
+    """A levelled scan says by how much and from what (a scan left as given says nothing)."""
+    if lv.R is None:
+        return ()
+    return (Metric(f"levelled (up from its {lv.how})", "deg", round(lv.off_deg, 3)),)
+
+
+STAGE = Stage("prepare", "Scans", "Each station at the working resolution, levelled when its up is not z; the ground removed, the target tree found and the scan cropped to it.",
               "scan", ("prepare", "resolution", "target"), (), PreparedScan, run, stop_on_failure=True)

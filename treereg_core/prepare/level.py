@@ -1,0 +1,142 @@
+"""Levelling a scan whose up is not its z: a scanner not levelled (no tilt compensator), a tilt mount
+(the scanner turned 90 deg to see the canopy), a scan upside down or exported y-up.
+
+Every stage after preparation takes z as up (the ground plane, the stems at breast height, the
+slices, the rotating projection's turn about z). So the prepare stage turns each such scan about its
+scanner (the origin of its frame: the projection's geometry holds) so that its up is z, and every
+stage works on levelled scans; `PreparedScan.T_level` keeps the turn (levelled <- as given) and the
+transforms users see are of the scans as given: T_ref_tgt = inv(L_ref) @ T_levelled @ L_tgt
+(`as_given`).
+
+The up comes from the scan's own data (`prepare.vertical`: its ground near the scanner, its stem)
+or, without a ground to go by, from its file's pose (an E57/PTX pose that tilts the scanner).
+A scan is levelled only when the evidence is clear, and left exactly as given otherwise:
+- the ground's normal is within `level_min_deg` of z: the scanner stands level (a leaning tree on
+  level ground is a leaning tree, not a tilted scanner);
+- the ground and the stem agree (within `level_agree_deg`): the ground's normal is the up (a plane
+  of thousands of points is the finer measure);
+- they disagree (a slope: the stem stands plumb, the ground does not): the stem's axis is the up;
+- the ground more than 45 deg from z (a tilt mount, upside down, y-up): no slope explains it, the
+  ground's normal is the up;
+- a ground tilted from z by less than 45 deg and no stem traced: a slope or a tilted scanner, which
+  the data cannot tell apart: left as given (the verdict says so when the pair is not verified).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from ..scan import Scan
+from .vertical import _SAMPLE, _deg, _ground_plane, _stem_axis
+
+_Z = np.array([0.0, 0.0, 1.0])
+#: Points the ground plane is searched among.
+_PLANE_SAMPLE = 20_000
+
+
+@dataclass(frozen=True)
+class Levelling:
+    """How a scan was levelled.
+
+    R : 3x3 rotation taking the scan's up to z (levelled <- as given), or None (left as given).
+    off_deg : how far the scan's up was from z (NaN when nothing could be said).
+    how : what the up was found from ("ground and stem", "stem (sloping ground)", "ground", "file pose"),
+        "" when not levelled.
+    """
+
+    R: np.ndarray | None
+    off_deg: float
+    how: str
+
+    @property
+    def T(self) -> np.ndarray | None:
+        """4x4 of the levelling (about the scanner: no translation), or None."""
+        if self.R is None:
+            return None
+        T = np.eye(4)
+        T[:3, :3] = self.R
+        return T
+
+
+def rotation_to_z(up: np.ndarray) -> np.ndarray:
+    """The smallest rotation taking the unit vector `up` to z (so the scan's heading is kept)."""
+    u = np.asarray(up, dtype=float) / np.linalg.norm(up)
+    axis = np.cross(u, _Z)
+    s, c = float(np.linalg.norm(axis)), float(u @ _Z)
+    if s < 1e-12:
+        return np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])  # upside down: turned about x
+    k = axis / s
+    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + s * K + (1.0 - c) * (K @ K)
+
+
+def find_levelling(points: np.ndarray, pose: np.ndarray | None = None, *, min_deg: float = 2.0,
+                   agree_deg: float = 3.0, seed: int = 0) -> Levelling:
+    """The levelling of a scan, from its ground and stem, else its file's pose (see the module doc)."""
+    pts = np.asarray(points, dtype=float)
+    pts = pts[:: max(1, len(pts) // _SAMPLE)]
+    # The plane is searched among fewer points (every scan pays for it; its hypotheses' distances are
+    # a points x hypotheses array), the stem traced among them all.
+    plane = _ground_plane(pts[:: max(1, len(pts) // _PLANE_SAMPLE)], np.random.default_rng(seed))
+    if plane is None:
+        return _from_pose(pose, min_deg)
+    up, height = plane
+    off = _deg(up, _Z)
+    if off < min_deg:
+        return Levelling(None, off, "")
+    if off > 45.0:  # no slope explains it: the ground's normal is the up
+        return Levelling(rotation_to_z(up), off, "ground")
+    axis = _stem_axis(pts, up, height)
+    if axis is None:  # a slope or a tilted scanner: the data cannot tell which
+        return Levelling(None, off, "")
+    if _deg(axis, up) <= agree_deg:
+        return Levelling(rotation_to_z(up), off, "ground and stem")
+    stem_off = _deg(axis, _Z)
+    if stem_off < min_deg:  # a levelled scanner on a slope
+        return Levelling(None, stem_off, "")
+    return Levelling(rotation_to_z(axis), stem_off, "stem (sloping ground)")
+
+
+def _from_pose(pose: np.ndarray | None, min_deg: float) -> Levelling:
+    """The up the file's pose gives (T_user_scan: its z taken as up), when it tilts the scanner."""
+    if pose is None:
+        return Levelling(None, float("nan"), "")
+    up = np.asarray(pose, dtype=float)[:3, :3].T @ _Z
+    off = _deg(up / np.linalg.norm(up), _Z)
+    if off < min_deg:
+        return Levelling(None, off, "")
+    return Levelling(rotation_to_z(up), off, "file pose")
+
+
+def levelled(scan: Scan, R: np.ndarray) -> Scan:
+    """`scan` turned by `R` about its scanner: the same station (steps, source), its pose kept
+    pointing at the same place (T_user_levelled = T_user_scan @ R^T)."""
+    out = scan.with_points(np.ascontiguousarray(scan.points @ R.T))
+    if scan.pose is not None:
+        T = np.eye(4)
+        T[:3, :3] = R.T
+        out = replace(out, pose=np.asarray(scan.pose, dtype=float) @ T)
+    return out
+
+
+def as_given(T: np.ndarray, L_ref: np.ndarray | None, L_tgt: np.ndarray | None) -> np.ndarray:
+    """A transform between levelled scans as one between the scans as given:
+    inv(L_ref) @ T @ L_tgt (either levelling None: not levelled)."""
+    out = np.asarray(T, dtype=float)
+    if L_tgt is not None:
+        out = out @ L_tgt
+    if L_ref is not None:
+        out = np.linalg.inv(L_ref) @ out
+    return out
+
+
+def as_levelled(T: np.ndarray, L_ref: np.ndarray | None, L_tgt: np.ndarray | None) -> np.ndarray:
+    """A transform between the scans as given as one between the levelled scans: L_ref @ T @ inv(L_tgt)."""
+    out = np.asarray(T, dtype=float)
+    if L_tgt is not None:
+        out = out @ np.linalg.inv(L_tgt)
+    if L_ref is not None:
+        out = L_ref @ out
+    return out

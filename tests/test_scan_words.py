@@ -16,7 +16,9 @@ from conftest import REAL_TREES, needs
 from hostile import cli
 from treereg_core.demo import DEMO_DIR, demo_case
 from treereg_core.io.scans import read_scan, write_scan
+from treereg_core.geometry.rigid import mean_displacement, rotation_error_deg
 from treereg_core.io.transforms import read_transforms
+from treereg_core.params import Params
 from treereg_core.pipeline import register
 from treereg_core.prepare.vertical import scan_vertical
 from treereg_core.verify.report import motion_lines
@@ -61,15 +63,38 @@ def _rot_x(deg: float) -> np.ndarray:
 ], ids=["tilted 25", "upside down", "y-up", "reference tilted 25"])
 @pytest.mark.slow
 def test_a_scan_whose_vertical_is_not_z_says_so(which, how, pattern):
+    """Not levelled (prepare.level off: see the next test for the default), the verdict names why."""
     scans = list(demo_case().scans[:2])
     off = scans[which]
     scans[which] = off.with_points(how(off.points))
-    reg = register(scans)
+    reg = register(scans, Params().with_value("prepare", "level", False))
     verdict, reasons, hint = reg.pipeline.verdicts()["scan2.ply"]
     assert verdict != "verified"  # the words change, not the verdict
     assert re.fullmatch(rf"{re.escape(off.name)}: {pattern}: export it z-up and levelled", reasons[0]), reasons
     assert not any("same tree" in r for r in reasons) and "same tree" not in hint
     assert hint == f"export {off.name} z-up and levelled, then register again"
+
+
+@pytest.mark.parametrize("which, R", [
+    (1, _rot_x(25.0)), (1, _rot_x(180.0)), (1, np.array([[1.0, 0, 0], [0, 0, 1.0], [0, -1.0, 0]])), (0, _rot_x(25.0)),
+], ids=["tilted 25", "upside down", "y-up", "reference tilted 25"])
+@pytest.mark.slow
+def test_a_scan_whose_vertical_is_not_z_is_levelled_and_verified(which, R):
+    """By default (issue 30) such a scan is levelled from its ground and stem and registered; its
+    transform is of the scan as given."""
+    case = demo_case()
+    scans = list(case.scans[:2])
+    off = scans[which]
+    scans[which] = off.with_points(off.points @ R.T)
+    reg = register(scans)
+    verdict, reasons, _ = reg.pipeline.verdicts()["scan2.ply"]
+    assert verdict == "verified", reasons
+    T_true = np.linalg.inv(case.truth["scan1.ply"]) @ case.truth["scan2.ply"]
+    turn = np.eye(4)
+    turn[:3, :3] = R
+    T_true = turn @ T_true if which == 0 else T_true @ np.linalg.inv(turn)
+    T = reg.transforms["scan2.ply"]
+    assert rotation_error_deg(T, T_true) < 0.1 and mean_displacement(T, T_true, scans[1].points) < 0.01
 
 
 def _hill(slope_deg: float, tilt_deg: float) -> np.ndarray:

@@ -11,8 +11,8 @@ transforms users see are of the scans as given: T_ref_tgt = inv(L_ref) @ T_level
 The up comes from the scan's own data (`prepare.vertical`: its ground near the scanner, its stem)
 or, without a ground to go by, from its file's pose (an E57/PTX pose that tilts the scanner).
 A scan is levelled only when the evidence is clear, and left exactly as given otherwise:
-- the ground's normal is within `level_min_deg` of z: the scanner stands level (a leaning tree on
-  level ground is a leaning tree, not a tilted scanner);
+- the ground's normal, or the stem's axis, is within `level_min_deg` of z: the scanner stands level
+  (a leaning tree on level ground is a leaning tree, a plumb stem on a slope a slope);
 - the ground and the stem agree (within `level_agree_deg`): the ground's normal is the up (a plane
   of thousands of points is the finer measure);
 - they disagree (a slope: the stem stands plumb, the ground does not): the stem's axis is the up;
@@ -91,11 +91,11 @@ def find_levelling(points: np.ndarray, pose: np.ndarray | None = None, *, min_de
     axis = _stem_axis(pts, up, height)
     if axis is None:  # a slope or a tilted scanner: the data cannot tell which
         return Levelling(None, off, "")
-    if _deg(axis, up) <= agree_deg:
-        return Levelling(rotation_to_z(up), off, "ground and stem")
     stem_off = _deg(axis, _Z)
     if stem_off < min_deg:  # a levelled scanner on a slope
         return Levelling(None, stem_off, "")
+    if _deg(axis, up) <= agree_deg:
+        return Levelling(rotation_to_z(up), off, "ground and stem")
     return Levelling(rotation_to_z(axis), stem_off, "stem (sloping ground)")
 
 

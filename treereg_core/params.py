@@ -274,6 +274,8 @@ class WindParams:
     min_sway_m: float = _f(0.02, "m", "a bend is fitted only when the stem top moved at least this much between the stations", lo=0.0, hi=10.0)
     significance: float = _f(3.0, "", "...and by this many times its own noise", lo=0.0, hi=100.0)
     stable_tolerance_m: float = _f(0.005, "m", "the stem 'stands where the reference's did' up to the height where the two differ by more than this", lo=0.0001, hi=1.0)
+    flutter_share: float = _f(0.5, "", "the branches' own flutter, beyond the stem's bend, granted as moved at most this times the stem top's sway, in proportion to a point's height above the stem base (nothing at the base, all of it at the top); never more than verify.max_motion_m", lo=0.0, hi=1.0)
+    base_share: float = _f(1.0 / 3.0, "", "a bend is wind only when the two stems agree, the bend taken out, within wind.stable_tolerance_m (or 3 times the profile's noise) below this share of the tree's height: a cantilever's base does not move", lo=0.1, hi=0.6)
 
 
 @dataclass(frozen=True)
@@ -306,6 +308,9 @@ class VerifyParams:
     max_loop_m: float = _f(0.02, "m", "with 3 or more scans: loops of pairwise transforms close within this (mean displacement of the tree)", lo=0.0, hi=0.05, looser="higher")
     max_heading_deg: float = _f(0.5, "deg", "wind, when the sections leave the turn about the stem open: the heading the free-space evidence prefers must lie within this of the pose's", lo=0.0, hi=2.0, looser="higher")
     max_motion_m: float = _f(0.1, "m", "wind: with the stem's bend taken out, the branches may still have moved this much on their own between the stations (beyond it the motion cannot be told from a wrong pose)", lo=0.0, hi=0.15, looser="higher")
+    ground_radius_m: float = _f(5.0, "m", "plausibility, scanner height: judged only when each scan shows its ground within this horizontal distance of its scanner", lo=0.5, hi=50.0)
+    min_ground_points: int = _f(100, "points", "...at least this many points there on its ground plane", lo=10, hi=1_000_000)
+    ground_fit_m: float = _f(0.05, "m", "...within this of the plane (the plane fits the ground near the scanner, not another surface)", lo=0.005, hi=0.5)
     other_tree_consistency: float = _f(0.8, "", "not the same tree: a pair whose tie support is at chance level and whose free-space consistency is below this fails as showing another tree, and no scan is placed from it (measured: right pairs 0.94 or more, pairs of two different trees 0.07 to 0.94)", lo=0.0, hi=0.9)
 
 

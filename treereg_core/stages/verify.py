@@ -11,7 +11,7 @@ from ..prepare.ground import stem_position
 from ..stage import Stage, StageContext, StageResult
 from ..verify.evidence import PairResults, PairScene, PairVerification, assess, gather_evidence, verification
 from ..verify.hypotheses import HypothesesResult
-from .common import pair_label, prepared, range_image_of, scan_of, surface
+from .common import pair_label, prepared, range_image_of, scan_of, station, surface
 
 #: Target surface points the verify stage uses (its residual is a trimmed mean: more change nothing).
 SURFACE_SAMPLE = 20_000
@@ -28,7 +28,8 @@ def run(ctx: StageContext) -> list[StageResult | None]:
                     surface_of(f.bend.warp(tgt, f.T_ref_target).points, ctx.params.surface.voxel_m, SURFACE_SAMPLE))
         scene = PairScene(ref_image=range_image_of(ctx, p.ref), ref_surface=surface(ctx, p.ref), tgt_surface=tgt_surf,
                           tgt_points=tgt.points, ref_plane=prepared(ctx, p.ref).plane, tgt_plane=prepared(ctx, p.tgt).plane,
-                          ref_stem_xy=_ref_stem_xy(ctx, p.ref))
+                          ref_stem_xy=_ref_stem_xy(ctx, p.ref), ref_station=station(ctx, p.ref).points,
+                          tgt_station=station(ctx, p.tgt).points)
         found = PairResults(coarse=ctx.item("coarse", k, CoarseResult), hypotheses=ctx.item("hypotheses", k, HypothesesResult),
                             T_ref_target=f.T_ref_target, bend=f.bend, profile=f.profile, turn_held=f.turn_held,
                             fine_kept=f.accepted)
@@ -37,7 +38,7 @@ def run(ctx: StageContext) -> list[StageResult | None]:
                             support_inlier_m=ctx.params.coarse.final_inlier_m or ctx.params.coarse.inlier_m)
         return verification(f.T_ref_target, e, assess(e, verify=ctx.params.verify, coarse=ctx.params.coarse,
                                                       acceptance=ctx.params.acceptance, target=tgt.name,
-                                                      reference=scan_of(ctx, p.ref).name))
+                                                      reference=scan_of(ctx, p.ref).name, wind=ctx.params.wind))
     return ctx.each(one, lambda k: pair_label(ctx, k))
 
 

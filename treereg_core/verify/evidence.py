@@ -94,6 +94,23 @@ class Evidence:
     #: The fine stage kept its update; False: the pose is the coarse one, millimetres less certain
     #: (what the joint placement weighs the pair by, not part of the verdict).
     fine_kept: bool = True
+    #: Wind: the free-space consistency of the target unbent with no motion granted (the
+    #: `consistency` grants the branches' flutter the motion model explains: `motion_m` at the top).
+    consistency_still: float = float("nan")
+    #: Wind: how far the two stems stand apart below `base_height_m` (wind.base_share of the tree's
+    #: height) once the fitted bend is taken out (the most of any slab there), and its noise: a
+    #: cantilever's base does not move. NaN when not measured.
+    base_offset_m: float = float("nan")
+    base_offset_std_m: float = float("nan")
+    base_height_m: float = float("nan")
+    #: The heading scan found the free-space evidence flat (it cannot fix the heading), rather than
+    #: preferring a heading at or beyond `heading_offset_deg`.
+    heading_flat: bool = False
+    #: Points of each scan on its own ground plane (within verify.ground_fit_m) within
+    #: verify.ground_radius_m of its scanner: the evidence the scanner-height check rests on (-1: not
+    #: counted).
+    ground_ref_points: int = -1
+    ground_tgt_points: int = -1
 
     def as_dict(self) -> dict[str, float | int | str | None]:
         return dict(self.__dict__)
@@ -153,6 +170,10 @@ class PairScene:
     ref_plane: tuple[float, float, float, float] | None
     tgt_plane: tuple[float, float, float, float] | None
     ref_stem_xy: np.ndarray | None = None
+    #: Each scan's whole station (its own frame, ground included): where its ground near the scanner
+    #: is counted (None: not counted, the height check judged on the planes alone).
+    ref_station: np.ndarray | None = None
+    tgt_station: np.ndarray | None = None
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -202,15 +223,19 @@ def gather_evidence(scene: PairScene, results: PairResults, *, verify: VerifyPar
     pts = tgt_points if len(tgt_points) <= SCORE_POINTS else tgt_points[rng.choice(len(tgt_points), SCORE_POINTS, replace=False)]
     unbend = bend.unbend if bend is not None else None
     needed = motion = 0.0
+    allowance = None
+    still = float("nan")
     if bend is not None:
+        # What the check would need (shown, never granted) and what the motion model grants.
         needed = _motion_needed(*violation_distances(ref_image, pts, T, hypotheses.tolerance_m, unbend,
                                                      ref_surf.cloud_tree, 2.0 * max_motion_m), min_consistency)
-        motion = min(max(needed, hypotheses.tolerance_m), max_motion_m)
+        allowance = flutter_allowance(bend, wind.flutter_share, hypotheses.tolerance_m, max_motion_m)
+        motion = float(allowance(np.array([[0.0, 0.0, bend.base_z_m + bend.height_m]]))[0])
+        still = float(visibility(ref_image, pts, T, hypotheses.tolerance_m, unbend=unbend).consistency)
 
     def judged(T_: np.ndarray) -> Visibility:
-        # (a hair over the allowance: the point that set it counts as moved)
         return visibility(ref_image, pts, T_, hypotheses.tolerance_m, unbend=unbend, surface_tree=ref_surf.cloud_tree,
-                          motion_m=motion * (1.0 + 1e-9))
+                          motion_m=allowance if allowance is not None else 0.0)
 
     vis: Visibility = judged(T)
     residual = float(trimmed_residuals(ref_surf, tgt_surf, [T], acceptance.gate_m, acceptance.select_trim)[0])
@@ -238,9 +263,15 @@ def gather_evidence(scene: PairScene, results: PairResults, *, verify: VerifyPar
     model = profile.model if profile is not None else None
     stem = dict(stem_tilt_deg=float(np.degrees(np.hypot(*model.tilt))), stem_tilt_std_deg=float(np.degrees(np.hypot(*model.std[2:4]))),
                 stem_shift_m=float(np.hypot(*model.shift_m)), stem_shift_std_m=float(np.hypot(*model.std[0:2]))) if model else {}
-    heading = float("nan")
+    heading, flat = float("nan"), False
     if bend is not None and turn_held and axis_xy is not None:
-        heading = _heading_offset(ref_image, pts, T, axis_xy, unbend, hypotheses.tolerance_m, 4.0 * verify.max_heading_deg)
+        heading, flat = _heading_offset(ref_image, pts, T, axis_xy, unbend, hypotheses.tolerance_m,
+                                        4.0 * verify.max_heading_deg)
+    base = _base_offset(profile, bend, wind.base_share) if bend is not None and profile is not None else {}
+    ground = {}
+    if scene.ref_station is not None and scene.tgt_station is not None:
+        ground = dict(ground_ref_points=ground_near_scanner(scene.ref_station, ref_plane, verify),
+                      ground_tgt_points=ground_near_scanner(scene.tgt_station, tgt_plane, verify))
     return Evidence(
         inliers=inliers, ties=coarse.n_ties,
         chance_inliers=coarse.chance_inliers, consistency=float(vis.consistency),
@@ -253,9 +284,49 @@ def gather_evidence(scene: PairScene, results: PairResults, *, verify: VerifyPar
         sway_std_m=bend.sway_std_m if bend is not None else float("nan"),
         stable_height_m=profile.stable_height_m(wind.stable_tolerance_m) if profile is not None else float("nan"),
         crown=profile.crown if profile is not None else True,
-        motion_needed_m=needed, motion_m=motion, moved=vis.moved, heading_offset_deg=heading,
-        fine_kept=results.fine_kept, **stem,
+        motion_needed_m=needed, motion_m=motion, moved=vis.moved, heading_offset_deg=heading, heading_flat=flat,
+        fine_kept=results.fine_kept, consistency_still=still, **stem, **base, **ground,
     )
+
+
+def flutter_allowance(bend: Bend, flutter_share: float, tolerance_m: float,
+                      max_motion_m: float) -> Callable[[np.ndarray], np.ndarray]:
+    """The motion the stems' fitted bend explains beyond itself, point by point: the branches' own
+    flutter, at most `flutter_share` times the stem top's sway, in proportion to a point's height
+    above the stem base (nothing at the base, all of it at the top), never more than
+    `max_motion_m` (points placed and unbent, reference frame)."""
+    def allow(p: np.ndarray) -> np.ndarray:
+        s = np.clip((np.asarray(p, dtype=float)[:, 2] - bend.base_z_m) / bend.height_m, 0.0, 1.0)
+        return np.minimum(tolerance_m + flutter_share * bend.sway_m * s, max_motion_m)
+    return allow
+
+
+def _base_offset(profile: StemProfile, bend: Bend, base_share: float) -> dict[str, float]:
+    """How far the target's stem stands from the reference's below `base_share` of the tree's
+    height once the fitted bend is taken out (the most of any slab there), and that slab's noise;
+    {} with fewer than 3 slabs there."""
+    rel = (profile.heights_m - profile.base_z_m) / profile.height_m
+    low = rel < base_share
+    if np.count_nonzero(low) < 3:
+        return {}
+    off = profile.offsets_m[low] + bend.shape(profile.heights_m[low])[:, None] * np.asarray(bend.top_m)[None, :]
+    dist = np.hypot(off[:, 0], off[:, 1])
+    i = int(np.argmax(dist))
+    return dict(base_offset_m=float(dist[i]), base_offset_std_m=float(profile.std_m[low][i]),
+                base_height_m=float(base_share * profile.height_m))
+
+
+def ground_near_scanner(station: np.ndarray, plane: tuple[float, float, float, float] | None, verify: VerifyParams) -> int:
+    """Points of a station (its own frame) on its ground plane (within verify.ground_fit_m) within
+    verify.ground_radius_m of its scanner, horizontally: the ground the scanner's height is read
+    from (0 without a plane)."""
+    if plane is None:
+        return 0
+    p = np.asarray(station, dtype=float)
+    near = p[np.hypot(p[:, 0], p[:, 1]) <= verify.ground_radius_m]
+    if not len(near):
+        return 0
+    return int(np.count_nonzero(np.abs(near @ np.asarray(plane[:3]) + float(plane[3])) <= verify.ground_fit_m))
 
 
 def sway_text(e: Evidence) -> str:
@@ -275,11 +346,13 @@ _HEADING_DROP = 0.005
 
 
 def _heading_offset(ref_image: RangeImage, pts: np.ndarray, T: np.ndarray, axis_xy: np.ndarray, unbend,
-                    tolerance_m: float, reach_deg: float) -> float:
+                    tolerance_m: float, reach_deg: float) -> tuple[float, bool]:
     """The heading the free-space evidence prefers, relative to the pose: the pose turned about the
     stem (at `axis_xy`, reference frame) in steps up to `reach_deg` each way, the consistency of the
     unbent target at each turn, and the vertex of a parabola through the best turn and its
-    neighbours (deg). `reach_deg` when the best lies at either end or the evidence is flat."""
+    neighbours (deg). `reach_deg` when the best lies at either end or the evidence is flat; and
+    whether it is flat (the best no better than the pose's own by `_HEADING_DROP`, or not above
+    either end by as much): it cannot fix the heading, rather than preferring another."""
     offsets = np.linspace(-reach_deg, reach_deg, 2 * _HEADING_STEPS + 1)
     c = np.array([axis_xy[0], axis_xy[1], 0.0])
     cons = []
@@ -289,12 +362,14 @@ def _heading_offset(ref_image: RangeImage, pts: np.ndarray, T: np.ndarray, axis_
         cons.append(v.consistency if np.isfinite(v.consistency) else 0.0)
     cons = np.array(cons)
     best = int(np.argmax(cons))
-    if best in (0, len(offsets) - 1) or min(cons[best] - cons[0], cons[best] - cons[-1]) < _HEADING_DROP:
-        return float(reach_deg)
+    if best in (0, len(offsets) - 1):
+        return float(reach_deg), bool(cons[best] - cons[_HEADING_STEPS] < _HEADING_DROP)
+    if min(cons[best] - cons[0], cons[best] - cons[-1]) < _HEADING_DROP:
+        return float(reach_deg), True
     near = slice(max(best - 2, 0), best + 3)
     a, b, _ = np.polyfit(offsets[near], cons[near], 2)
     vertex = -b / (2.0 * a) if a < 0 else offsets[best]
-    return float(np.clip(vertex, -reach_deg, reach_deg))
+    return float(np.clip(vertex, -reach_deg, reach_deg)), False
 
 
 def _motion_needed(distances_m: np.ndarray, seen: int, min_consistency: float) -> float:
@@ -412,13 +487,13 @@ _SAME_TREE_HINT = "check that both scans show the same tree"
 OTHER_TREE = "it does not show the same tree as"
 
 
-def _support(e: Evidence, p: VerifyParams, coarse: CoarseParams) -> Check:
+def _support(e: Evidence, p: VerifyParams, coarse: CoarseParams, wind: bool = True) -> Check:
     limit = max(coarse.min_ties, p.chance_factor * e.chance_inliers)
     judged = e.chance_inliers >= 0
     rule = (f"{p.chance_factor:g} × the {e.chance_inliers} inliers reached by chance (at least coarse.min_ties = "
             f"{coarse.min_ties})" if judged else "not judged: the ties were not re-paired at random")
     moving = (f"; the crown moved {e.sway_m:.2f} m between the stations, and ties on a moving crown agree less"
-              if e.sway_m > 0 and e.crown else "")
+              if e.sway_m > 0 and e.crown and wind else "")
     return _check("tie support", e.inliers, "ties", ">=", limit if judged else None, "verify.chance_factor", rule,
                   judged=judged, hint=_SAME_TREE_HINT, reason=lambda: (
                       f"only {e.inliers} of {e.ties} tie points agree with the coarse transform or the final pose, against "
@@ -434,29 +509,42 @@ def _overlap(e: Evidence, p: VerifyParams) -> Check:
                       f"(verify.min_seen = {p.min_seen}): too little overlap to judge"))
 
 
-def _motion(e: Evidence, p: VerifyParams, judged: bool) -> Check:
-    # (measured up to twice the allowance: farther is "beyond reach")
-    far = (f"{100 * e.motion_needed_m:.0f} cm or more" if not _unbounded(e.motion_needed_m) else
-           f"more than {200 * p.max_motion_m:.0f} cm")
-    return _check("branches' own motion (wind)", e.motion_needed_m, "m", "<=", p.max_motion_m, "verify.max_motion_m",
-                  f"verify.max_motion_m = {p.max_motion_m:g} m: beyond it the wind cannot be told from a wrong pose "
-                  "(measured up to twice that)" + ("" if judged else " (not judged: too little overlap)"),
-                  judged=judged, hint=_CALM_HINT, reason=lambda: (
-                      f"{sway_text(e)}, and with the stem's "
-                      f"bend taken out its {'branches' if e.crown else 'points'} still stand {far} from where the "
-                      f"reference saw them (verify.max_motion_m = {p.max_motion_m:g}): too much motion to tell the "
-                      "wind from a wrong pose"))
+def _motion(e: Evidence, p: VerifyParams) -> Check:
+    """What the consistency check would need granted as motion, beside what the motion model grants
+    (shown, not judged: the consistency is judged with the model's allowance, never with this)."""
+    return _check("branches' own motion (wind)", e.motion_needed_m, "m", "<=", e.motion_m, "wind.flutter_share",
+                  f"shown, not judged: the motion the free-space consistency would need granted, beside the "
+                  f"{100 * e.motion_m:.0f} cm at the top the stems' bend explains (wind.flutter_share of the sway, in "
+                  f"proportion to the height; at most verify.max_motion_m = {p.max_motion_m:g} m), which the "
+                  "consistency is judged with", judged=False)
 
 
-def _consistency(e: Evidence, p: VerifyParams, why_not: str) -> Check:
-    moved = (f", after the {'crown' if e.crown else 'stem'}'s fitted bend was taken out ({e.moved} points within {100 * e.motion_m:.0f} cm of a "
-             "surface the reference saw counted as moved)") if e.sway_m > 0 else ""
+def _consistency(e: Evidence, p: VerifyParams, why_not: str, wind: bool) -> Check:
+    """The free-space consistency; under a fitted bend judged with the motion its model grants (the
+    rule shows it with none granted too). `wind`: the pose passed its own checks, so the wind may be
+    named as what the scans disagree by; otherwise the pose is."""
+    granted = e.sway_m > 0 and _measured(e.consistency_still)
+    still = (f"; {e.consistency_still:.3f} with no motion granted, {e.consistency:.3f} with the branches' flutter the "
+             f"stems' bend explains (up to {100 * e.motion_m:.0f} cm at the top)") if granted else ""
+
+    def reason() -> str:
+        share = f"{1 - e.consistency:.1%} of the points both stations see lie in space the reference saw through"
+        if not granted:
+            return f"{share} (consistency {e.consistency:.3f} < verify.min_consistency = {p.min_consistency:g})"
+        if wind:
+            return (f"{sway_text(e)}, and with the stem's bend and the branches' flutter it explains taken out "
+                    f"({e.moved} points within up to {100 * e.motion_m:.0f} cm of a surface the reference saw counted as "
+                    f"moved) {share} (consistency {e.consistency:.3f} < verify.min_consistency = {p.min_consistency:g}): "
+                    "more motion than the stem's bend explains, or a wrong pose")
+        return (f"{share}, even with a bend of the stem and its branches' flutter taken out (consistency "
+                f"{e.consistency:.3f} < verify.min_consistency = {p.min_consistency:g}; {e.consistency_still:.3f} with no "
+                "motion granted): the pose does not fit the scans")
+    hint = f"{_CALM_HINT}, or pick another hypothesis in the app" if granted and wind else \
+        f"{_SAME_TREE_HINT}, or pick another hypothesis in the app"
     return _check("free-space consistency", e.consistency, "", ">=", p.min_consistency, "verify.min_consistency",
                   f"verify.min_consistency = {p.min_consistency:g} of the points both stations see lie where the "
-                  "reference saw a surface" + (f" (not judged: {why_not})" if why_not else ""),
-                  judged=not why_not, hint=f"{_SAME_TREE_HINT}, or pick another hypothesis in the app", reason=lambda: (
-                      f"{1 - e.consistency:.1%} of the points both stations see lie in space the reference saw "
-                      f"through{moved} (consistency {e.consistency:.3f} < verify.min_consistency = {p.min_consistency:g})"))
+                  "reference saw a surface" + still + (f" (not judged: {why_not})" if why_not else ""),
+                  judged=not why_not, hint=hint, reason=reason)
 
 
 def _same_tree(e: Evidence, p: VerifyParams, judged: bool, target: str, reference: str) -> Check:
@@ -527,15 +615,45 @@ def _stem_shift(e: Evidence, ap: AcceptanceParams) -> Check:
 
 
 def _heading(e: Evidence, p: VerifyParams) -> Check:
+    """The heading the free-space evidence prefers. Preferring another one is the pose's fault (it is
+    turned); evidence too flat to fix it is the wind's (the bend left the turn about the stem open)."""
     judged = _measured(e.heading_offset_deg)
-    return _check("heading (wind)", abs(e.heading_offset_deg), "deg", "<=", p.max_heading_deg, "verify.max_heading_deg",
+    # Wind is what to try against only when the scans agree with no motion granted: then only the
+    # heading is loose, and a bend left it so.
+    calm = e.heading_flat and _measured(e.consistency_still) and e.consistency_still >= p.min_consistency
+    hint = f"{_CALM_HINT}, or pick another hypothesis in the app" if calm else "pick another hypothesis in the app, or add a station"
+
+    def reason() -> str:
+        if e.heading_flat:
+            return (f"the sections leave the turn about the stem open, and the free-space evidence cannot fix the "
+                    f"heading within {abs(e.heading_offset_deg):.1f}° of the pose (verify.max_heading_deg = "
+                    f"{p.max_heading_deg:g})")
+        return (f"the free-space evidence prefers a heading {abs(e.heading_offset_deg):.1f}° "
+                f"{'or more ' if abs(e.heading_offset_deg) >= 4.0 * p.max_heading_deg else ''}from the pose's "
+                f"(verify.max_heading_deg = {p.max_heading_deg:g}): the pose is turned about the stem")
+    return _check("heading", abs(e.heading_offset_deg), "deg", "<=", p.max_heading_deg, "verify.max_heading_deg",
                   f"verify.max_heading_deg = {p.max_heading_deg:g}°: the heading the free-space evidence prefers, from "
                   "the pose's" + ("" if judged else " (not judged: measured only when the sections leave the turn about "
                                                     "the stem open)"),
-                  judged=judged, hint=_CALM_HINT, reason=lambda: (
-                      f"{sway_text(e)}, and the sections leave the turn about the "
-                      f"stem open: the free-space evidence puts the heading {abs(e.heading_offset_deg):.1f}° or more from "
-                      f"the pose, or cannot fix it (verify.max_heading_deg = {p.max_heading_deg:g})"))
+                  judged=judged, hint=hint, reason=reason)
+
+
+def _stem_base(e: Evidence, w: WindParams) -> Check:
+    """Under a fitted bend: the stems agree low down, the bend taken out (a cantilever's base does
+    not move); a bend whose base moved is no wind's, and the pose is refused for itself."""
+    judged = _measured(e.base_offset_m)
+    limit = max(w.stable_tolerance_m, 3.0 * e.base_offset_std_m) if judged and _measured(e.base_offset_std_m) else \
+        w.stable_tolerance_m
+    below = f"{e.base_height_m:.1f} m" if _measured(e.base_height_m) else "a third of the tree's height"
+    return _check("stem base (wind)", e.base_offset_m, "m", "<=", limit, "wind.stable_tolerance_m",
+                  f"wind.stable_tolerance_m = {_mm(w.stable_tolerance_m)} mm, or 3 × the profile's noise if larger: below "
+                  f"wind.base_share = {w.base_share:.2g} of the tree's height the two stems agree once the fitted bend is "
+                  "taken out (a cantilever's base does not move)"
+                  + ("" if judged else " (not judged: too few stem slabs traced low down)"),
+                  judged=judged, hint="pick another hypothesis in the app", reason=lambda: (
+                      f"below {below} the two stems stand {_mm(e.base_offset_m)} mm apart once the fitted bend is taken "
+                      f"out (wind.stable_tolerance_m = {_mm(w.stable_tolerance_m)} mm): a bend that moves the stem's base "
+                      "is no wind's, the pose is off"))
 
 
 def _tilt(e: Evidence, p: VerifyParams) -> Check:
@@ -546,33 +664,48 @@ def _tilt(e: Evidence, p: VerifyParams) -> Check:
 
 
 def _height(e: Evidence, p: VerifyParams) -> Check:
+    """Both scanners at the heights above the ground their own scans show: judged only when each
+    scan shows its ground near its scanner (verify.min_ground_points on its plane within
+    verify.ground_radius_m), else a plane fitted to distant ground, a slope or another surface would
+    refuse right poses."""
     dh = e.height_difference_m
+    counted = e.ground_ref_points >= 0 and e.ground_tgt_points >= 0
+    few = [w for w, n in (("the reference's", e.ground_ref_points), ("the target's", e.ground_tgt_points))
+           if counted and n < p.min_ground_points]
+    why_not = ("not both scans show ground" if dh is None else
+               f"{' and '.join(few)} scan shows fewer than verify.min_ground_points = {p.min_ground_points} points on its "
+               f"ground plane within verify.ground_radius_m = {p.ground_radius_m:g} m of its scanner" if few else "")
     return _check("scanner height difference", abs(dh) if dh is not None else None, "m", "<=", p.max_height_difference_m,
                   "verify.max_height_difference_m",
                   f"verify.max_height_difference_m = {p.max_height_difference_m:g} m: each scanner at the height above the "
-                  "ground its own scan shows" + ("" if dh is not None else " (not judged: not both scans show ground)"),
-                  judged=dh is not None, reason=lambda: (
+                  "ground its own scan shows near it" + (f" (not judged: {why_not})" if why_not else ""),
+                  judged=not why_not, reason=lambda: (
                       f"the target's scanner would stand {abs(dh):.2f} m "  # type: ignore[arg-type]
                       f"{'higher' if dh > 0 else 'lower'} above the ground than its own scan shows"))  # type: ignore[operator]
 
 
 def checks(e: Evidence, *, verify: VerifyParams, coarse: CoarseParams, acceptance: AcceptanceParams | None = None,
-           target: str = "the target", reference: str = "the reference") -> tuple[Check, ...]:
+           target: str = "the target", reference: str = "the reference", wind: WindParams | None = None) -> tuple[Check, ...]:
     """Every check of the pair's verdict, in the order its reasons are given: "same tree" first (judged
     only when the support is at chance level), then support, overlap, the wind's motion (only when the
     crown moved), consistency (judged only with enough overlap and a motion the wind explains),
     ambiguity, residual, the stems, the heading (wind only), the scanner's tilt and height."""
-    p, ap = verify, acceptance or AcceptanceParams()
-    support, overlap = _support(e, p, coarse), _overlap(e, p)
-    motion = (_motion(e, p, judged=bool(overlap.passed)),) if e.sway_m > 0 else ()
+    p, ap, w = verify, acceptance or AcceptanceParams(), wind or WindParams()
+    overlap = _overlap(e, p)
+    heading = (_heading(e, p),) if e.sway_m > 0 or _measured(e.heading_offset_deg) else ()
+    base = (_stem_base(e, w),) if e.sway_m > 0 else ()
+    pose = (_stem_lean(e, ap), _stem_shift(e, ap), *base, *heading, _tilt(e, p), _height(e, p))
+    # The wind is named as a reason only for a pose that passes its own checks (its heading fixed
+    # among them): a pose that fails one is refused for itself, however much bend was fitted to it.
+    wind_story = not any(c.passed is False for c in pose)
+    support = _support(e, p, coarse, wind_story)
+    motion = (_motion(e, p),) if e.sway_m > 0 else ()
     why_not = ("too little overlap" if not overlap.passed else
-               "the crown moved too much" if motion and not motion[0].passed else
                "not measured" if not _measured(e.consistency) else "")
     same = _same_tree(e, p, support.passed is False and bool(overlap.passed) and _measured(e.consistency),
                       target, reference)
-    heading = (_heading(e, p),) if e.sway_m > 0 or _measured(e.heading_offset_deg) else ()
-    return (same, support, overlap, *motion, _consistency(e, p, why_not), _margin(e, p), _residual(e, p),
-            _stem_lean(e, ap), _stem_shift(e, ap), *heading, _tilt(e, p), _height(e, p))
+    return (same, support, overlap, *motion, _consistency(e, p, why_not, wind_story), _margin(e, p), _residual(e, p),
+            *pose)
 
 
 def joined_hints(hints: Iterable[str]) -> str:
@@ -606,10 +739,10 @@ class Judgement:
 
 
 def assess(e: Evidence, *, verify: VerifyParams, coarse: CoarseParams, acceptance: AcceptanceParams | None = None,
-           target: str = "the target", reference: str = "the reference") -> Judgement:
+           target: str = "the target", reference: str = "the reference", wind: WindParams | None = None) -> Judgement:
     """The pair's checks and its verdict: failed when it shows another tree than the reference,
     unverified when any other check failed, else verified."""
-    cs = checks(e, verify=verify, coarse=coarse, acceptance=acceptance, target=target, reference=reference)
+    cs = checks(e, verify=verify, coarse=coarse, acceptance=acceptance, target=target, reference=reference, wind=wind)
     failed = [c for c in cs if c.passed is False]
     reasons = tuple(c.reason for c in failed)
     if cs[0].passed is False:  # "same tree": the files are what to check, nothing generic
@@ -618,10 +751,10 @@ def assess(e: Evidence, *, verify: VerifyParams, coarse: CoarseParams, acceptanc
     return Judgement(UNVERIFIED if failed else VERIFIED, reasons, hint, cs)
 
 
-def judge(e: Evidence, *, verify: VerifyParams, coarse: CoarseParams,
-          acceptance: AcceptanceParams | None = None) -> tuple[str, tuple[str, ...], str]:
+def judge(e: Evidence, *, verify: VerifyParams, coarse: CoarseParams, acceptance: AcceptanceParams | None = None,
+          wind: WindParams | None = None) -> tuple[str, tuple[str, ...], str]:
     """The verdict from the evidence: (verdict, reasons it is not verified, what to try)."""
-    j = assess(e, verify=verify, coarse=coarse, acceptance=acceptance)
+    j = assess(e, verify=verify, coarse=coarse, acceptance=acceptance, wind=wind)
     return j.verdict, j.reasons, j.hint
 
 
@@ -646,8 +779,11 @@ def verification(T: np.ndarray, e: Evidence, j: Judgement) -> PairVerification:
         Metric("crown moved between the stations (stem top)" if e.crown else
                "stem top off the reference's (a bend of a stem without crown)", "m", e.sway_m),
         Metric("stems agree up to (above the base)", "m", e.stable_height_m),
-    ) + ((Metric("branches moved on their own by (allowed)", "m", e.motion_m),
-          Metric("points counted as moved", "", e.moved)) if e.sway_m > 0 else ()) + (
+    ) + ((Metric("free-space consistency with no motion granted", "", e.consistency_still),
+          Metric("branches moved on their own by (allowed at the top, by the stems' bend)", "m", e.motion_m),
+          Metric("motion the consistency would need (not granted)", "m", e.motion_needed_m),
+          Metric("points counted as moved", "", e.moved),
+          Metric("stems apart low down, the bend taken out", "m", e.base_offset_m)) if e.sway_m > 0 else ()) + (
         (Metric("heading the evidence prefers (turn about the stem, from the pose)", "deg", e.heading_offset_deg),)
         if np.isfinite(e.heading_offset_deg) else ())
     return PairVerification(ok=True, message="; ".join(reasons), metrics=metrics, T_ref_target=np.asarray(T, dtype=float),

@@ -171,21 +171,26 @@ def placed(target_points: np.ndarray, T_ref_target: np.ndarray,
 
 def visibility(ref_image: RangeImage, target_points: np.ndarray, T_ref_target: np.ndarray,
                tolerance_m: float, *, unbend: Callable[[np.ndarray], np.ndarray] | None = None,
-               surface_tree: cKDTree | None = None, motion_m: float = 0.0) -> Visibility:
+               surface_tree: cKDTree | None = None,
+               motion_m: float | Callable[[np.ndarray], np.ndarray] = 0.0) -> Visibility:
     """Check every target point (its own frame), mapped by `T_ref_target`, against the reference's view.
 
     The tolerance grows with range as a cell does (a surface oblique to the ray spans a range of
     depths within one cell): `tolerance_m + r * cell size`. With wind, the points are first unbent
     (`unbend`), and a point in the reference's free space within `motion_m` of a surface point the
-    reference saw (`surface_tree`) counts as moved, not as a violation.
+    reference saw (`surface_tree`) counts as moved, not as a violation. `motion_m` is one distance,
+    or a function giving each point's own (of the points placed and unbent, reference frame: the
+    motion a model allows at their heights).
     """
     p = placed(target_points, T_ref_target, unbend)
     consistent, violation, occluded, seen = _classes(ref_image, p, tolerance_m)
     moved = 0
-    if motion_m > 0 and surface_tree is not None and violation.any():
+    if surface_tree is not None and violation.any() and (callable(motion_m) or motion_m > 0):
         idx = np.flatnonzero(violation)
-        d, _ = surface_tree.query(p[idx], distance_upper_bound=motion_m)
-        near = np.isfinite(d)
+        allow = (np.asarray(motion_m(p[idx]), dtype=float) if callable(motion_m) else np.full(len(idx), float(motion_m)))
+        reach = float(allow.max()) * (1.0 + 1e-9) if len(allow) else 0.0
+        d, _ = surface_tree.query(p[idx], distance_upper_bound=reach) if reach > 0 else (np.full(len(idx), np.inf), None)
+        near = np.isfinite(d) & (d <= allow)
         violation[idx[near]] = False
         moved = int(near.sum())
     return Visibility(int(consistent.sum()), int(violation.sum()), int(occluded.sum()), int((~seen).sum()), moved)

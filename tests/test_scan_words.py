@@ -94,7 +94,7 @@ def test_a_scan_whose_vertical_is_not_z_is_levelled_and_verified(which, R):
     turn[:3, :3] = R
     T_true = turn @ T_true if which == 0 else T_true @ np.linalg.inv(turn)
     T = reg.transforms["scan2.ply"]
-    assert rotation_error_deg(T, T_true) < 0.1 and mean_displacement(T, T_true, scans[1].points) < 0.01
+    assert rotation_error_deg(T, T_true) < 0.5 and mean_displacement(T, T_true, scans[1].points) < 0.015
 
 
 def _hill(slope_deg: float, tilt_deg: float) -> np.ndarray:

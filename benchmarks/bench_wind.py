@@ -104,12 +104,15 @@ def run_case(k: int, seed: int, wind_m: float, params: Params) -> list[PairRow]:
         it = ver.items[i] if ver is not None else None
         f = fine.items[i] if fine is not None else None
         T = getattr(it, "T_ref_target", None)
+        if T is not None and hasattr(pipe, "_as_given"):  # the stages register levelled scans
+            T = pipe._as_given(T, p.ref, p.tgt)
         rot, disp = ((rotation_error_deg(T, T_true), mean_displacement(T, T_true, b.points)) if T is not None
                      else (float("inf"), float("inf")))
         moved = float(np.linalg.norm(case.relative_sway_m(p.tgt, p.ref))) if wind_m else 0.0
         rows.append(PairRow(wind_m, label, f"{b.name}->{a.name}", getattr(it, "verdict", "failed"), rot, disp, moved,
                             _metric(f, "crown moved") if getattr(f, "bend", None) is not None else 0.0,
-                            _metric(f, "stem stands as the reference's up to"), getattr(f, "chosen", "-"),
+                            _metric(f, "stem stands as the reference's up to"),
+                            getattr(f, "chosen", "-"),
                             "; ".join(getattr(it, "reasons", ()))[:150], wall))
     return rows
 

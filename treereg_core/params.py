@@ -276,6 +276,8 @@ class WindParams:
     stable_tolerance_m: float = _f(0.005, "m", "the stem 'stands where the reference's did' up to the height where the two differ by more than this", lo=0.0001, hi=1.0)
     flutter_share: float = _f(0.5, "", "the branches' own flutter, beyond the stem's bend, granted as moved at most this times the stem top's sway, in proportion to a point's height above the stem base (nothing at the base, all of it at the top); never more than verify.max_motion_m", lo=0.0, hi=1.0)
     base_share: float = _f(1.0 / 3.0, "", "a bend is wind only when the two stems agree, the bend taken out, within wind.stable_tolerance_m (or 3 times the profile's noise) below this share of the tree's height: a cantilever's base does not move", lo=0.1, hi=0.6)
+    ground_anchor: bool = _f(True, "", "when the crown moved (a bend fitted, or a rigid fit whose stems lean against each other): take the scan's tilt and height from the ground both stations saw (it does not sway) and refit the bend and the stem's shift to the stem profile under that tilt; without ground, a rigid fit's tilt from the stems")
+    max_hinge_depth_m: float = _f(1.0, "m", "ground anchor: the stem may bend from down to this far below its lowest point traced (the root plate)", lo=0.0, hi=5.0)
 
 
 @dataclass(frozen=True)

@@ -65,13 +65,13 @@ from .arcs import SliceArcs
 from .correspondence import Correspondences
 from .joint import JointFit, JointProblem, adjust_joint, section_offsets
 from .sections import PoseFit, ScanSections, SectionsResult, fit_at_pose, match_scan_sections, tie_points
-from .bend import Bend
-from .stem import StemProfile, StemTrace, correction, stem_profile, trace_stem
+from .bend import Bend, cantilever
+from .stem import MIN_SLABS, StemProfile, StemTrace, correction, stem_profile, trace_stem
 from ..prepare.ground import stem_position
 from .slicing import SliceResult, tree_extent
 from .surface import (
     Surface, align_narrowing, mean_move, pose_update, refine_along, scan_surface, surface_fitness, surface_of,
-    trimmed_residuals,
+    surface_pairs, trimmed_residuals,
 )
 
 #: Points of the target used to measure how far an update moves it (and for the acceptance measure).
@@ -141,6 +141,19 @@ class StemSeeds:
 NO_SEEDS = StemSeeds()
 
 
+@dataclass(frozen=True, kw_only=True, eq=False)
+class Grounds:
+    """The ground each station saw around the tree (the points the prepare stage removed as ground,
+    each scan's own frame): it does not move in wind, so with the stem's bend fitted it carries the
+    scan's tilt and height (`_anchor`). Empty arrays: no ground seen."""
+
+    ref: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    tgt: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+
+
+NO_GROUNDS = Grounds()
+
+
 @dataclass(frozen=True, kw_only=True)
 class FineResult:
     """The fine stage's result for one pair.
@@ -188,6 +201,13 @@ class FineResult:
         The iterations the sections were allowed (`iteration_limit`: more when the stem's bend is fitted).
     stopped_at_limit
         The iterations ran out with the last update still above `fine.tolerance_m` (not converged).
+    anchored
+        When the crown moved: where the tilt was taken from instead of the crown ("ground": the
+        ground both stations saw, the stem's bend refitted under it; "stems": the stem profile of a
+        rigid fit whose stems leaned), "" otherwise (`_anchor`).
+    hinge_depth_m
+        With `anchored`: how far below the lowest stem point traced the stem bends from (the root
+        plate; the profile's best fit), 0 otherwise.
     """
 
     ok: bool
@@ -211,6 +231,8 @@ class FineResult:
     turn_held: bool = False
     iteration_limit: int = 0
     stopped_at_limit: bool = False
+    anchored: str = ""
+    hinge_depth_m: float = 0.0
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -555,7 +577,8 @@ def _verdict(n_updates: int, chosen: str, fallback: bool, note: str, residuals: 
 
 
 def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, *, params: FineSections, start: PoseFit | None = None,
-                  seeds: StemSeeds = NO_SEEDS, progress: Progress | None = None) -> FineResult:
+                  seeds: StemSeeds = NO_SEEDS, grounds: Grounds = NO_GROUNDS,
+                  progress: Progress | None = None) -> FineResult:
     """Refine the coarse transform of `tgt` onto `ref` from stem and branch sections.
 
     Parameters
@@ -571,6 +594,9 @@ def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, *, params: FineSec
         The first iteration as the slices, arcs and sections stages made it; computed when None.
     seeds
         Where each scan's stem stands, when the prepare stage chose it: the stem profile traces there.
+    grounds
+        The ground each station saw (its own frame): with the stem's bend fitted, it carries the
+        scan's tilt and height (`wind.ground_anchor`).
     progress
         Optional progress callback.
 
@@ -594,8 +620,9 @@ def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, *, params: FineSec
         if bent is not None:
             its = bent
     bend = its.bend
-    seen = tgt if bend is None else bend.warp(tgt, its.T)
     T, updates = its.T, list(its.updates_m)
+    anchored, hinge = "", 0.0
+    seen = tgt if bend is None else bend.warp(tgt, T)
     progress(fine.max_iterations / (fine.max_iterations + 1), "acceptance test")
     # The scans' surfaces (trees, normals) are shared with the hypotheses and verify stages and the
     # scans' other pairs; the target unbent by the wind is its own.
@@ -626,6 +653,17 @@ def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, *, params: FineSec
     if updates and fine.method == "joint" and acceptance.select and bend is None:
         T, chosen, residuals = _select(ref_surf, tgt_surf, T0, T, chosen, params, stems)
         from_surface = 6 if chosen.endswith("by the surfaces") else from_surface
+    if updates and fine.method == "joint" and wind.enabled and wind.ground_anchor:
+        # The pose from what does not move (`_anchor`): when the crown moved, the tilt from the ground
+        # (else from the stems, below the crown), the crown's bend refitted under it.
+        got = _anchor(run, T, bend, grounds, start.slices.z_extent_m)
+        if got is not None:
+            T, new_bend, hinge, anchored = got
+            if new_bend is not bend:
+                bend = new_bend
+                seen = tgt if bend is None else bend.warp(tgt, T)
+                tgt_surf = (scan_surface(tgt, tgt.points, surface.voxel_m, _SAMPLE) if seen is tgt
+                            else surface_of(seen.points, surface.voxel_m, _SAMPLE))
     m0 = surface_fitness(ref_surf, tgt_surf, T0, acceptance.gate_m, acceptance.tolerance_m)
     m1 = surface_fitness(ref_surf, tgt_surf, T, acceptance.gate_m, acceptance.tolerance_m) if updates else m0
     vouch = bool(updates) and m1 < m0 - acceptance.margin and stems(T) is True and stems(T0) is False
@@ -634,9 +672,12 @@ def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, *, params: FineSec
         T = T0.copy()
     if accepted and bend is not None:
         chosen = "sections, with the stem's bend"
+    if accepted and anchored:
+        chosen += f", tilt from the {anchored}"
     drawn = _drawn_at(run, T, its.last, bend)
     n_iter = len(its.updates_m)
-    profile = profile_at(ref, tgt, T, start.slices.z_extent_m, joint.loss_scale_m, seeds) if start.slices.ok else None
+    profile = (profile_at(ref, tgt, T, start.slices.z_extent_m, joint.loss_scale_m, seeds,
+                          hinge if anchored and accepted else 0.0) if start.slices.ok else None)
     limit = iteration_limit(fine, its.bend)  # the limit the kept iterations ran under
     bend = bend if accepted else None
     metrics = (
@@ -656,6 +697,9 @@ def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, *, params: FineSec
                "stem top off the reference's (a bend of a stem without crown)", "m", bend.sway_m if bend is not None else 0.0),
         Metric("stem stands as the reference's up to (above its base)", "m",
                profile.stable_height_m(wind.stable_tolerance_m) if profile is not None else float("nan")),
+        Metric("tilt taken from what does not move (wind)", "",
+               {"ground": "the ground", "stems": "the stems"}.get(anchored, "no") if accepted else "no"),
+        Metric("stem bends from below its lowest point traced", "m", hinge if anchored and accepted else 0.0),
     )
     progress(1.0, "done")
     return FineResult(
@@ -666,6 +710,7 @@ def register_fine(ref: Scan, tgt: Scan, T_coarse: np.ndarray, *, params: FineSec
         sections=drawn.sections if drawn else None, bend=bend, profile=profile,
         turn_held=bend is not None and its.joint is not None and _turn_held(its.joint),
         iteration_limit=limit, stopped_at_limit=n_iter >= limit and bool(updates) and updates[-1] > fine.tolerance_m,
+        anchored=anchored if accepted else "", hinge_depth_m=hinge if anchored and accepted else 0.0,
     )
 
 
@@ -766,6 +811,127 @@ def _bent(run: _Run, T1: np.ndarray, bend1: Bend, start: PoseFit) -> _Iterations
     return None
 
 
+#: Ground anchor: fewest ground points of each station, the voxel its surface is taken at, the pairing
+#: gates (widest first) and the iterations of the last.
+ANCHOR_MIN_POINTS = 500
+ANCHOR_VOXEL_M = 0.02
+ANCHOR_GATES_M = (0.05, 0.03)
+ANCHOR_GATE_M = 0.015
+ANCHOR_ITERATIONS = 30
+#: Fewest target ground points paired at the last gate for the ground to be trusted with the tilt.
+ANCHOR_MIN_PAIRS = 200
+#: The ground may change the scan's tilt by at most this (deg): more is no wind's doing.
+ANCHOR_MAX_TILT_DEG = 0.5
+#: Depths below the lowest stem point tried for where the stem bends from (m apart).
+HINGE_STEP_M = 0.05
+#: Robust scale of the hinge fit's residuals (m).
+HINGE_SCALE_M = 0.003
+#: A rigid fit's stems lean against each other when the lean is this many times its noise (and at
+#: least acceptance.stem_tilt_deg): the crown's twigs pulled the tilt.
+LEAN_SIGNIFICANCE = 2.0
+
+
+def _anchor(run: _Run, T: np.ndarray, bend: Bend | None, grounds: Grounds,
+            z_extent: tuple[float, float]) -> tuple[np.ndarray, Bend | None, float, str] | None:
+    """The pose from what does not move, when the crown moved between the stations (a bend was
+    fitted, or the stem profile at `T` shows the two stems leaning against each other: the crown's
+    fluttering twigs pulled a rigid fit). Returns (pose, bend, depth the stem bends from below its
+    lowest point, "ground" or "stems"), None when nothing moved or nothing steadier is seen.
+
+    * Both stations see the ground: the scan's tilt and height from the ground (point-to-plane,
+      three directions), then the stem's horizontal offset and its bend refitted to the stem profile
+      with that tilt held (`_hinge_fit`, which also finds how deep below the lowest point traced the
+      stem bends from: a bend put 0.3 m too high is fitted 13% short and the rest taken as a tilt of
+      ~0.45 deg per metre of sway).
+    * No ground, a rigid fit whose stems lean: the tilt and shift the stem profile shows taken out
+      (`correction`), its bend kept when significant. (With a bend already fitted and no ground, the
+      sections' pose stands: without the ground nothing tells a tilt from where the stem bends.)
+    """
+    wind, joint, ap = run.params.wind, run.params.joint, run.params.acceptance
+    lo, hi = float(z_extent[0]), float(z_extent[1])
+    prof0 = profile_at(run.ref, run.tgt, T, (lo, hi), joint.loss_scale_m, run.seeds)
+    leaning = prof0.model is not None and _leaning(prof0.model, ap)
+    if bend is None and not leaning:
+        return None
+    ground = _ground_tilt(run, T, grounds, (lo, hi))
+    if ground is not None:
+        prof = profile_at(run.ref, run.tgt, ground, (lo, hi), joint.loss_scale_m, run.seeds)
+        fit = _hinge_fit(prof, lo, hi, wind.max_hinge_depth_m)
+        if fit is None:
+            return ground, bend, 0.0, "ground"
+        depth, shift, top = fit
+        U = np.eye(4)
+        U[:2, 3] = -shift
+        base = lo - depth
+        std = bend.std_m if bend is not None else (float(prof0.model.std[4]), float(prof0.model.std[5])) \
+            if prof0.model is not None else (float("nan"), float("nan"))
+        new = Bend(base, max(hi - base, 1e-3), (float(top[0]), float(top[1])), std)
+        keep = bend is not None or new.significant(wind.min_sway_m, wind.significance)
+        return U @ ground, new if keep else None, depth if keep else 0.0, "ground"
+    if bend is not None or prof0.model is None:
+        return None
+    straight = correction(prof0.model, prof0.base_xy_m) @ T
+    pb = _profile_bend(prof0)
+    return straight, pb if _significant(pb, wind) else None, 0.0, "stems"
+
+
+def _leaning(model: Any, ap: AcceptanceParams) -> bool:
+    """The stem profile shows the target's stem leaning against the reference's: by at least
+    `acceptance.stem_tilt_deg` and twice its noise (a rigid fit's tilt pulled by a moved crown)."""
+    tilt = float(np.degrees(np.hypot(*model.tilt)))
+    std = float(np.degrees(np.hypot(*model.std[2:4])))
+    return tilt >= max(ap.stem_tilt_deg, LEAN_SIGNIFICANCE * std)
+
+
+def _ground_tilt(run: _Run, T: np.ndarray, grounds: Grounds, z_extent: tuple[float, float]) -> np.ndarray | None:
+    """`T` with the scan's tilt and height taken from the ground both stations saw (point-to-plane,
+    turns about x and y through the stem's base and z; the gate narrowing); None when either station
+    saw too little ground, too few of its points pair, or the ground would tilt the scan by more than
+    `ANCHOR_MAX_TILT_DEG` (that is no wind's doing)."""
+    if min(len(grounds.ref), len(grounds.tgt)) < ANCHOR_MIN_POINTS:
+        return None
+    ref_g = surface_of(grounds.ref, ANCHOR_VOXEL_M)
+    tgt_g = surface_of(grounds.tgt, ANCHOR_VOXEL_M, _SAMPLE)
+    lo, hi = z_extent
+    centre = np.r_[_ref_trace(run.ref, (float(lo), float(hi)), run.seeds.ref_xy)[0], lo]
+    B = np.zeros((6, 3))
+    B[0, 0] = B[1, 1] = B[5, 2] = 1.0
+    T1 = align_narrowing(ref_g, tgt_g, T, centre, B, ANCHOR_GATE_M, ANCHOR_ITERATIONS, run.params.joint.loss_scale_m,
+                         gates_m=ANCHOR_GATES_M)
+    n_pairs = len(surface_pairs(ref_g, tgt_g, T1, ANCHOR_GATE_M)[0])
+    tilt = float(np.degrees(np.linalg.norm(rotation_vector((T1 @ invert(T))[:3, :3])[:2])))
+    if n_pairs < ANCHOR_MIN_PAIRS or tilt > ANCHOR_MAX_TILT_DEG:
+        return None
+    return T1
+
+
+def _hinge_fit(prof: StemProfile, lo: float, hi: float, max_depth_m: float) -> tuple[float, np.ndarray, np.ndarray] | None:
+    """The stem profile's offsets (target minus reference) explained with the tilt held at zero: a
+    shift plus a cantilever bending from each depth below `lo` tried (every `HINGE_STEP_M` down to
+    `max_depth_m`); the depth whose fit leaves the least (Cauchy at `HINGE_SCALE_M`). Returns (depth,
+    shift x y, the bend's `top_m` x y), None with fewer than `MIN_SLABS` slabs."""
+    if prof.n < MIN_SLABS:
+        return None
+    z, d = prof.heights_m, prof.offsets_m
+    sig = np.maximum(prof.std_m, 1e-4)
+    best: tuple[float, float, np.ndarray] | None = None
+    for depth in np.arange(0.0, max_depth_m + 1e-9, HINGE_STEP_M):
+        base = lo - depth
+        A = np.c_[np.ones_like(z), cantilever((z - base) / max(hi - base, 1e-3))]
+        w = 1.0 / sig ** 2
+        for _ in range(6):
+            Aw = A * w[:, None]
+            x = np.linalg.lstsq(Aw.T @ A, Aw.T @ d, rcond=None)[0]
+            res = np.hypot(*(d - A @ x).T)
+            w = 1.0 / sig ** 2 / (1.0 + (res / HINGE_SCALE_M) ** 2)
+        cost = float(np.sum(np.log1p((res / HINGE_SCALE_M) ** 2)))
+        if best is None or cost < best[0] - 1e-9:
+            best = (cost, float(depth), x)
+    assert best is not None
+    _, depth, x = best
+    return depth, x[0], -x[1]
+
+
 _profiles: "weakref.WeakKeyDictionary[Scan, weakref.WeakKeyDictionary]" = weakref.WeakKeyDictionary()
 _profiles_lock = threading.Lock()
 #: Profiles kept per target scan (the fine stage asks for the same pose several times).
@@ -773,11 +939,13 @@ _PROFILES_KEPT = 16
 
 
 def profile_at(ref: Scan, tgt: Scan, T: np.ndarray, z_extent: tuple[float, float], loss_scale_m: float,
-               seeds: StemSeeds = NO_SEEDS) -> StemProfile:
+               seeds: StemSeeds = NO_SEEDS, hinge_m: float = 0.0) -> StemProfile:
     """The target's stem profile against the reference's with the target at the pose `T` (each stem
-    traced up from its base: its seed, else the densest cell of its own lowest points). The
-    reference's trace is made once per reference, and a profile once per pose."""
-    key = (np.asarray(T, dtype=float).tobytes(), tuple(float(v) for v in z_extent), float(loss_scale_m), seeds)
+    traced up from its base: its seed, else the densest cell of its own lowest points; the bend
+    from `hinge_m` below the base). The reference's trace is made once per reference, and a profile
+    once per pose."""
+    key = (np.asarray(T, dtype=float).tobytes(), tuple(float(v) for v in z_extent), float(loss_scale_m), seeds,
+           float(hinge_m))
     with _profiles_lock:
         per_ref = _profiles.get(tgt)
         found = per_ref.get(ref, {}).get(key) if per_ref is not None else None
@@ -788,7 +956,7 @@ def profile_at(ref: Scan, tgt: Scan, T: np.ndarray, z_extent: tuple[float, float
     own = _base_xy(tgt, seeds.tgt_xy, float(tgt.points[:, 2].min()))
     tgt_xy = apply_transform(T, np.r_[own, 0.0][None])[0, :2]
     prof = stem_profile(ref.points, apply_transform(T, tgt.points), ref_xy, tgt_xy, z_extent, loss_scale_m,
-                        ref_trace=ref_trace)
+                        ref_trace=ref_trace, hinge_m=hinge_m)
     with _profiles_lock:
         kept = _profiles.setdefault(tgt, weakref.WeakKeyDictionary()).setdefault(ref, OrderedDict())
         kept[key] = prof
@@ -824,7 +992,7 @@ def _ref_trace(ref: Scan, z_extent: tuple[float, float], seed: tuple[float, floa
 def _profile_bend(prof: StemProfile) -> Bend:
     """The bend the stem profile shows, as the fine stage models it."""
     m = prof.model
-    return Bend(prof.base_z_m, prof.height_m, (-float(m.bend_m[0]), -float(m.bend_m[1])),
+    return Bend(prof.base_z_m - m.hinge_m, prof.height_m + m.hinge_m, (-float(m.bend_m[0]), -float(m.bend_m[1])),
                 (float(m.std[4]), float(m.std[5])))
 
 

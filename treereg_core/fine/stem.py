@@ -134,7 +134,8 @@ class StemModel:
     shift_m : the offset at `z_mid` (x, y) apart from the bend; tilt : offset per metre of height
     (x, y; a tilt of the scanner); bend_m : the offset at the top (x, y) from a cantilever bend;
     std : noise std of each of the six (shift x, y, tilt x, y, bend x, y); rms_m : what the model
-    leaves unexplained; z_mid_m : the height the shift is measured at.
+    leaves unexplained; z_mid_m : the height the shift is measured at; hinge_m : how far below the
+    profile's base the cantilever bends from (the root plate; 0 = at the base).
     """
 
     shift_m: np.ndarray
@@ -143,11 +144,13 @@ class StemModel:
     std: np.ndarray
     rms_m: float
     z_mid_m: float
+    hinge_m: float = 0.0
 
     def offsets(self, z_m: np.ndarray, base_z_m: float, height_m: float) -> np.ndarray:
         z = np.asarray(z_m, dtype=float)
+        base, H = base_z_m - self.hinge_m, height_m + self.hinge_m
         return (self.shift_m[None, :] + (z - self.z_mid_m)[:, None] * self.tilt[None, :]
-                + cantilever((z - base_z_m) / height_m)[:, None] * self.bend_m[None, :])
+                + cantilever((z - base) / H)[:, None] * self.bend_m[None, :])
 
 
 @dataclass(frozen=True, eq=False)
@@ -218,14 +221,15 @@ class StemProfile:
 
 
 def fit_profile(heights_m: np.ndarray, offsets_m: np.ndarray, std_m: np.ndarray, base_z_m: float,
-                height_m: float, scale_m: float = 0.003) -> StemModel | None:
+                height_m: float, scale_m: float = 0.003, hinge_m: float = 0.0) -> StemModel | None:
     """Shift, tilt and cantilever bend explaining the offsets (robust weighted least squares,
-    Cauchy at `scale_m`); None with fewer than 5 slabs or heights too close to tell a tilt from a bend."""
+    Cauchy at `scale_m`; the cantilever bending from `hinge_m` below `base_z_m`); None with fewer
+    than 5 slabs or heights too close to tell a tilt from a bend."""
     z = np.asarray(heights_m, dtype=float)
     if len(z) < 5 or np.ptp(z) < 0.2 * height_m:
         return None
     z_mid = float(np.median(z))
-    A = np.c_[np.ones(len(z)), z - z_mid, cantilever((z - base_z_m) / height_m)]
+    A = np.c_[np.ones(len(z)), z - z_mid, cantilever((z - base_z_m + hinge_m) / (height_m + hinge_m))]
     sig = np.maximum(np.asarray(std_m, dtype=float), 1e-4)
     w = 1.0 / sig ** 2
     x = np.zeros((3, 2))
@@ -248,7 +252,7 @@ def fit_profile(heights_m: np.ndarray, offsets_m: np.ndarray, std_m: np.ndarray,
              float(np.median(sig)) ** 2)
     cov = np.linalg.pinv((A * (wk / max(wk.max(), 1e-300))[:, None]).T @ A) * s2
     std = np.sqrt(np.maximum(np.diag(cov), 0.0))
-    return StemModel(x[0], x[1], x[2], np.repeat(std, 2), rms, z_mid)
+    return StemModel(x[0], x[1], x[2], np.repeat(std, 2), rms, z_mid, float(hinge_m))
 
 
 def correction(model: StemModel, axis_xy: np.ndarray) -> np.ndarray:
@@ -263,11 +267,12 @@ def correction(model: StemModel, axis_xy: np.ndarray) -> np.ndarray:
 
 def stem_profile(ref_points: np.ndarray, tgt_points: np.ndarray, ref_xy: np.ndarray, tgt_xy: np.ndarray,
                  z_extent: tuple[float, float], loss_scale_m: float = 0.005, step_m: float = 0.25,
-                 ref_trace: StemTrace | None = None) -> StemProfile:
+                 ref_trace: StemTrace | None = None, hinge_m: float = 0.0) -> StemProfile:
     """The profile of the target's stem (`tgt_points`, already in the reference frame) against the
     reference's, traced from `ref_xy` and `tgt_xy` at the tree's base (`z_extent`: its lowest and
     highest z in the reference frame). `ref_trace`: the reference's trace, when made already (it
-    depends on the reference alone)."""
+    depends on the reference alone). `hinge_m`: the stem bends from this far below `z_extent`'s
+    lowest (the fine stage's ground anchor finds it; 0 = from there)."""
     lo, hi = z_extent
     H = max(hi - lo, 1e-3)
     base = np.asarray(ref_xy, dtype=float)[:2].copy()
@@ -296,7 +301,7 @@ def stem_profile(ref_points: np.ndarray, tgt_points: np.ndarray, ref_xy: np.ndar
     # A slab whose circles the points hardly fix (a trace that strayed onto a branch) says nothing.
     ok = np.isfinite(std) & np.isfinite(off).all(axis=1) & (std <= _MAX_OFFSET_STD_M)
     h, off, std, radii = common[ok], off[ok], std[ok], radii[ok]
-    return StemProfile(h, off, std, radii, lo, H, fit_profile(h, off, std, lo, H), base,
+    return StemProfile(h, off, std, radii, lo, H, fit_profile(h, off, std, lo, H, hinge_m=hinge_m), base,
                        holds_crown(ref_points, lo, H, float(np.median(a.radii_m))))
 
 

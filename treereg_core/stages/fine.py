@@ -3,12 +3,24 @@ re-fitted at each new pose by `fine.sections.fit_at_pose`) and checked against t
 
 from __future__ import annotations
 
+import numpy as np
+
 from ..fine.arcs import SliceArcs
-from ..fine.pose import FINE_SECTIONS, FineResult, FineSections, register_fine
+from ..fine.pose import FINE_SECTIONS, FineResult, FineSections, Grounds, register_fine
 from ..fine.sections import PoseFit, SectionsResult
 from ..fine.slicing import SliceResult
 from ..stage import Stage, StageContext, StageResult
-from .common import pair_label, scan_of, seeds, start_pose
+from .common import pair_label, prepared, scan_of, seeds, start_pose
+
+
+def ground_of(ctx: StageContext, i: int) -> np.ndarray:
+    """The points the prepare stage took as scan i's ground (its frame, levelled as its scan)."""
+    pr = prepared(ctx, i)
+    station = pr.station if pr.station is not None else ctx.scans[i]
+    mask = pr.ground_mask
+    if mask is None or len(mask) != station.n_points or not mask.any():
+        return np.zeros((0, 3))
+    return station.points[mask]
 
 
 def run(ctx: StageContext) -> list[StageResult | None]:
@@ -18,7 +30,8 @@ def run(ctx: StageContext) -> list[StageResult | None]:
         start = (PoseFit(slices=sl, arcs=ctx.ok_item("arcs", k, SliceArcs), sections=ctx.ok_item("sections", k, SectionsResult))
                  if isinstance(sl, SliceResult) else None)
         return register_fine(scan_of(ctx, p.ref), scan_of(ctx, p.tgt), start_pose(ctx, k), start=start,
-                             seeds=seeds(ctx, p), params=FineSections.of(ctx.params))
+                             seeds=seeds(ctx, p), grounds=Grounds(ref=ground_of(ctx, p.ref), tgt=ground_of(ctx, p.tgt)),
+                             params=FineSections.of(ctx.params))
     return ctx.each(one, lambda k: pair_label(ctx, k))
 
 

@@ -157,8 +157,9 @@ def main() -> None:
     ap.add_argument("--sways", type=float, nargs="+", default=list(SWAYS_M))
     ap.add_argument("--json", type=Path, help="also write every pair's row here")
     ap.add_argument("--pairs", action="store_true", help="print the per-pair table too")
+    ap.add_argument("--no-anchor", action="store_true", help="wind.ground_anchor off (the fine stage before issue 30)")
     a = ap.parse_args()
-    params = Params()
+    params = Params().with_value("wind", "ground_anchor", False) if a.no_anchor else Params()
     rows: list[PairRow] = []
     for w in a.sways:
         for k in range(a.trees):

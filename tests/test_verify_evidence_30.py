@@ -15,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from conftest import REAL_TREES, needs
 from treereg_core.demo import demo_case
 from treereg_core.fine.bend import Bend
 from treereg_core.params import Params
@@ -159,3 +160,41 @@ def test_a_wrong_pose_under_a_fitted_bend_is_not_passed_by_the_motion_it_would_n
                           base_offset_std_m=0.001))
     assert j.verdict != VERIFIED and any("no wind's" in r for r in j.reasons)
     assert not any(w in " ".join(j.reasons) for w in WIND_WORDS)
+
+
+def test_another_tree_is_said_only_with_its_evidence():
+    """Support at chance and much of the target in free space, but a pose that tips the scanner over
+    (an unlevelled or tilt-mounted scan the coarse stage could not place): unverified with its
+    reasons, not "not the same tree"."""
+    from treereg_core.verify.evidence import FAILED, UNVERIFIED
+    other = dict(inliers=5, ties=894, chance_inliers=3, consistency=0.09)
+    assert _assess(_evidence(**other)).verdict == FAILED
+    j = _assess(_evidence(**other, tilt_deg=88.0))
+    assert j.verdict == UNVERIFIED and not any("same tree" in r for r in j.reasons)
+    assert any("tilts the scanner by 88.0°" in r for r in j.reasons) and any("saw through" in r for r in j.reasons)
+    same = j.checks[0]
+    assert same.what == "same tree" and same.passed is None and "no evidence of another tree" in same.rule
+
+
+REAL_STATION = REAL_TREES / "rtls_single_scan_scanner_at_origin.xyz.gz"
+
+
+@needs(REAL_STATION)
+def test_a_real_station_shows_its_ground_near_the_scanner_and_one_cut_away_from_it_does_not():
+    """The real RIEGL station: its ground plane holds hundreds of points within verify.ground_radius_m of
+    the scanner, so its height is judged; the same station without its near ground (a plane fitted
+    to ground far off, or to another surface) is not."""
+    from treereg_core.io.scans import read_scan
+    from treereg_core.prepare.ground import prepare_scans
+
+    p = Params()
+    station = read_scan(REAL_STATION)
+    (prep,) = prepare_scans([station], prepare=p.prepare, target=p.target)
+    assert prep.plane is not None
+    pts = (prep.station or station).points
+    assert ground_near_scanner(pts, prep.plane, p.verify) >= p.verify.min_ground_points
+    far = pts[np.hypot(pts[:, 0], pts[:, 1]) > p.verify.ground_radius_m]
+    assert ground_near_scanner(far, prep.plane, p.verify) == 0
+    e = _evidence(height_difference_m=-3.49, ground_ref_points=ground_near_scanner(pts, prep.plane, p.verify),
+                  ground_tgt_points=ground_near_scanner(far, prep.plane, p.verify))
+    assert _assess(e).verdict == VERIFIED

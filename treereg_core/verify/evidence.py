@@ -553,8 +553,10 @@ def _same_tree(e: Evidence, p: VerifyParams, judged: bool, target: str, referenc
     pair fails rather than stays a best guess."""
     return _check("same tree", e.consistency, "", ">=", p.other_tree_consistency, "verify.other_tree_consistency",
                   f"verify.other_tree_consistency = {p.other_tree_consistency:g}, judged when the tie support is at chance "
-                  "level: below it more of the target lies in the reference's free space than a right pose leaves"
-                  + ("" if judged else " (not judged: the tie support is above chance or the overlap too small)"),
+                  "level and the pose stands the scanner level (verify.max_tilt_deg): below it more of the target lies "
+                  "in the reference's free space than a right pose leaves"
+                  + ("" if judged else " (not judged: the tie support is above chance, the overlap too small, or the "
+                                       "pose tilts the scanner: no evidence of another tree)"),
                   judged=judged, hint=f"check the files: {target} and {reference} may be scans of different trees",
                   reason=lambda: f"{OTHER_TREE} {reference}")
 
@@ -702,10 +704,16 @@ def checks(e: Evidence, *, verify: VerifyParams, coarse: CoarseParams, acceptanc
     motion = (_motion(e, p),) if e.sway_m > 0 else ()
     why_not = ("too little overlap" if not overlap.passed else
                "not measured" if not _measured(e.consistency) else "")
-    same = _same_tree(e, p, support.passed is False and bool(overlap.passed) and _measured(e.consistency),
+    # "Another tree" needs its evidence: support at chance, the overlap to judge, and the scanner standing
+    # level at the pose (scans compared upright; a pose that tips one over is wrong, whatever the trees).
+    upright = _measured(e.tilt_deg) and e.tilt_deg <= p.max_tilt_deg
+    same = _same_tree(e, p, support.passed is False and bool(overlap.passed) and _measured(e.consistency) and upright,
                       target, reference)
-    return (same, support, overlap, *motion, _consistency(e, p, why_not, wind_story), _margin(e, p), _residual(e, p),
-            *pose)
+    still = (_check("free-space consistency, no motion granted", e.consistency_still, "", ">=", p.min_consistency,
+                    "verify.min_consistency", "shown, not judged: the target unbent, none of its points counted as moved",
+                    judged=False),) if e.sway_m > 0 and _measured(e.consistency_still) else ()
+    return (same, support, overlap, *motion, _consistency(e, p, why_not, wind_story), *still, _margin(e, p),
+            _residual(e, p), *pose)
 
 
 def joined_hints(hints: Iterable[str]) -> str:

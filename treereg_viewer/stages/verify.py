@@ -45,9 +45,13 @@ def render_verify(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewSt
         sway = (f" The crown moved {e.sway_m:.2f} m between the stations (the stem top){stable}." if e.crown else
                 f" The stem top stands {e.sway_m:.2f} m off the reference's{stable}, fitted as a bend: the scans hold "
                 "no crown, and a bare stem cannot tell wind from a pose that is off.")
+        still = (f" Free-space consistency {e.consistency_still:.3f} with no motion granted, {e.consistency:.3f} with it."
+                 if np.isfinite(e.consistency_still) and np.isfinite(e.consistency) else "")
         text += (sway + " The evidence is measured with the target unbent by that bend; "
-                 f"{e.moved:,} of its points the reference saw through lie within {e.motion_m * 100:.0f} cm of a "
-                 "surface the reference saw and count as moved (small branches in the wind), not against the pose.")
+                 f"{e.moved:,} of its points the reference saw through lie within the motion the stems' bend explains "
+                 f"(up to {e.motion_m * 100:.0f} cm at the top, less lower down) of a surface the reference saw and count "
+                 "as moved (small branches in the wind), not against the pose; a pose that fails its own checks is "
+                 "refused for itself." + still)
     if v.reasons:
         text += "\n\n" + "\n\n".join(f"- {md_sentence(r)}" for r in v.reasons)
         if v.hint:

@@ -15,12 +15,23 @@ inliers as two different look-alike trees):
   ground their own scans show.
 
 Wind: when the fine stage fitted a bend of the target's stem (its crown moved between the
-stations), the crown's motion is a nuisance, not evidence against the pose. The target is then
-judged unbent (as the reference's tree stood); its points the reference saw through but that lie
-within the branches' measured motion of a surface the reference saw count as moved, not as
-contradictions; the support is counted at the final pose, unbent; the competing hypotheses are
-judged the same way; and a crown that moved more than can be told from a wrong pose is refused
-with that reason.
+stations), the crown's motion is a nuisance, not evidence against the pose — but only as far as a
+motion model fitted from the stems explains it. The target is then judged unbent (as the
+reference's tree stood); its points the reference saw through count as moved, not as
+contradictions, only within the branches' flutter the bend explains (`flutter_allowance`:
+wind.flutter_share of the top's sway, in proportion to a point's height above the stem base,
+never more than verify.max_motion_m), never within whatever the consistency check would need; the
+consistency is shown with and without that allowance. A bend that moves the stem's base is no
+wind's (a cantilever's base does not move: `_base_offset`), a heading the free-space evidence
+prefers elsewhere is the pose's, and the wind is named as a reason only for a pose that passes its
+own checks (stem lean, shift and base, heading, tilt, height): otherwise the pose is refused for
+itself. The support is counted at the final pose, unbent, and the competing hypotheses are judged
+the same way.
+
+Plausibility checks are judged only with their evidence: the scanner height only when each scan
+shows ground on its plane near its scanner (verify.ground_radius_m, min_ground_points,
+ground_fit_m); "not the same tree" only with support at chance, the overlap to judge and a pose
+that stands the scanner level; otherwise "not judged", the reason in the check's rule.
 
 With three or more scans the pose graph adds loop closure (`graph`).
 """
@@ -205,10 +216,13 @@ def gather_evidence(scene: PairScene, results: PairResults, *, verify: VerifyPar
     """Measure every kind of evidence for the pose `results.T_ref_target` of the target.
 
     With a `bend` (the crown moved between the stations; `tgt_surface` is then the target's surface
-    unbent), the target is judged unbent: the branches' own motion is the distance within which
-    points the reference saw through must lie of a surface it saw for `verify.min_consistency` of
-    the points both see to agree (allowed up to `verify.max_motion_m`); its support also counts the
-    ties that agree with the pose (within `support_inlier_m`), and its rivals are judged alike.
+    unbent), the target is judged unbent: points the reference saw through count as moved within the
+    branches' flutter the bend explains (`flutter_allowance`, wind.flutter_share), and the
+    consistency is also measured with none granted; the motion the check would need is measured
+    (up to twice `verify.max_motion_m`) and shown, never granted. Its support also counts the
+    ties that agree with the pose (within `support_inlier_m`), and its rivals are judged alike;
+    below wind.base_share of the height the stems must agree once the bend is taken out.
+    `scene.ref_station`/`tgt_station`: the ground near each scanner is counted for the height check.
     `profile`: the stem profile at the pose (the height the stems agree up to, within
     `wind.stable_tolerance_m`, and whether they lean or stand apart). With `turn_held` (the fine
     stage could not fix the turn about the stem, at `ref_stem_xy`), the heading the free-space

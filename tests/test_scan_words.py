@@ -72,7 +72,8 @@ def test_a_scan_whose_vertical_is_not_z_says_so(which, how, pattern):
     assert verdict != "verified"  # the words change, not the verdict
     assert re.fullmatch(rf"{re.escape(off.name)}: {pattern}: export it z-up and levelled", reasons[0]), reasons
     assert not any("same tree" in r for r in reasons) and "same tree" not in hint
-    assert hint == f"export {off.name} z-up and levelled, then register again"
+    assert hint == (f"let treereg level the scans (prepare.level, --set prepare.level=true), or export {off.name} "
+                    "z-up and levelled, then register again")
 
 
 @pytest.mark.parametrize("which, R", [

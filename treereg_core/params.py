@@ -89,8 +89,8 @@ class PrepareParams:
     ground_min_cell_share: float = _f(0.3, "", "ground: ...and at least this share of all cells", lo=0.0, hi=1.0)
     ground_max_below_share: float = _f(0.01, "", "ground: at most this share of the points may lie more than ground_band_m below the plane (else it is no ground: a tree cut out of a larger cloud)", lo=0.0, hi=1.0)
     level: bool = _f(True, "", "level a scan whose up is not its z (a scanner not levelled, a tilt mount, a scan upside down or y-up), found from its ground near the scanner and its stem, else its file's pose; the transforms are of the scans as given")
-    level_min_deg: float = _f(2.0, "deg", "level: a scan whose up is less than this off z is left as given", lo=0.0, hi=90.0)
-    level_agree_deg: float = _f(3.0, "deg", "level: the ground's normal is the up when the stem's axis agrees with it this closely; else (a slope) the stem's axis", lo=0.0, hi=45.0)
+    level_min_deg: float = _f(3.0, "deg", "level: a scan whose ground's normal is less than this off z is left as given (a gentle slope, or a tilt the stages tolerate)", lo=0.0, hi=90.0)
+    level_stem_margin_deg: float = _f(3.0, "deg", "level: the ground slopes under a plumb stem (the stem's axis is the up, not the ground's normal) when the stem's axis is this much nearer z than the ground's normal (stems waver and lean a few degrees)", lo=0.0, hi=45.0)
 
 
 @dataclass(frozen=True)

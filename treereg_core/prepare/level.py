@@ -10,16 +10,20 @@ transforms users see are of the scans as given: T_ref_tgt = inv(L_ref) @ T_level
 
 The up comes from the scan's own data (`prepare.vertical`: its ground near the scanner, its stem)
 or, without a ground to go by, from its file's pose (an E57/PTX pose that tilts the scanner).
-A scan is levelled only when the evidence is clear, and left exactly as given otherwise:
-- the ground's normal, or the stem's axis, is within `level_min_deg` of z: the scanner stands level
-  (a leaning tree on level ground is a leaning tree, a plumb stem on a slope a slope);
-- the ground and the stem agree (within `level_agree_deg`): the ground's normal is the up (a plane
-  of thousands of points is the finer measure);
-- they disagree (a slope: the stem stands plumb, the ground does not): the stem's axis is the up;
-- the ground more than 45 deg from z (a tilt mount, upside down, y-up): no slope explains it, the
-  ground's normal is the up;
-- a ground tilted from z by less than 45 deg and no stem traced: a slope or a tilted scanner, which
-  the data cannot tell apart: left as given (the verdict says so when the pair is not verified).
+A scan is levelled only when the evidence is clear, and left exactly as given otherwise. The ground
+near the scanner is a plane of thousands of points: its normal is the finer measure of the up; a stem
+wavers and leans by a few degrees (a simulated 8 m tree's axis, traced 0.5-3 m above the ground, is
+up to 3 deg off its true vertical), so it only tells a slope from a tilted scanner when the slope is
+well beyond that:
+- the ground's normal within `level_min_deg` of z: the scanner stands level (a gentle slope, or a
+  scanner tilted by less than the pipeline tolerates);
+- more than 45 deg from z (a tilt mount, upside down, y-up): no slope explains it, the ground's
+  normal is the up;
+- else, when the stem's axis is nearer z than the ground's normal by `level_stem_margin_deg` or more,
+  the ground slopes under a plumb stem: the stem's axis is the up (nothing when it is within
+  `level_min_deg` of z: a levelled scanner on a slope); otherwise the ground's normal is the up;
+- no stem traced under a ground tilted by less than 45 deg: a slope or a tilted scanner, which the
+  data cannot tell apart: left as given (the verdict says so when the pair is not verified).
 """
 
 from __future__ import annotations
@@ -72,8 +76,8 @@ def rotation_to_z(up: np.ndarray) -> np.ndarray:
     return np.eye(3) + s * K + (1.0 - c) * (K @ K)
 
 
-def find_levelling(points: np.ndarray, pose: np.ndarray | None = None, *, min_deg: float = 2.0,
-                   agree_deg: float = 3.0, seed: int = 0) -> Levelling:
+def find_levelling(points: np.ndarray, pose: np.ndarray | None = None, *, min_deg: float = 3.0,
+                   stem_margin_deg: float = 3.0, seed: int = 0) -> Levelling:
     """The levelling of a scan, from its ground and stem, else its file's pose (see the module doc)."""
     pts = np.asarray(points, dtype=float)
     pts = pts[:: max(1, len(pts) // _SAMPLE)]
@@ -92,10 +96,10 @@ def find_levelling(points: np.ndarray, pose: np.ndarray | None = None, *, min_de
     if axis is None:  # a slope or a tilted scanner: the data cannot tell which
         return Levelling(None, off, "")
     stem_off = _deg(axis, _Z)
+    if stem_off + stem_margin_deg > _deg(axis, up):  # the stem does not say slope: the ground is the up
+        return Levelling(rotation_to_z(up), off, "ground and stem")
     if stem_off < min_deg:  # a levelled scanner on a slope
         return Levelling(None, stem_off, "")
-    if _deg(axis, up) <= agree_deg:
-        return Levelling(rotation_to_z(up), off, "ground and stem")
     return Levelling(rotation_to_z(axis), stem_off, "stem (sloping ground)")
 
 

@@ -10,6 +10,7 @@ import numpy as np
 from ..geometry.rigid import invert, mean_displacement, rotation_error_deg
 from ..prepare.level import as_given
 from ..prepare.vertical import scan_vertical
+from ..params import set_flag
 from ..results import Metric
 from ..stage import Stage, StageContext, StageResult
 from ..verify.evidence import FAILED, OTHER_TREE, VERIFIED, PairVerification
@@ -69,6 +70,8 @@ def _with_vertical(ctx: StageContext, i: int, pl: Placement, vertical: Callable[
     # "It does not show the same tree" rests on a z that is not up: not said.
     reasons = why + tuple(r for r in pl.reasons if OTHER_TREE not in r)
     hint = f"export {' and '.join(name for name, _ in off)} z-up and levelled, then register again"
+    if not ctx.params.prepare.level:  # levelling was turned off: it is the first thing to try
+        hint = f"let treereg level the scans (prepare.level, {set_flag('prepare.level', True)}), or {hint}"
     return replace(pl, reasons=reasons, message="; ".join(reasons), hint=hint)
 
 

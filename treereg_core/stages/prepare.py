@@ -42,7 +42,8 @@ def run(ctx: StageContext) -> list[StageResult | None]:
     # A scan whose up is not its z is turned about its scanner so that it is (prepare/level.py): every
     # later stage works on levelled scans; the transforms users see are composed back (`as_given`).
     ctx.progress(0.85, "levelling")
-    levels = [find_levelling(m.scan.points, m.scan.pose, min_deg=pp.level_min_deg, agree_deg=pp.level_agree_deg)
+    levels = [find_levelling(m.scan.points, m.scan.pose, min_deg=pp.level_min_deg,
+                             stem_margin_deg=pp.level_stem_margin_deg)
               if pp.level else Levelling(None, float("nan"), "") for m in mixed]
     stations = [levelled(m.scan, lv.R) if lv.R is not None else m.scan for m, lv in zip(mixed, levels)]
     ctx.progress(0.9, "ground, stems and the target tree")

@@ -83,8 +83,10 @@ def crown_motion(scans: Sequence[Scan], pairs: Sequence[Pair], outputs: Mapping[
     """How far scan i's crown had moved from where its pair's reference saw it (wind between the
     stations), when it moved measurably: top sway (m), its direction (deg, that scan's frame), its
     noise, the height above the stem's base up to which the two stems agree, how far the small
-    branches moved beyond the stem's bend (the allowance the verification needed), and whether the
-    tree holds a crown (False: the bend was fitted to a bare stem); None otherwise."""
+    branches moved beyond the stem's bend (what the free-space consistency would need granted), what
+    the motion model granted them at the top (the branches' flutter the bend explains), the
+    consistency with no motion granted, and whether the tree holds a crown (False: the bend was fitted
+    to a bare stem); None otherwise."""
     k = _motion_pair(pairs, outputs, i)
     if k is None:
         return None
@@ -94,6 +96,7 @@ def crown_motion(scans: Sequence[Scan], pairs: Sequence[Pair], outputs: Mapping[
     return {"relative_to": scans[pairs[k].ref].name, "top_sway_m": _num(e.sway_m),
             "direction_deg": _num(e.sway_direction_deg), "sway_std_m": _num(e.sway_std_m),
             "stems_agree_up_to_m": _num(e.stable_height_m), "branches_moved_m": _num(e.motion_needed_m),
+            "branches_allowed_m": _num(e.motion_m), "consistency_no_motion": _num(e.consistency_still),
             "crown": bool(e.crown)}
 
 

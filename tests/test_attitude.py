@@ -143,3 +143,11 @@ def test_the_simulators_attitudes():
     plain = CaseSpec(seed=6, n_stations=2, **SMALL).build().stations
     assert all(np.allclose(a.T_world_scan, b.T_world_scan) for a, b in zip(plain, stations[:2]))
     assert CaseSpec(tilt_deg=15.0, tilt_exact=True).label.endswith("tilt 15 deg, 0.1 deg")
+
+
+def test_a_wrong_tree_pair_of_tilted_scanners_stays_refused():
+    """Levelling makes no pair of two different trees, each scanner tilted 10 deg, verified."""
+    a, b = (CaseSpec(seed=s, n_stations=2, tilt_deg=10.0, tilt_exact=True, **SMALL).build() for s in (1, 2))
+    reg = register([a.scans[0], b.scans[1]])
+    assert all(p.T_level is not None for p in reg.pipeline.output("prepare").items)
+    assert reg.pipeline.verdicts()["scan2.ply"][0] != "verified"

@@ -47,9 +47,11 @@ def demo_turned():
     return _turned_verdicts(c.scans, c.truth)
 
 
-@pytest.fixture(scope="module")
-def seeded_turned():
-    spec = benchmark_cases(3, seed=0, small=True)[2]  # a plain leaf-off tree, still air
+@pytest.fixture(scope="module", params=[0, 2], ids=["awkward", "plain"])
+def seeded_turned(request):
+    """The seeded set's first case (awkward: leaves, bent trunk, ground, tilt, in turn) and a plain
+    leaf-off tree, both in still air."""
+    spec = benchmark_cases(3, seed=0, small=True)[request.param]
     case = spec.build()
     return _turned_verdicts(case.scans, case.truth())
 

@@ -49,7 +49,8 @@ def run(ctx: StageContext) -> list[StageResult | None]:
     ctx.progress(0.9, "ground, stems and the target tree")
     target = ctx.params.target
     if levels[0].R is not None and target.tree_at is not None:  # given in the reference's frame as given
-        target = replace(target, tree_at=tuple(float(v) for v in (levels[0].R @ [*target.tree_at, 0.0])[:2]))
+        x, y = (float(v) for v in (levels[0].R @ [*target.tree_at, 0.0])[:2])
+        target = replace(target, tree_at=(x, y))
     preps = prepare_scans(stations, prepare=pp, target=target)
     return [replace(p, station=st, mixed_points=_turned(w.scan.points[m.mixed], lv.R), mixed_not_filtered=m.not_filtered,
                     T_level=lv.T, metrics=(w.metrics if w.reduced else ()) + m.metrics + _level_metrics(lv) + p.metrics)

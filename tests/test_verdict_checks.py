@@ -32,7 +32,8 @@ def _evidence(**changes) -> Evidence:
 
 def _assess(e: Evidence, p: Params | None = None):
     p = p or Params()
-    return assess(e, verify=p.verify, coarse=p.coarse, acceptance=p.acceptance, target="scan2.ply", reference="scan1.ply")
+    return assess(e, verify=p.verify, coarse=p.coarse, acceptance=p.acceptance, target="scan2.ply", reference="scan1.ply",
+                  wind=p.wind)
 
 
 def _clauses(hint: str) -> list[str]:
@@ -63,6 +64,12 @@ CASES = {
     "wind, motion beyond reach": dict(sway_m=0.1, motion_needed_m=float("inf"), heading_offset_deg=2.0),
     "wind, heading open": dict(sway_m=0.2, heading_offset_deg=1.5),
     "tilt and height": dict(tilt_deg=12.0, height_difference_m=-2.5),
+    "wind, stem base moved": dict(sway_m=0.2, base_offset_m=0.012, base_offset_std_m=0.001, base_height_m=2.5,
+                                  consistency_still=0.99),
+    "wind, heading preferred elsewhere": dict(sway_m=0.2, heading_offset_deg=2.0, heading_flat=False, consistency=0.9,
+                                              consistency_still=0.88, motion_m=0.1, moved=40),
+    "wind, height without its ground": dict(sway_m=0.2, consistency=0.9, consistency_still=0.85, motion_m=0.1,
+                                            height_difference_m=-3.49, ground_ref_points=5000, ground_tgt_points=0),
 }
 
 
@@ -80,7 +87,7 @@ def test_the_reasons_are_the_failed_checks_and_no_text_says_nan_or_repeats_a_cla
     assert len(set(clauses)) == len(clauses) and all(clauses), j.hint
     for c in j.checks:  # a judged check shows its threshold; a value not measured says so
         if c.passed is not None:
-            assert c.limit_text().startswith(("≥ ", "≤ ")) and c.parameter.split(".")[0] in ("verify", "acceptance")
+            assert c.limit_text().startswith(("≥ ", "≤ ")) and c.parameter.split(".")[0] in ("verify", "acceptance", "wind")
         if c.value is None or np.isnan(float(c.value)):
             assert c.value_text() == "not measured"
 

@@ -9,8 +9,10 @@ from pathlib import Path
 from typing import Any
 
 from treereg_core import params as P
+from treereg_core.coarse.start import StartPose
 from treereg_core.errors import ConfigError
 from treereg_core.io.naming import scan_names
+from treereg_core.io.start import read_start
 from treereg_core.io.scans import ScanRecord, read_records, record_to_scan
 from treereg_core.parallel import default_workers
 from treereg_core.params import Params
@@ -117,6 +119,36 @@ def add_param_args(p: argparse.ArgumentParser) -> None:
                    "(georeferenced or project coordinates); give it once per scan, in order")
     p.add_argument("--tree-at", nargs=2, type=float, metavar=("X", "Y"),
                    help="the target tree's stem in the first scan's frame (default: the stem the stations surround)")
+
+
+def add_initial_arg(p: argparse.ArgumentParser) -> None:
+    """--initial SCAN=FILE (repeatable): a start pose for a scan the coarse stage gets wrong."""
+    p.add_argument("--initial", action="append", metavar="SCAN=FILE",
+                   help="start scan SCAN (its name, as transforms.json names it) from the pose in FILE instead of "
+                   "the coarse stage's: 4 rows of 4 numbers mapping it onto the reference (CloudCompare's matrix "
+                   "layout, as --exports writes it) or a transforms.json with an entry for SCAN. The fine stage "
+                   "and the verification run from there: a wrong start is refused like any pose (repeatable)")
+
+
+def initial_files(args: argparse.Namespace) -> list[Path]:
+    """The files --initial names (inputs: no output may be one of them)."""
+    return [Path(text.partition("=")[2]) for text in getattr(args, "initial", None) or [] if "=" in text]
+
+
+def read_initial(settings: list[str] | None) -> dict[str, StartPose]:
+    """Each --initial SCAN=FILE read and checked (`io.start.read_start`): scan name -> StartPose. That
+    the scans exist and none is the reference is checked when they are read (`Pipeline.start`)."""
+    out: dict[str, StartPose] = {}
+    for setting in settings or []:
+        scan, eq, file = setting.partition("=")
+        if not (eq and scan.strip() and file.strip()):
+            raise ConfigError(f"--initial {setting}: expected SCAN=FILE (e.g. --initial scan2.ply=start.txt), the "
+                              "scan's name as transforms.json names it")
+        if scan in out:
+            raise ConfigError(f"--initial {setting}: {scan!r} was given a start pose twice "
+                              f"(also from {out[scan].source})")
+        out[scan] = read_start(file, scan)
+    return out
 
 
 def read_scans(files: list[str], params: Params, scanner_positions: list[list[float]] | None = None) -> list[Scan]:

@@ -25,7 +25,8 @@ from treereg_core.verify.report import motion_lines, quality_report, verdict_lin
 
 from treereg_core.text import shown
 
-from .common import add_param_args, add_workers_arg, load_params, read_scans, workers_of
+from .common import (add_initial_arg, add_param_args, add_workers_arg, initial_files, load_params, read_initial,
+                     read_scans, workers_of)
 from .progress import ProgressBar
 
 #: `--until` choice -> the last stage run ("fine" includes the verification and the joint placement).
@@ -49,6 +50,7 @@ def add(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--keep-unverified", action="store_true",
                    help="also write the best guesses of unverified scans into \"transforms\" (marked in \"quality\")")
     add_param_args(p)
+    add_initial_arg(p)
     add_workers_arg(p, "pairs and scans registered side by side")
     p.add_argument("--exports", action="store_true",
                    help="also write CloudCompare and PDAL matrix files beside --out, named after it "
@@ -75,13 +77,14 @@ def run(args: argparse.Namespace) -> int:
     # two results onto one file.
     outputs = [("--out", out)] + [(what, Path(p)) for what, p in (
         ("--e57" if args.e57 else "the --exports E57 (named after --out)", e57), ("--merged", args.merged)) if p]
-    inputs = [*args.scans, *([args.config] if args.config else [])]
+    inputs = [*args.scans, *([args.config] if args.config else []), *initial_files(args)]
     check_distinct(outputs, inputs)
     check_output_file(out, example="transforms.json")
     for extra in (e57, args.merged):
         if extra is not None:
             check_output_file(extra)
     params = load_params(args)
+    starts = read_initial(args.initial)  # a bad start file is said before the scans are read
     workers = workers_of(args)
     t_read = time.perf_counter()
     scans = read_scans(args.scans, params, args.scanner_position)
@@ -97,7 +100,8 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     bar = ProgressBar("register")
     # The command line runs no threads of its own: its GIL-bound stages may fork processes.
-    reg = register(scans, params, until=UNTIL[args.until], events=bar.on_event, workers=workers, fork=True)
+    reg = register(scans, params, until=UNTIL[args.until], events=bar.on_event, workers=workers, fork=True,
+                   starts=starts)
     bar.finish()  # a run that stopped early left the bar short of full
     seconds = time.perf_counter() - t0
     pipe = reg.pipeline
@@ -133,7 +137,8 @@ def run(args: argparse.Namespace) -> int:
             print(f"  {r['stage']:<10} {r['metric']:<40} {text} {r['unit']}")
     print()
     for name, (verdict, _, _) in verdicts.items():
-        print(f"  {name:<30} {verdict_text(verdict, params, name == scans[0].name)}")
+        start = f" (started from the pose given in {starts[name].source})" if name in starts else ""
+        print(f"  {name:<30} {verdict_text(verdict, params, name == scans[0].name)}{start}")
     for line in motion_lines(scans, pipe.pairs, pipe.outputs):
         print(f"  wind: {line}")
     print(f"\nwrote {', '.join(shown(w) for w in written)} in {seconds:.1f} s")

@@ -165,6 +165,9 @@ class CoarseParams:
     modes: int = _f(4, "", "RANSAC keeps this many distinct solutions (other headings, other trunk positions) for the hypotheses stage", lo=1, hi=20)
     chance_shuffles: int = _f(3, "", "RANSAC is also run on this many random re-pairings of the ties: what chance reaches (0 = not measured)", lo=0, hi=50)
     max_tilt_deg: float | None = _f(30.0, "deg", "reject a transform that tilts the scan more than this (scanners stand nearly level); None = no check", lo=0.0, hi=180.0)
+    start_gates_m: tuple[float, ...] = _f((1.0, 0.5, 0.25, 0.1, 0.05, 0.02), "m", "a start pose the user gave (register --initial) is aligned by the surfaces, the pairing distance narrowing through these (the widest: how far off a start may be)", lo=0.005, hi=5.0, max_len=20)
+    start_iterations: int = _f(10, "", "iterations of that alignment at each pairing distance", lo=1, hi=200)
+    start_snap_m: float = _f(3.0, "m", "...and, when the start puts the target's stem at most this far from the reference's, also from the start shifted so the stems meet (the better aligned is kept)", lo=0.0, hi=50.0)
 
 
 @dataclass(frozen=True)

@@ -20,6 +20,8 @@ from .params import SECTIONS, Params
 from .results import MetricRow, Progress
 from .scan import Scan
 from .coarse.estimate import CoarseResult
+from .coarse.start import StartPose
+from .errors import ConfigError
 from .coarse.sequences import ImageSequence
 from .coarse.similarity import scan_similarity
 from .fine.pose import FineResult
@@ -42,6 +44,9 @@ class Pipeline:
     runs: Counter[str] = field(default_factory=Counter, repr=False)
     #: Hypotheses picked by hand (the app): pair label "b -> a" -> candidate label.
     choices: dict[str, str] = field(default_factory=dict)
+    #: Start poses a user gave (`register --initial`; `start`): scan name -> StartPose, which replaces
+    #: the coarse result of that scan's pairs; the stages after it run from it and judge it as any pose.
+    starts: dict[str, StartPose] = field(default_factory=dict)
     #: Workers of a run (`parallel.Workers`; None: the machine's cores). Results are the same for
     #: any number.
     workers: int | None = None
@@ -99,11 +104,32 @@ class Pipeline:
             self.choices[pair_label] = candidate
         return self.invalidate("hypotheses")
 
+    def start(self, name: str, pose: StartPose | None) -> list[str]:
+        """Give scan `name` a start pose (None: estimate it again): its pairs' coarse results become
+        that pose, and the coarse stage and what depends on it become stale. Raises ConfigError (naming
+        `pose.source`) for a scan that is not one of the scans, the reference, or a start whose file
+        names another reference. Returns the stages dropped."""
+        if pose is None:
+            return self.invalidate("coarse") if self.starts.pop(name, None) is not None else []
+        names = [s.name for s in self.scans]
+        where = f"{pose.source}: the start pose of {name!r}"
+        if name not in names:
+            raise ConfigError(f"{where}: there is no scan of that name; the scans are {', '.join(map(repr, names))}")
+        if name == names[0]:
+            raise ConfigError(f"{where}: {name!r} is the reference, which every other scan is mapped onto; "
+                              "give start poses of the other scans")
+        if pose.reference is not None and pose.reference != names[0]:
+            raise ConfigError(f"{where}: the file maps it onto {pose.reference!r}, but the reference of this "
+                              f"registration is {names[0]!r} (the first scan given)")
+        self.starts[name] = pose
+        return self.invalidate("coarse")
+
     def set_scans(self, scans: Sequence[Scan], truth: dict[str, np.ndarray] | None = None) -> None:
         self.scans = list(scans)
         self.truth = truth
         names = {s.name for s in self.scans}
         self.choices = {k: v for k, v in self.choices.items() if all(n in names for n in k.split(" -> "))}
+        self.starts = {k: v for k, v in self.starts.items() if k in names and k != self.scans[0].name}
         self.invalidate(STAGE_NAMES[0])
 
     def invalidate(self, name: str) -> list[str]:
@@ -170,7 +196,9 @@ class Pipeline:
                 # A reference that cannot be prepared or projected leaves nothing to register onto:
                 # stop. Another scan that cannot is its own failure (a scan of only ground among good
                 # ones): its pairs are skipped by the later stages while the other pairs go on.
-                if (st.stop_on_failure and not out.items[0].ok) or not any(it.ok for it in out.items):
+                # Nor does a stage before coarse that failed for every pair when a pair has a start.
+                if (st.stop_on_failure and not out.items[0].ok) or (
+                        not any(it.ok for it in out.items) and not self._started_after(st)):
                     break
         return last
 
@@ -183,7 +211,8 @@ class Pipeline:
         why = [self._blocked(st, k) for k in range(n)]
         emit(StageStarted(st.name, n))
         ctx = StageContext(tuple(self.scans), self.pairs, st.params_view(self.params), self.truth, dict(self._out),
-                           tuple(w is None for w in why), progress, dict(self.choices), workers, st.processes)
+                           tuple(w is None for w in why), progress, dict(self.choices), workers, st.processes,
+                           dict(self.starts))
         t0 = time.perf_counter()
         items = tuple(_item(st, it, w) for it, w in zip(st.run(ctx), why))
         seconds = time.perf_counter() - t0
@@ -196,8 +225,26 @@ class Pipeline:
         msg = "; ".join(f"{name}: {it.message}" for name, it in bad)
         return StageOutput(st.name, not bad, msg, items, seconds)
 
+    def _started(self, k: int) -> bool:
+        """Pair k's coarse result is a start the user gave (`starts`: the coarse stage's `given_start`)."""
+        p = self.pairs[k]
+        return self.scans[p.tgt].name in self.starts and (p.ref == 0 or self.scans[p.ref].name in self.starts)
+
+    def _started_after(self, st: Stage) -> bool:
+        """`st` comes before the coarse stage, which some pair takes from a start."""
+        return STAGE_NAMES.index(st.name) < STAGE_NAMES.index("coarse") and any(
+            self._started(k) for k in range(len(self.pairs)))
+
     def _blocked(self, st: Stage, k: int) -> str | None:
-        """Why item `k` of stage `st` cannot run (a hard dependency failed for it), or None."""
+        """Why item `k` of stage `st` cannot run (a hard dependency failed for it), or None. A pair
+        the user gave a start needs no tie points: its coarse item runs where both scans were prepared."""
+        if st.name == "coarse" and self._started(k):
+            prep = self._out["prepare"]
+            for i in (self.pairs[k].ref, self.pairs[k].tgt):
+                if not prep.items[i].ok:
+                    it = prep.items[i]
+                    return it.message if isinstance(it, Skipped) else f"not run: prepare failed for this scan ({it.message})"
+            return None
         for dep in st.depends:
             dep_st = stage(dep)
             if dep_st.per == st.per:
@@ -334,14 +381,18 @@ def register(
     events: Events | None = None,
     workers: int | None = None,
     fork: bool = False,
+    starts: dict[str, StartPose] | None = None,
 ) -> Registration:
     """One call: register every scan onto the first; `until` is a stage name (default "graph": fine
     registration, verification and the joint placement, so `pipeline.verdicts()` says which scans
     are verified; "coarse" or "fine" stop earlier, every scan then unverified; "evaluation" adds the
     paper's evaluation and ICP); `events` hears the run (`Pipeline.run`); `workers` compute threads
     (`parallel`; None: the machine's cores; the result is the same for any number), forking
-    processes for GIL-bound stages with `fork` (`Pipeline.fork`)."""
+    processes for GIL-bound stages with `fork` (`Pipeline.fork`); `starts` the start poses a user
+    gave (scan name -> `StartPose`, checked by `Pipeline.start` before anything runs)."""
     pipe = Pipeline(list(scans), params or Params(), truth, workers=workers, fork=fork)
+    for name, pose in (starts or {}).items():
+        pipe.start(name, pose)
     last = pipe.run(until, events)
     ok = last is not None and last.ok and last.stage == until
     return Registration(ok, last.message if last else "", pipe.transforms(), pipe)

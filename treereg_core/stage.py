@@ -18,7 +18,7 @@ other, so a change to a section re-runs every stage whose results it can alter.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, fields
-from typing import Any, Callable, Literal, Mapping, Protocol, TypeVar, Union
+from typing import TYPE_CHECKING, Any, Callable, Literal, Mapping, Protocol, TypeVar, Union
 
 import numpy as np
 
@@ -26,6 +26,9 @@ from .parallel import SERIAL, Workers
 from .params import SECTIONS, Params
 from .results import Metric, Progress
 from .scan import Scan
+
+if TYPE_CHECKING:
+    from .coarse.start import StartPose
 
 
 class StageResult(Protocol):
@@ -144,6 +147,9 @@ class StageContext:
     workers: Workers = SERIAL
     #: The stage's items hold the GIL (`Stage.processes`): forked processes, where the run may fork.
     fork: bool = False
+    #: Start poses a user gave (`Pipeline.starts`): scan name -> `coarse.start.StartPose`, which
+    #: the coarse stage takes instead of its estimate for the scan's pairs.
+    starts: Mapping[str, StartPose] = field(default_factory=dict)
 
     def item(self, stage: str, k: int, kind: type[R]) -> R:
         """Item `k` of upstream `stage`, a `kind` (a hard dependency's items are, where live)."""

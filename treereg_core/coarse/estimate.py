@@ -43,6 +43,8 @@ class CoarseResult:
         empty for plain SVD. Competing headings of a round crown show up here.
     chance_inliers : the most ties RANSAC makes agree when the pairing is shuffled (what chance
         reaches on these ties; -1 when not measured).
+    started_from : where the transform came from when a user gave it (`StartPose.source`: the
+        file of `register --initial`, "the app"); "" when it was estimated from the tie points.
     """
 
     ok: bool
@@ -58,6 +60,7 @@ class CoarseResult:
     seconds: float = 0.0
     modes: tuple[tuple[np.ndarray, int], ...] = ()
     chance_inliers: int = -1
+    started_from: str = ""
 
 
 def _coarse_fail(message: str, match: MatchResult, metrics: tuple[Metric, ...], t0: float) -> CoarseResult:
@@ -163,3 +166,4 @@ def _implausible(n_inliers: int, n_ties: int, tilt_deg: float, p: CoarseParams) 
         return (f"the transform tilts the scan by {tilt_deg:.1f} deg, but scanners stand nearly level "
                 f"(max_tilt_deg = {p.max_tilt_deg:g}), so its tie points are wrong; {fix}")
     return ""
+

@@ -32,8 +32,9 @@ def parse_json(data: bytes | str, source: str) -> Any:
         raise ConfigError(f"{source}: nested too deeply to be a treereg JSON file") from None
 
 
-def load_json(path: str | Path, kind: str) -> Any:
-    """Read the JSON file `path`; `kind` says what it should be ("parameter file", "transform file")."""
+def read_user_bytes(path: str | Path, kind: str, max_bytes: int = MAX_JSON_BYTES) -> bytes:
+    """The bytes of a small file a user hands in (`kind` says what it should be, for the message):
+    missing, a folder, a FIFO or device, unreadable or over `max_bytes` is one `ConfigError` naming it."""
     path = Path(path)
     try:
         st = path.stat()
@@ -42,11 +43,15 @@ def load_json(path: str | Path, kind: str) -> Any:
         if not stat.S_ISREG(st.st_mode):  # a FIFO or a device would block or never end
             raise ConfigError(f"{path}: is not a regular file, so not a {kind}")
         size = st.st_size
-        if size > MAX_JSON_BYTES:
+        if size > max_bytes:
             raise ConfigError(f"{path}: is {size / 1e6:,.0f} MB, far too large for a {kind}")
-        data = path.read_bytes()
+        return path.read_bytes()
     except FileNotFoundError:
         raise ConfigError(f"{path}: no such {kind}") from None
     except OSError as e:
         raise ConfigError(f"{path}: cannot be read ({(e.strerror or type(e).__name__).lower()})") from None
-    return parse_json(data, str(path))
+
+
+def load_json(path: str | Path, kind: str) -> Any:
+    """Read the JSON file `path`; `kind` says what it should be ("parameter file", "transform file")."""
+    return parse_json(read_user_bytes(path, kind), str(Path(path)))

@@ -23,14 +23,20 @@ def _num(v: Any) -> Any:
 
 
 def quality_report(scans: Sequence[Scan], pairs: Sequence[Pair], outputs: Mapping[str, StageOutput]) -> dict[str, Any]:
-    """{"scans": {name: verdict, reasons, hint, placed through}, "edges": [per pair: its numbers]}."""
-    graph, verify = outputs.get("graph"), outputs.get("verify")
+    """{"scans": {name: verdict, reasons, hint, placed through, started_from}, "edges": [per pair: its
+    numbers]}. "started_from" names where the start pose the user gave came from (`register --initial`)
+    for a scan whose pair with the reference started from it instead of the coarse stage's estimate."""
+    graph, verify, coarse = outputs.get("graph"), outputs.get("verify"), outputs.get("coarse")
+    started = {scans[p.tgt].name: getattr(coarse.items[k], "started_from", "") for k, p in enumerate(pairs)
+               if coarse is not None and k < len(coarse.items) and p.ref == 0}
     per_scan: dict[str, Any] = {}
     for i, s in enumerate(scans):
         pl = graph.items[i] if graph is not None else None
         if pl is None:
             per_scan[s.name] = {"verdict": UNVERIFIED if i else VERIFIED,
                                 "reasons": ["the registration stopped before verification"] if i else []}
+            if started.get(s.name):
+                per_scan[s.name]["started_from"] = started[s.name]
             continue
         entry = {"verdict": pl.verdict, "reasons": list(pl.reasons), "hint": pl.hint,
                  "placed_through": [scans[v].name for v in pl.via]}
@@ -39,6 +45,8 @@ def quality_report(scans: Sequence[Scan], pairs: Sequence[Pair], outputs: Mappin
         motion = crown_motion(scans, pairs, outputs, i)
         if motion is not None:
             entry["crown_motion"] = motion
+        if started.get(s.name):
+            entry["started_from"] = started[s.name]
         per_scan[s.name] = entry
     edges = []
     graph_edges = graph.items[0].edges if graph is not None and graph.items else ()

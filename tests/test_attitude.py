@@ -9,8 +9,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from conftest import REAL_TREES, needs
 from treereg_core.errors import ConfigError
 from treereg_core.geometry.rigid import invert, mean_displacement, rotation_error_deg
+from treereg_core.io.scans import read_scan
 from treereg_core.io.transforms import read_transforms, registration_file, write_transforms
 from treereg_core.params import Params
 from treereg_core.pipeline import Pipeline, register
@@ -151,3 +153,21 @@ def test_a_wrong_tree_pair_of_tilted_scanners_stays_refused():
     reg = register([a.scans[0], b.scans[1]])
     assert all(p.T_level is not None for p in reg.pipeline.output("prepare").items)
     assert reg.pipeline.verdicts()["scan2.ply"][0] != "verified"
+
+
+_STATION = REAL_TREES / "rtls_single_scan_scanner_at_origin.xyz.gz"
+
+
+@needs(_STATION)
+def test_a_real_level_station_is_left_as_given_and_levelled_once_tilted():
+    """The real RIEGL station stands level (its ground 2.4 deg off z: a slope): left as given; tilted
+    8 deg it is levelled from its ground and stem, y-up from its ground alone."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # its steps: not what is tested
+        p = read_scan(_STATION).points
+    assert find_levelling(p).R is None
+    tilted = find_levelling(p @ tilt_rotation(8.0, 0.0).T)
+    assert tilted.how == "ground and stem" and tilted.off_deg == pytest.approx(8.0, abs=3.0)
+    assert find_levelling(np.c_[p[:, 0], p[:, 2], -p[:, 1]]).how == "ground"

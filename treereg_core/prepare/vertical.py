@@ -1,7 +1,9 @@
 """Whether a scan's vertical is its z: a scanner tilted, mounted upside down, or a scan exported y-up.
 
 Every stage takes z as up (the ground plane, the stem at breast height, the slices, the projection's
-turn about z), so such a scan registers as if it showed another tree; its verdict must say why.
+turn about z). The prepare stage levels such a scan when its evidence is clear (`prepare.level`, which
+uses this module's ground and stem); one it leaves as given (no stem to tell a slope from a tilt,
+levelling turned off) registers as if it showed another tree, and its verdict must say why.
 
 The ground says where up is: a terrestrial scanner stands 0.3-3.5 m above it, so the plane holding
 most points within that distance of the scanner (the origin of the scan's frame) is the ground, and

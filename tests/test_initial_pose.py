@@ -9,6 +9,7 @@ any wrong pose is; a bad start file is one line and exit 2, nothing written.
 from __future__ import annotations
 
 import json
+import os
 from dataclasses import replace
 
 import numpy as np
@@ -227,3 +228,32 @@ def test_a_start_file_is_an_input_no_output_may_overwrite(case_dir, tmp_path, ca
     with pytest.raises(ConfigError, match="twice"):
         from treereg_cli.common import read_initial
         read_initial([f"scan2.ply={f}", f"scan2.ply={f}"])
+
+
+# ---- the batch manifest ----------------------------------------------------------------------------
+def test_a_manifests_initial_column_rescues_a_trees_scan(case, case_dir, tmp_path, capsys):
+    """The manifest's `initial` column gives start poses as --initial does: the tree is verified from
+    them, and scans.csv and transforms.json say which scans started from the user's pose."""
+    import csv
+
+    start = tmp_path / "start2.txt"
+    start.write_text(cloudcompare_matrix_text(off(case.T_ref_scan[1], case.scans[1].points, 8.0, 0.3)))
+    man = tmp_path / "campaign.csv"
+    rel = {n: os.path.relpath(case_dir / n, tmp_path) for n in ("scan1.ply", "scan2.ply")}
+    man.write_text("tree,scans,initial\n"
+                   f"a,{rel['scan1.ply']};{rel['scan2.ply']},scan2.ply=start2.txt\n"
+                   f"b,{rel['scan1.ply']};{rel['scan2.ply']},scan2.ply=missing.txt\n")
+    out = tmp_path / "res"
+    assert main(["batch", str(man), "--out", str(out), "--workers", "1", *BROKEN]) == 1  # tree b: its start is missing
+    with open(out / "scans.csv", newline="") as fh:
+        rows = {(r["tree"], r["scan"]): r for r in csv.DictReader(fh)}
+    assert rows[("a", "scan2.ply")]["verdict"] == "verified" and rows[("a", "scan2.ply")]["started_from"] == str(start)
+    with open(out / "summary.csv", newline="") as fh:
+        b = next(r for r in csv.DictReader(fh) if r["tree"] == "b")
+    assert b["status"] == "failed" and "missing.txt: no such start pose file" in b["message"], b
+    q = read_transforms(out / "a" / "transforms.json").extra["quality"]["scans"]
+    assert q["scan2.ply"]["started_from"] == str(start)
+    man.write_text("tree,scans,initial\n" f"a,{rel['scan1.ply']};{rel['scan2.ply']},scan2.ply\n")
+    capsys.readouterr()
+    assert main(["batch", str(man), "--out", str(tmp_path / "res2")]) == 2
+    one_line(capsys.readouterr().err, r"campaign\.csv, line 2: initial 'scan2\.ply' is not SCAN=FILE")

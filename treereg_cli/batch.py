@@ -28,7 +28,8 @@ def add(sub: argparse._SubParsersAction) -> None:
         help="register many trees: a folder of tree folders or a CSV manifest -> per-tree transforms and a report",
         description="Register every tree of a campaign. INPUT is a folder with one sub-folder per tree (its "
         "scan files; the first by name, or by truth.json's order, is the reference) or a CSV manifest with "
-        "the columns tree, scans (files separated by ';', reference first)[, angular_step][, target]. Writes "
+        "the columns tree, scans (files separated by ';', reference first)[, angular_step][, target][, initial "
+        "(start poses as register --initial gives them: SCAN=FILE separated by ';')]. Writes "
         "OUT/<tree>/transforms.json with the CloudCompare and PDAL matrices, and OUT/summary.csv, "
         "OUT/scans.csv and a self-contained OUT/report.html. Trees already done are skipped (unless --redo); "
         "a failing tree never stops the others.",

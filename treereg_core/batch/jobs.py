@@ -4,11 +4,13 @@ A folder: every sub-folder holding scan files is a tree, named by the folder; it
 in the order its truth.json lists them (simulated cases) or else sorted by name, the first being
 the reference. A manifest (`.csv`): one row per tree with the columns
 
-    tree, scans[, angular_step][, target]
+    tree, scans[, angular_step][, target][, initial]
 
 `scans` lists the files separated by ';' (paths relative to the manifest's folder, reference
 first); `angular_step` is "H" or "H V" in degrees; `target` is "X Y", the target tree's stem in the
-reference scan's frame (metres). Problems with the manifest itself raise `ConfigError` naming the
+reference scan's frame (metres); `initial` gives scans start poses, as `register --initial` does:
+"SCAN=FILE" entries separated by ';' (the scan's name as transforms.json names it, the file relative
+to the manifest's folder: 4 rows of 4 numbers or a transforms.json, `io.start`). Problems with the manifest itself raise `ConfigError` naming the
 file and the line; a tree whose files are missing is still a job, and fails on its own.
 """
 
@@ -35,6 +37,7 @@ class TreeJob:
     angular_step_deg : (phi, varphi) for this tree's scans, or None (the parameters', else estimated).
     target_xy_m : the target stem's position in the reference frame, or None.
     truth : a truth.json with the true transforms (simulated cases), or None.
+    starts : (scan name, start file) per scan the user gave a start pose (`register --initial`).
     """
 
     name: str
@@ -42,6 +45,7 @@ class TreeJob:
     angular_step_deg: tuple[float, float] | None = None
     target_xy_m: tuple[float, float] | None = None
     truth: Path | None = None
+    starts: tuple[tuple[str, Path], ...] = ()
 
 
 #: Names of what `treereg batch` writes that a scan reader would take: the matrix files in each tree's
@@ -111,6 +115,26 @@ def _floats(text: str, n: tuple[int, ...], where: str, what: str) -> tuple[float
     return values
 
 
+#: A manifest's columns.
+COLUMNS = ("tree", "scans", "angular_step", "target", "initial")
+
+
+def _starts(text: str, folder: Path, where: str) -> tuple[tuple[str, Path], ...]:
+    """The `initial` cell: "SCAN=FILE; SCAN=FILE" (files relative to the manifest's folder). The files
+    are read with the tree (a bad one fails that tree, as a missing scan does)."""
+    out: list[tuple[str, Path]] = []
+    for entry in (e.strip() for e in text.split(";")):
+        if not entry:
+            continue
+        scan, eq, file = entry.partition("=")
+        if not (eq and scan.strip() and file.strip()):
+            raise ConfigError(f"{where}: initial {entry!r} is not SCAN=FILE (e.g. scan2.ply=start2.txt)")
+        if any(n == scan.strip() for n, _ in out):
+            raise ConfigError(f"{where}: initial gives {scan.strip()!r} a start pose twice")
+        out.append((scan.strip(), folder / file.strip()))
+    return tuple(out)
+
+
 def read_manifest(path: Path) -> list[TreeJob]:
     """The trees of a CSV manifest (see the module docstring)."""
     try:
@@ -122,11 +146,11 @@ def read_manifest(path: Path) -> list[TreeJob]:
         raise ConfigError(f"{path}: the manifest is empty")
     head = [h.strip().lower() for h in rows[0]]
     if "tree" not in head or "scans" not in head:
-        raise ConfigError(f"{path}: the first line must name the columns: tree, scans[, angular_step][, target]; "
-                          f"got {', '.join(head)}")
-    unknown = [h for h in head if h not in ("tree", "scans", "angular_step", "target")]
+        raise ConfigError(f"{path}: the first line must name the columns: tree, scans[, angular_step][, target]"
+                          f"[, initial]; got {', '.join(head)}")
+    unknown = [h for h in head if h not in COLUMNS]
     if unknown:
-        raise ConfigError(f"{path}: unknown column(s) {', '.join(unknown)}; columns are tree, scans, angular_step, target")
+        raise ConfigError(f"{path}: unknown column(s) {', '.join(unknown)}; columns are {', '.join(COLUMNS)}")
     col = {h: i for i, h in enumerate(head)}
     jobs: list[TreeJob] = []
     seen: set[str] = set()
@@ -157,7 +181,8 @@ def read_manifest(path: Path) -> list[TreeJob]:
             v = _floats(cell["target"], (2,), where, "target")
             target = (v[0], v[1])
         truth = files[0].parent / TRUTH_NAME
-        jobs.append(TreeJob(name, files, step, target, truth if truth.is_file() else None))
+        jobs.append(TreeJob(name, files, step, target, truth if truth.is_file() else None,
+                            _starts(cell.get("initial", ""), path.parent, where)))
     if not jobs:
         raise ConfigError(f"{path}: the manifest lists no trees")
     return jobs

@@ -17,7 +17,7 @@ from .tree import TreeOutcome
 
 TREE_COLUMNS = ("tree", "status", "exit_code", "scans", "verified", "unverified", "failed", "points", "read_s", "register_s",
                 "total_s", "max_rot_err_deg", "max_disp_err_m", "message")
-SCAN_COLUMNS = ("tree", "scan", "verdict", "points", "rot_err_deg", "disp_err_m", "message")
+SCAN_COLUMNS = ("tree", "scan", "verdict", "points", "rot_err_deg", "disp_err_m", "message", "started_from")
 
 
 #: Colour class of a scan's verdict in the report.
@@ -72,7 +72,8 @@ def write_summary(outcomes: list[TreeOutcome], out_dir: Path, pictures: dict[str
     out_dir = Path(out_dir)
     rows = [tree_row(o) for o in outcomes]
     scan_rows = [{"tree": o.tree, "scan": s.name, "verdict": s.verdict, "points": str(s.points),
-                  "rot_err_deg": _num(s.rot_err_deg, 4), "disp_err_m": _num(s.disp_err_m, 5), "message": s.message}
+                  "rot_err_deg": _num(s.rot_err_deg, 4), "disp_err_m": _num(s.disp_err_m, 5), "message": s.message,
+                  "started_from": s.started_from}
                  for o in outcomes for s in o.scans]
     texts = (_csv(TREE_COLUMNS, rows), _csv(SCAN_COLUMNS, scan_rows), report_html(outcomes, pictures, title))
     paths = [write_text_atomic(out_dir / name, text) for name, text in zip(SUMMARY_NAMES, texts)]
@@ -101,7 +102,7 @@ def report_html(outcomes: list[TreeOutcome], pictures: dict[str, bytes | None], 
         scans = "<br>".join(
             f'<span class="scan">{e(s.name)}: <b class="{VERDICT_CLASS.get(s.verdict, "ok")}">{e(s.verdict)}</b>'
             + (f", {s.rot_err_deg:.3f}&deg; / {1000 * s.disp_err_m:.1f} mm" if s.disp_err_m is not None else "")
-            + "</span>" for s in o.scans)
+            + (f", started from {e(s.started_from)}" if s.started_from else "") + "</span>" for s in o.scans)
         times = ", ".join(f"{k} {v:.1f} s" for k, v in o.seconds.items())
         rows.append(f'<tr><td>{e(o.tree)}</td><td>{img}</td><td class="{o.status}">{o.status}</td><td>{scans}</td>'
                     f'<td>{times}</td><td class="msg">{e(o.message)}</td></tr>')

@@ -24,6 +24,7 @@ from ..geometry.rigid import apply_transform, rotation_error_deg
 from ..io.cases import read_truth
 from ..io.naming import scan_names
 from ..io.scans import read_scan
+from ..io.start import read_start
 from ..io.transforms import TransformFile, registration_file
 from ..params import Params, to_dict
 from ..pipeline import register
@@ -56,6 +57,7 @@ class ScanOutcome:
     message: str = ""
     rot_err_deg: float | None = None
     disp_err_m: float | None = None
+    started_from: str = ""  # the start pose file the user gave it (the manifest's initial column)
 
 
 @dataclass(frozen=True)
@@ -106,6 +108,8 @@ def fingerprint(job: TreeJob, params: Params, until: str) -> str:
     h = hashlib.sha256()
     for f in job.scans:
         h.update(f"{Path(f).resolve()}|{content_digest(Path(f))}".encode())
+    for name, f in job.starts:  # a start pose changed or given: the tree is redone
+        h.update(f"start|{name}|{Path(f).resolve()}|{content_digest(Path(f))}".encode())
     h.update(json.dumps([job.angular_step_deg, job.target_xy_m, until, to_dict(params)], sort_keys=True).encode())
     return h.hexdigest()[:16]
 
@@ -134,6 +138,7 @@ def run_tree(job: TreeJob, params: Params, until: str = "fine", picture: bool = 
     seconds: dict[str, float] = {}
     try:
         p = tree_params(job, params)
+        starts = {name: read_start(f, name) for name, f in job.starts}
         if len(job.scans) < 2:
             raise ConfigError(f"{job.name}: only {len(job.scans)} scan file; at least two are needed")
         scans = [read_scan(f, angular_step_deg=p.prepare.angular_step_deg) for f in job.scans]
@@ -142,7 +147,7 @@ def run_tree(job: TreeJob, params: Params, until: str = "fine", picture: bool = 
         scans = [s if s.name == n else s.with_points(s.points, name=n) for s, n in zip(scans, names)]
         seconds["read"] = time.perf_counter() - t0
         t1 = time.perf_counter()
-        reg = register(scans, p, until=UNTIL[until], workers=workers, fork=fork)
+        reg = register(scans, p, until=UNTIL[until], workers=workers, fork=fork, starts=starts)
         seconds["register"] = time.perf_counter() - t1
     except (ScanError, ConfigError) as e:
         seconds["total"] = time.perf_counter() - t0
@@ -164,7 +169,8 @@ def run_tree(job: TreeJob, params: Params, until: str = "fine", picture: bool = 
             T = reg.transforms[s.name]
             rot = rotation_error_deg(T, T_true)
             disp = float(np.linalg.norm(apply_transform(T, s.points) - apply_transform(T_true, s.points), axis=1).mean())
-        outcomes.append(ScanOutcome(s.name, s.n_points, verdict, msg, rot, disp))
+        outcomes.append(ScanOutcome(s.name, s.n_points, verdict, msg, rot, disp,
+                                    starts[s.name].source if s.name in starts else ""))
     n_verified = sum(o.verdict == "verified" for o in outcomes)
     n_failed = sum(o.verdict == "failed" for o in outcomes)
     status = ("ok" if n_verified == len(scans) - 1 else "partial" if n_verified else

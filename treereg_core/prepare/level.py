@@ -19,9 +19,11 @@ well beyond that:
   scanner tilted by less than the pipeline tolerates);
 - more than 45 deg from z (a tilt mount, upside down, y-up): no slope explains it, the ground's
   normal is the up;
-- else, when the stem's axis is nearer z than the ground's normal by `level_stem_margin_deg` or more,
-  the ground slopes under a plumb stem: the stem's axis is the up (nothing when it is within
-  `level_min_deg` of z: a levelled scanner on a slope); otherwise the ground's normal is the up;
+- else the stem must say the scanner is tilted too (its axis `level_min_deg` or more off z; within
+  it, a levelled scanner on a slope is left as given: levelled by their own ground's normal, the
+  stations of an uneven slope would disagree by its unevenness). Then, when the stem's axis is nearer
+  z than the ground's normal by `level_stem_margin_deg` or more, the ground slopes under a tilted
+  scanner: the stem's axis is the up; otherwise the ground's normal is;
 - no stem traced under a ground tilted by less than 45 deg: a slope or a tilted scanner, which the
   data cannot tell apart: left as given (the verdict says so when the pair is not verified).
 """
@@ -96,10 +98,10 @@ def find_levelling(points: np.ndarray, pose: np.ndarray | None = None, *, min_de
     if axis is None:  # a slope or a tilted scanner: the data cannot tell which
         return Levelling(None, off, "")
     stem_off = _deg(axis, _Z)
+    if stem_off < min_deg:  # the stem stands plumb: a levelled scanner on a slope
+        return Levelling(None, stem_off, "")
     if stem_off + stem_margin_deg > _deg(axis, up):  # the stem does not say slope: the ground is the up
         return Levelling(rotation_to_z(up), off, "ground and stem")
-    if stem_off < min_deg:  # a levelled scanner on a slope
-        return Levelling(None, stem_off, "")
     return Levelling(rotation_to_z(axis), stem_off, "stem (sloping ground)")
 
 

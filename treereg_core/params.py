@@ -281,6 +281,7 @@ class WindParams:
     base_share: float = _f(1.0 / 3.0, "", "a bend is wind only when the two stems agree, the bend taken out, within wind.stable_tolerance_m (or 3 times the profile's noise) below this share of the tree's height: a cantilever's base does not move", lo=0.1, hi=0.6)
     ground_anchor: bool = _f(True, "", "when the crown moved (a bend fitted, or a rigid fit whose stems lean against each other): take the scan's tilt and height from the ground both stations saw (it does not sway) and refit the bend and the stem's shift to the stem profile under that tilt; without ground, a rigid fit's tilt from the stems")
     max_hinge_depth_m: float = _f(1.0, "m", "ground anchor: the stem may bend from down to this far below its lowest point traced (the root plate)", lo=0.0, hi=5.0)
+    lean_deg: float = _f(0.1, "deg", "ground anchor: a rigid fit whose stems lean against each other by at least this (and 1.25 times its noise) had its tilt pulled by the crown's moving twigs: its tilt is taken from the ground (else from the stems)", lo=0.0, hi=5.0)
 
 
 @dataclass(frozen=True)

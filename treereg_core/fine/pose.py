@@ -827,8 +827,9 @@ HINGE_STEP_M = 0.05
 #: Robust scale of the hinge fit's residuals (m).
 HINGE_SCALE_M = 0.003
 #: A rigid fit's stems lean against each other when the lean is this many times its noise (and at
-#: least acceptance.stem_tilt_deg): the crown's twigs pulled the tilt.
-LEAN_SIGNIFICANCE = 2.0
+#: least wind.lean_deg): the crown's twigs pulled the tilt. (Measured, bench_wind.py: rigid fits in
+#: still air lean at most 0.09 deg and 0.8 times their noise; pulled ones 0.14-0.33 deg, 1.4-4.3 times.)
+LEAN_SIGNIFICANCE = 1.25
 
 
 def _anchor(run: _Run, T: np.ndarray, bend: Bend | None, grounds: Grounds,
@@ -843,14 +844,15 @@ def _anchor(run: _Run, T: np.ndarray, bend: Bend | None, grounds: Grounds,
       with that tilt held (`_hinge_fit`, which also finds how deep below the lowest point traced the
       stem bends from: a bend put 0.3 m too high is fitted 13% short and the rest taken as a tilt of
       ~0.45 deg per metre of sway).
-    * No ground, a rigid fit whose stems lean: the tilt and shift the stem profile shows taken out
-      (`correction`), its bend kept when significant. (With a bend already fitted and no ground, the
-      sections' pose stands: without the ground nothing tells a tilt from where the stem bends.)
+    * No ground, stems that lean (`_leaning`): the tilt and shift the stem profile shows taken out
+      (`correction`), its bend kept (a rigid fit's when significant). Stems that do not lean, with a
+      bend fitted and no ground: the sections' pose stands (without the ground nothing tells a tilt
+      from where the stem bends).
     """
-    wind, joint, ap = run.params.wind, run.params.joint, run.params.acceptance
+    wind, joint = run.params.wind, run.params.joint
     lo, hi = float(z_extent[0]), float(z_extent[1])
     prof0 = profile_at(run.ref, run.tgt, T, (lo, hi), joint.loss_scale_m, run.seeds)
-    leaning = prof0.model is not None and _leaning(prof0.model, ap)
+    leaning = prof0.model is not None and _leaning(prof0.model, wind)
     if bend is None and not leaning:
         return None
     ground = _ground_tilt(run, T, grounds, (lo, hi))
@@ -868,19 +870,19 @@ def _anchor(run: _Run, T: np.ndarray, bend: Bend | None, grounds: Grounds,
         new = Bend(base, max(hi - base, 1e-3), (float(top[0]), float(top[1])), std)
         keep = bend is not None or new.significant(wind.min_sway_m, wind.significance)
         return U @ ground, new if keep else None, depth if keep else 0.0, "ground"
-    if bend is not None or prof0.model is None:
+    if not leaning:
         return None
     straight = correction(prof0.model, prof0.base_xy_m) @ T
     pb = _profile_bend(prof0)
-    return straight, pb if _significant(pb, wind) else None, 0.0, "stems"
+    return straight, pb if bend is not None or _significant(pb, wind) else None, 0.0, "stems"
 
 
-def _leaning(model: Any, ap: AcceptanceParams) -> bool:
+def _leaning(model: Any, wind: WindParams) -> bool:
     """The stem profile shows the target's stem leaning against the reference's: by at least
-    `acceptance.stem_tilt_deg` and twice its noise (a rigid fit's tilt pulled by a moved crown)."""
+    `wind.lean_deg` and `LEAN_SIGNIFICANCE` times its noise (a rigid fit's tilt pulled by a moved crown)."""
     tilt = float(np.degrees(np.hypot(*model.tilt)))
     std = float(np.degrees(np.hypot(*model.std[2:4])))
-    return tilt >= max(ap.stem_tilt_deg, LEAN_SIGNIFICANCE * std)
+    return tilt >= max(wind.lean_deg, LEAN_SIGNIFICANCE * std)
 
 
 def _ground_tilt(run: _Run, T: np.ndarray, grounds: Grounds, z_extent: tuple[float, float]) -> np.ndarray | None:

@@ -168,6 +168,7 @@ class CoarseParams:
     start_gates_m: tuple[float, ...] = _f((1.0, 0.5, 0.25, 0.1, 0.05, 0.02), "m", "a start pose the user gave (register --initial) is aligned by the surfaces, the pairing distance narrowing through these (the widest: how far off a start may be)", lo=0.005, hi=5.0, max_len=20)
     start_iterations: int = _f(10, "", "iterations of that alignment at each pairing distance", lo=1, hi=200)
     start_snap_m: float = _f(3.0, "m", "...and, when the start puts the target's stem at most this far from the reference's, also from the start shifted so the stems meet (the better aligned is kept)", lo=0.0, hi=50.0)
+    start_ties_m: float = _f(2.0, "m", "...and from the transform RANSAC finds on the tie points the start puts at most this far from their partners", lo=0.05, hi=50.0)
 
 
 @dataclass(frozen=True)

@@ -40,6 +40,25 @@ class StartPose:
     reference: str | None = None
 
 
+def tie_start(match: MatchResult | None, T: np.ndarray, *, coarse: CoarseParams) -> np.ndarray | None:
+    """The coarse stage's RANSAC (its settings, and its 6-DOF refit) on the tie points `T` puts within
+    `coarse.start_ties_m` of their partners: where the ties agree near the start (None when too few
+    do). The start steers it: a heading the ties favour elsewhere is out of its reach."""
+    if match is None or not match.ok or match.n_ties < coarse.min_ties:
+        return None
+    src, dst = np.asarray(match.tgt_xyz, dtype=float), np.asarray(match.ref_xyz, dtype=float)
+    near = robust.residuals(T, src, dst) < coarse.start_ties_m
+    if np.count_nonzero(near) < coarse.min_ties:
+        return None
+    src, dst = src[near], dst[near]
+    fit = robust.ransac(src, dst, _ransac_settings(coarse, coarse.min_ties))
+    if fit is None or fit.n_inliers < coarse.min_ties:
+        return None
+    if coarse.refit_6dof and coarse.dof == 4 and not robust.is_degenerate(src[fit.inliers], 6):
+        return robust.fit(src[fit.inliers], dst[fit.inliers], 6)
+    return np.asarray(fit.T, dtype=np.float64)
+
+
 def align_start(ref: Surface, tgt: Surface, T: np.ndarray, *, coarse: CoarseParams,
                 stems: tuple[np.ndarray, np.ndarray] | None = None, match: MatchResult | None = None) -> np.ndarray:
     """A start `T` (a person's, degrees and decimetres off) aligned point-to-plane by the surfaces
@@ -50,11 +69,12 @@ def align_start(ref: Surface, tgt: Surface, T: np.ndarray, *, coarse: CoarsePara
     `stems`: the target tree's stem in each scan (reference, target: x, y, z at breast height, each in
     its frame). A start turned about another point than the tree (a matrix typed or composed by
     hand) moves the tree by metres, beyond the widest gate: the start shifted so that the stems meet
-    (when they are within `coarse.start_snap_m`) is aligned too. Of the two alignments the one more
-    tie points of `match` agree with (within `coarse.final_inlier_m`, when at least `coarse.min_ties`
-    do) is kept, else the one that puts more of the target on the reference's surface (within the
-    last gate: a pose turned about the stem pairs its stem as well as the right one, its few ties
-    tell them apart)."""
+    (when they are within `coarse.start_snap_m`) is aligned too, and so is the transform RANSAC finds
+    on the tie points of `match` the start puts near their partners (`tie_start`). Of these (the
+    last two also as they are, unaligned) the one more ties agree with (within `coarse.final_inlier_m`,
+    when at least `coarse.min_ties` do) is kept, else the one that puts more of the target on the
+    reference's surface (within the last gate; a pose turned about the stem pairs its stem as well
+    as the right one, its few ties tell them apart)."""
     gates = tuple(sorted(coarse.start_gates_m, reverse=True))
     T = np.asarray(T, dtype=np.float64)
     if not gates:
@@ -67,6 +87,9 @@ def align_start(ref: Surface, tgt: Surface, T: np.ndarray, *, coarse: CoarsePara
             S = np.eye(4)
             S[:3, 3] = shift
             starts.append(S @ T)
+    from_ties = tie_start(match, T, coarse=coarse)
+    if from_ties is not None:
+        starts.append(from_ties)
 
     def aligned(T0: np.ndarray) -> np.ndarray:
         centre = apply_transform(T0, tgt.points).mean(axis=0)
@@ -74,15 +97,18 @@ def align_start(ref: Surface, tgt: Surface, T: np.ndarray, *, coarse: CoarsePara
                               gates_m=gates[:-1], gate_iterations=coarse.start_iterations)
         return out if np.isfinite(out).all() else T0
 
-    found = [aligned(T0) for T0 in starts]
-    if len(found) == 1:
-        return found[0]
     ties = match is not None and match.ok and match.n_ties > 0
     near = coarse.final_inlier_m or coarse.inlier_m
 
     def agree(A: np.ndarray) -> int:
         n = int(np.count_nonzero(robust.residuals(A, match.tgt_xyz, match.ref_xyz) < near)) if ties else 0
         return n if n >= coarse.min_ties else 0
+
+    # Each start and its alignment compete (a leafy crown's surfaces can drag a pose the ties put
+    # right by a degree): the person's own start only through its alignment.
+    found = [aligned(T0) for T0 in starts] + starts[1:]
+    if len(found) == 1:
+        return found[0]
     score = [(agree(A), surface_fitness(ref, tgt, A, gates[-1], gates[-1] / 2)) for A in found]
     return found[max(range(len(found)), key=lambda k: score[k])]
 

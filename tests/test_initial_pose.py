@@ -135,6 +135,21 @@ def test_a_leafy_crown_is_rescued_where_its_surfaces_alone_would_drag_the_start(
     assert rotation_error_deg(T, truth) < 0.5 and mean_displacement(T, truth, leafy.scans[1].points) < 0.015
 
 
+def test_a_started_pair_runs_where_matching_found_no_tie_points(case):
+    """One tie point (matching fails, and the run would stop there): with a start the pair goes on,
+    its tie support not judged (no ties), the other evidence judging it."""
+    params = Params().with_value("matching", "n_pairs", 1).with_value("matching", "matches_per_pair", 1)
+    truth = case.T_ref_scan[1]
+    reg = register(case.scans[:2], params, workers=1,
+                   starts={"scan2.ply": StartPose(off(truth, case.scans[1].points, 10.0, 0.5), "start.txt")})
+    pipe = reg.pipeline
+    assert pipe.status("matching") == "failed" and pipe.status("graph") == "done"
+    c = pipe.output("coarse").items[0]
+    assert c.ok and c.n_ties == 0 and c.chance_inliers == -1
+    T = reg.transforms["scan2.ply"]
+    assert rotation_error_deg(T, truth) < 0.5 and mean_displacement(T, truth, case.scans[1].points) < 0.015
+
+
 def test_a_start_from_an_earlier_transforms_json_and_the_apps_way_in(case, tmp_path):
     """A transforms.json written earlier gives its entry for the scan; `Pipeline.start` (the app's way
     in) drops the coarse stage and what follows, and None goes back to the estimate."""

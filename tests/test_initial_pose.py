@@ -199,6 +199,24 @@ def test_a_start_for_a_mirrored_scan_or_another_tree_is_refused(case, other_tree
         assert reg.pipeline.output("coarse").items[0].started_from == "start.txt"
 
 
+def test_the_command_line_says_whose_start_it_refused(case, case_dir, tmp_path, capsys):
+    from treereg_core.io.scans import write_scan
+
+    pts = case.scans[1].points.copy()
+    pts[:, 0] *= -1.0
+    write_scan(tmp_path / "mirror.ply", pts)
+    start = tmp_path / "start.txt"
+    start.write_text(cloudcompare_matrix_text(case.T_ref_scan[1]))
+    out = tmp_path / "t.json"
+    rc, err = cli(capsys, "register", case_dir / "scan1.ply", tmp_path / "mirror.ply", "--initial", f"mirror.ply={start}",
+                  "--out", out, "--angular-step", *map(str, case.scans[1].angular_step_deg))
+    assert rc == 1
+    assert f"treereg: mirror.ply (started from the pose given in {start}): unverified: " in err, err
+    q = read_transforms(out).extra["quality"]["scans"]["mirror.ply"]
+    assert q["verdict"] != "verified" and q["started_from"] == str(start)
+    assert "mirror.ply" not in read_transforms(out).transforms
+
+
 # ---- bad start files -------------------------------------------------------------------------------
 BAD = {
     "missing": (None, r"missing\.txt: no such start pose file"),

@@ -146,5 +146,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"removed {', '.join(shown(p) for p in stale)}: an earlier run's matrices of scans this run does not place")
     lines = verdict_lines(verdicts)
     for line in lines:
+        name = next((n for n in starts if line.startswith(f"{n}: ")), None)
+        if name is not None:  # whose start it judged
+            line = f"{name} (started from the pose given in {starts[name].source}): {line[len(name) + 2:]}"
         print(f"treereg: {line}", file=sys.stderr)
     return 1 if lines else 0

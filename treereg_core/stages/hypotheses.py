@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from ..coarse.estimate import CoarseResult
@@ -36,9 +38,12 @@ def run(ctx: StageContext) -> list[StageResult | None]:
 
             def adjust(T: np.ndarray) -> np.ndarray:
                 return straightened(ref, tgt, T, ctx.params.joint.loss_scale_m, stems)
-        return score_hypotheses(image, ref_surf, surface(ctx, p.tgt, hp.polish_points), tgt.points, c.T_ref_target,
-                                list(c.modes), hypotheses=hp, choose=ctx.choices.get(pair_label(ctx, k)),
-                                axis_xy=_stem_xy(ctx, p.tgt), adjust=adjust, tgt_wide=surface(ctx, p.tgt, hp.wide_points))
+        found = score_hypotheses(image, ref_surf, surface(ctx, p.tgt, hp.polish_points), tgt.points, c.T_ref_target,
+                                 list(c.modes), hypotheses=hp, choose=ctx.choices.get(pair_label(ctx, k)),
+                                 axis_xy=_stem_xy(ctx, p.tgt), adjust=adjust, tgt_wide=surface(ctx, p.tgt, hp.wide_points))
+        # A pair the user gave a start: its "coarse" candidate is that start, aligned, not RANSAC's.
+        return (replace(found, message=found.message.replace("RANSAC's transform", "the start pose the user gave"))
+                if c.started_from else found)
     return ctx.each(one, lambda k: pair_label(ctx, k))
 
 

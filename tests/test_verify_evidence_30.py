@@ -200,3 +200,14 @@ def test_a_real_station_shows_its_ground_near_the_scanner_and_one_cut_away_from_
     e = _evidence(height_difference_m=-3.49, ground_ref_points=ground_near_scanner(pts, prep.plane, p.verify),
                   ground_tgt_points=ground_near_scanner(far, prep.plane, p.verify))
     assert _assess(e).verdict == VERIFIED
+
+
+def test_the_tilt_check_is_not_judged_when_a_scans_own_ground_near_its_scanner_is_tilted():
+    """A scan whose ground near the scanner tilts 8° (a scanner without compensator, or a slope: the
+    scan cannot tell) is no evidence that scanners stand level; a level ground is."""
+    tipped = _assess(_evidence(tilt_deg=8.0, ground_tgt_tilt_deg=8.2, ground_ref_tilt_deg=0.3))
+    tilt = next(c for c in tipped.checks if c.what == "scanner tilt")
+    assert tilt.passed is None and "the target's ground near its scanner tilts 8.2°" in tilt.rule
+    assert tipped.verdict == VERIFIED
+    level = _assess(_evidence(tilt_deg=8.0, ground_tgt_tilt_deg=0.4, ground_ref_tilt_deg=0.3))
+    assert level.verdict != VERIFIED and any("tilts the scanner by 8.0°" in r for r in level.reasons)

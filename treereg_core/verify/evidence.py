@@ -122,6 +122,11 @@ class Evidence:
     #: counted).
     ground_ref_points: int = -1
     ground_tgt_points: int = -1
+    #: How far each scan's ground plane tilts from its z, when that ground is seen near its scanner
+    #: (NaN otherwise): a ground tilted beyond verify.max_tilt_deg is a tilted scanner or a slope, which
+    #: the scan cannot tell apart, and the scanner-tilt check lacks its premise.
+    ground_ref_tilt_deg: float = float("nan")
+    ground_tgt_tilt_deg: float = float("nan")
 
     def as_dict(self) -> dict[str, float | int | str | None]:
         return dict(self.__dict__)
@@ -286,6 +291,9 @@ def gather_evidence(scene: PairScene, results: PairResults, *, verify: VerifyPar
     if scene.ref_station is not None and scene.tgt_station is not None:
         ground = dict(ground_ref_points=ground_near_scanner(scene.ref_station, ref_plane, verify),
                       ground_tgt_points=ground_near_scanner(scene.tgt_station, tgt_plane, verify))
+        for which, plane in (("ref", ref_plane), ("tgt", tgt_plane)):
+            if plane is not None and ground[f"ground_{which}_points"] >= verify.min_ground_points:
+                ground[f"ground_{which}_tilt_deg"] = float(np.degrees(np.arccos(np.clip(abs(plane[2]), 0.0, 1.0))))
     return Evidence(
         inliers=inliers, ties=coarse.n_ties,
         chance_inliers=coarse.chance_inliers, consistency=float(vis.consistency),
@@ -673,8 +681,15 @@ def _stem_base(e: Evidence, w: WindParams) -> Check:
 
 
 def _tilt(e: Evidence, p: VerifyParams) -> Check:
+    """Scanners stand nearly level: judged unless a scan's own ground near its scanner tilts beyond
+    the limit (a tilted scanner or a slope, which the scan cannot tell apart: the premise fails)."""
+    tipped = [f"{w} ground near its scanner tilts {t:.1f}° from its z (a tilted scanner or a slope, which the scan "
+              "cannot tell apart)" for w, t in (("the reference's", e.ground_ref_tilt_deg), ("the target's", e.ground_tgt_tilt_deg))
+              if _measured(t) and t > p.max_tilt_deg]
+    why_not = "not measured" if not _measured(e.tilt_deg) else "; ".join(tipped)
     return _check("scanner tilt", e.tilt_deg, "deg", "<=", p.max_tilt_deg, "verify.max_tilt_deg",
-                  f"verify.max_tilt_deg = {p.max_tilt_deg:g}°: scanners stand nearly level", judged=_measured(e.tilt_deg),
+                  f"verify.max_tilt_deg = {p.max_tilt_deg:g}°: scanners stand nearly level"
+                  + (f" (not judged: {why_not})" if why_not else ""), judged=not why_not,
                   reason=lambda: (f"the transform tilts the scanner by {e.tilt_deg:.1f}° (verify.max_tilt_deg = "
                                   f"{p.max_tilt_deg:g}); scanners stand nearly level"))
 

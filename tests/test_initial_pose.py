@@ -135,6 +135,19 @@ def test_a_leafy_crown_is_rescued_where_its_surfaces_alone_would_drag_the_start(
     assert rotation_error_deg(T, truth) < 0.5 and mean_displacement(T, truth, leafy.scans[1].points) < 0.015
 
 
+def test_a_tilt_mount_scan_is_rescued_from_a_start_given_as_its_file_has_it():
+    """The scan turned 90 deg on a tilt mount is levelled by the prepare stage; its start, given as
+    its file has it, goes through that levelling and ends as the automatic registration does."""
+    tm = CaseSpec(seed=1, n_stations=1, tilt_mount=1, height_m=8.0, angular_step_deg=(0.07, 0.07), ground=True).build()
+    scans, truth = tm.scans[:2], tm.T_ref_scan[1]
+    reg = register(scans, broken(), workers=1,
+                   starts={scans[1].name: StartPose(off(truth, scans[1].points, 10.0, 0.5), "start.txt")})
+    assert reg.pipeline.output("prepare").items[1].T_level is not None
+    T = reg.transforms[scans[1].name]
+    assert reg.pipeline.verdicts()[scans[1].name][0] == "verified"
+    assert rotation_error_deg(T, truth) < 0.5 and mean_displacement(T, truth, scans[1].points) < 0.015
+
+
 def test_a_started_pair_runs_where_matching_found_no_tie_points(case):
     """One tie point (matching fails, and the run would stop there): with a start the pair goes on,
     its tie support not judged (no ties), the other evidence judging it."""

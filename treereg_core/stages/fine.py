@@ -20,7 +20,8 @@ def ground_of(ctx: StageContext, i: int) -> np.ndarray:
     mask = pr.ground_mask
     if mask is None or len(mask) != station.n_points or not mask.any():
         return np.zeros((0, 3))
-    return station.points[mask]
+    ground: np.ndarray = station.points[mask]
+    return ground
 
 
 def run(ctx: StageContext) -> list[StageResult | None]:

@@ -9,6 +9,7 @@ import json
 import os
 import re
 import shutil
+import signal
 import subprocess
 import sys
 import time
@@ -100,6 +101,13 @@ def one_line(err: str, pattern: str) -> None:
 
 
 
+def ctrl_c_default() -> None:
+    """`preexec_fn` of a process a test sends Ctrl-C: SIGINT at its default, as a terminal's foreground
+    job has it. A test runner started in the background (`cmd &` from a script) has SIGINT ignored,
+    its children inherit that, and Python then never raises KeyboardInterrupt."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _env() -> dict[str, str]:
     return dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""), PYTHONUNBUFFERED="1")
 
@@ -111,7 +119,7 @@ def stop_register_midway(sandbox: Path, sig: int) -> tuple[int, str]:
     proc = subprocess.Popen(
         [sys.executable, "-m", "treereg_cli", "register", s / "scan1.ply", s / "scan2.ply", s / "scan3.ply",
          "--exports", "--out", sandbox / "prev" / "transforms.json"],
-        cwd=REPO, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+        cwd=REPO, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, preexec_fn=ctrl_c_default)
     seen = b""
     while b"register [" not in seen:  # the registration has started: stop it mid-way
         chunk = proc.stderr.read1(256)

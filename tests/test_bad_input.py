@@ -452,6 +452,7 @@ def test_browser_a_number_typed_as_1e12_is_refused_not_read_as_112(served, brows
     context.close()
 
 
+@pytest.mark.timed
 def test_browser_an_abandoned_upload_frees_the_button_for_every_tab_and_the_memory(served, browser, tmp_path):
     from playwright.sync_api import expect
 

@@ -151,6 +151,7 @@ def test_tree_at_off_the_tree_is_named_exit_2(sandbox, capsys):
     assert changed(before, fingerprint(sandbox)) == []
 
 
+@pytest.mark.timed
 def test_sigterm_in_view_stops_it_and_removes_its_upload_folder(tmp_path):
     tmp = tmp_path / "tmp"
     tmp.mkdir()

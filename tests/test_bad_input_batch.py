@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from hostile import REPO, _env, changed, cli, fingerprint, one_line, sandbox  # noqa: F401
+from hostile import REPO, _env, changed, cli, ctrl_c_default, fingerprint, one_line, sandbox  # noqa: F401
 from treereg_cli.main import main
 from treereg_core.demo import DEMO_DIR
 from treereg_core.io.transforms import read_transforms
@@ -191,7 +191,8 @@ def test_sigterm_stops_batch_and_its_workers(tmp_path, how):
     camp = _campaign(tmp_path / "camp", ("tree1", "tree2"))
     res = tmp_path / "res"
     proc = subprocess.Popen([sys.executable, "-m", "treereg_cli", "batch", camp, "--out", res, "--workers", "2"],
-                            cwd=REPO, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
+                            cwd=REPO, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True,
+                            preexec_fn=ctrl_c_default)
     workers: list[int] = []
     everyone: list[int] = []
     try:

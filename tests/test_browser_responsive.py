@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 import pytest
 
-pytestmark = pytest.mark.browser
+pytestmark = [pytest.mark.browser, pytest.mark.timed]
 
 pytest.importorskip("playwright.sync_api")
 

@@ -10,6 +10,7 @@ from treereg_viewer.controller import GIVE_WAY_GAP_S, GIVE_WAY_MAX_S, Controller
 
 
 @pytest.mark.slow
+@pytest.mark.timed
 def test_the_worker_pauses_for_a_tab_at_most_so_long_then_runs_on():
     demo = demo_case()
     ctl = Controller(list(demo.scans), truth=demo.truth)

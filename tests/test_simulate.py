@@ -361,6 +361,7 @@ def test_benchmark_set_is_a_third_awkward_and_reproducible():
     assert all(8.0 <= s.height_m <= 15.0 for s in specs)
 
 
+@pytest.mark.timed
 def test_small_benchmark_cases_are_quick_and_small():
     for spec in benchmark_cases(6, seed=1, small=True)[:3]:
         t0 = time.perf_counter()

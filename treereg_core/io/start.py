@@ -23,7 +23,7 @@ from ..errors import ConfigError
 from ..text import shown
 from .json_input import parse_json, read_user_bytes
 from .record import NotRigid, rigid_pose
-from .transforms import _NUMBER
+from .transforms import cloudcompare_rows
 
 #: A start file is a few hundred bytes (a transforms.json a few kB per scan).
 MAX_START_BYTES = 16 * 1024 * 1024
@@ -52,11 +52,7 @@ def read_start(path: str | Path, scan: str) -> StartPose:
 
 
 def _from_text(text: str, path: Path) -> np.ndarray:
-    rows = []
-    for line in text.splitlines():
-        tokens = line.replace(",", " ").split()
-        if len(tokens) == 4 and all(_NUMBER.fullmatch(t) for t in tokens):
-            rows.append([float(t) for t in tokens])
+    rows = cloudcompare_rows(text)
     if len(rows) != 4:
         raise ConfigError(f"{path}: expected a 4x4 matrix (4 rows of 4 numbers, as CloudCompare writes it), "
                           f"found {len(rows)} such row(s)")

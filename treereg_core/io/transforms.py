@@ -230,14 +230,20 @@ def parse_cloudcompare_matrix(text: str) -> np.ndarray:
     CloudCompare's console and saved files may add a title or timestamp line; only the lines that
     hold exactly four numbers count, and there must be exactly four of them.
     """
+    rows = cloudcompare_rows(text)
+    if len(rows) != 4:
+        raise ConfigError(f"CloudCompare matrix: expected 4 lines of 4 numbers, found {len(rows)}")
+    return check_transform(rows, "CloudCompare matrix")
+
+
+def cloudcompare_rows(text: str) -> list[list[float]]:
+    """The lines of `text` that hold exactly four numbers (CloudCompare's matrix rows), as numbers."""
     rows = []
     for line in text.splitlines():
         tokens = line.replace(",", " ").split()
         if len(tokens) == 4 and all(_NUMBER.fullmatch(t) for t in tokens):
             rows.append([float(t) for t in tokens])
-    if len(rows) != 4:
-        raise ConfigError(f"CloudCompare matrix: expected 4 lines of 4 numbers, found {len(rows)}")
-    return check_transform(rows, "CloudCompare matrix")
+    return rows
 
 
 def pdal_matrix_string(T: np.ndarray) -> str:

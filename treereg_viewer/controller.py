@@ -20,6 +20,7 @@ from typing import Any, Callable, Mapping, Sequence, TypeVar
 
 import numpy as np
 
+from treereg_core.coarse.start import StartPose
 from treereg_core.errors import ConfigError, ScanError
 from treereg_core.io.scans import read_scan
 from treereg_core.parallel import APP_SPARE_CORES, default_workers
@@ -121,6 +122,7 @@ class Snapshot:
     pairs: tuple[Pair, ...] = ()  # the registered pairs (the reference's first, in scan order)
     verdicts: Mapping[str, tuple[str, tuple[str, ...], str]] = field(default_factory=dict)  # scan -> (verdict, reasons, hint)
     choices: Mapping[str, str] = field(default_factory=dict)  # hypotheses picked by hand: pair label -> candidate
+    starts: Mapping[str, StartPose] = field(default_factory=dict)  # start poses given by hand: scan name -> start
 
     def status(self, stage: str) -> str:
         """'done', 'failed', 'running' or 'stale' for a pipeline stage."""
@@ -222,10 +224,11 @@ class _Requests:
     truth: dict[str, np.ndarray] | None = None
     notes: list[tuple[str, bool]] = field(default_factory=list)
     choices: list[tuple[str, str | None]] = field(default_factory=list)
+    starts: list[tuple[str, StartPose | None]] = field(default_factory=list)
 
     def pending(self) -> bool:
         return bool(self.params_changed or self.run_until or self.uploads or self.removals or self.scans is not None
-                    or self.notes or self.choices)
+                    or self.notes or self.choices or self.starts)
 
 
 def parse_scan_upload(filename: str, path: Path) -> tuple[Scan, list[str]]:
@@ -373,6 +376,15 @@ class Controller:
             self._req.choices.append((pair_label, candidate))
             self._notify()
 
+    def start(self, name: str, pose: StartPose | None) -> None:
+        """Record a start pose given by hand for scan `name` (None: the coarse stage estimates it again);
+        the worker gives it to the pipeline (`Pipeline.start`: the coarse stage and what follows become
+        stale) and runs every stage again from there, to the verdict."""
+        with self._wake:
+            self._req.starts.append((name, pose))
+            self._req.run_until = STAGES[-1]
+            self._notify()
+
     def note(self, message: str, error: bool = False) -> None:
         """Publish a message for the user (e.g. a rejected parameter), in order with other changes."""
         with self._wake:
@@ -473,6 +485,15 @@ class Controller:
             if pipe.choose(pair_label, candidate):
                 message, error = ((f"{candidate} chosen by hand for {pair_label}; press Run." if candidate else
                                    f"{pair_label}: the surfaces choose the hypothesis again; press Run."), False)
+        for name, pose in req.starts:
+            try:
+                pipe.start(name, pose)
+            except ConfigError as e:
+                message, error = f"Start pose refused — {e}", True
+                continue
+            message, error = ((f"{name}: the start pose from {pose.source} in force; the stages from "
+                               f"{label('coarse')} on run from it.") if pose is not None else
+                              f"{name}: the coarse stage estimates its pose again."), False
         if req.scans is not None or req.uploads or req.removals or req.params_changed or req.run_until:
             self._crashed.clear()  # new inputs or an explicit run: try again
         if req.params_changed or desired != pipe.params:
@@ -598,6 +619,7 @@ class Controller:
             pairs=_safe(lambda: pipe.pairs, ()),
             verdicts=_safe(pipe.verdicts, {}),
             choices=dict(pipe.choices),
+            starts=dict(pipe.starts),
         )
 
     def _publish(self, busy: bool = False, running: str | None = None, message: str = "", error: bool = False) -> None:

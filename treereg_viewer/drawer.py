@@ -109,6 +109,8 @@ class Drawer:
         self._asked_at = 0.0  # time.monotonic() of the last redraw a person asked for
         self._plots_pending = False  # the panel shows a stage without its plots: the script is not sent yet
         self._groups = {name: scene.add_frame(f"/{name}", show_axes=False, visible=False) for name in STAGE_NAMES}
+        # The scan layer's root: hidden while the tab aligns a scan by hand (the Align tab draws then).
+        self._scans_root = scene.add_frame("/scans", show_axes=False)
         self._thread = threading.Thread(target=self._loop, name="treereg-drawer", daemon=True)
         self._thread.start()
 
@@ -236,6 +238,7 @@ class Drawer:
                     i: h for i, h in enumerate(h for h in self._handles["scans"] if _is_scan_frame(h))
                 }
                 self._keys["scans"] = key
+            self._scans_root.visible = view.align_scan is None
             poses = scan_poses(snap, view)
             apply_poses(self._scan_frames, poses)
             for i, s in enumerate(snap.scans):
@@ -257,7 +260,7 @@ class Drawer:
                 self._keys["stage"] = key
                 self._stage_content = content
             for k, g in self._groups.items():
-                g.visible = k == name
+                g.visible = k == name and view.align_scan is None  # aligning by hand: the Align tab draws
             # A pair's drawing is in its reference scan's frame: the layer stands where that scan is
             # shown (scan3 -> scan2 where scan2 stands, not at scan1's origin).
             apply_poses({0: self._groups[name]}, [poses[pair_reference(snap, view)]])

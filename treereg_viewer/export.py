@@ -32,6 +32,9 @@ from .controller import Snapshot
 #: The merged cloud's formats and the parameter file's name, as the exports name them.
 CLOUD_FORMATS = ("ply", "las", "laz")
 PARAMS_NAME = "params.json"
+#: The start poses given by hand (Align), as a transforms.json that `treereg register --initial
+#: SCAN=starts.json` reads back: {"reference", "transforms": {scan: 4x4}, "sources": {scan: where from}}.
+STARTS_NAME = "starts.json"
 #: What to do when an export would replace an input (said at start and in the app).
 CLASH_ADVICE = "start treereg view with another --out folder"
 
@@ -82,13 +85,24 @@ def export_bundle(snap: Snapshot, cloud_format: str = "ply", keep_unverified: bo
         cloud = write_merged(Path(tmp) / f"merged.{cloud_format}", snap.scans, tf.transforms)
         files[cloud.name] = cloud.read_bytes()
     files[PARAMS_NAME] = (json.dumps(P.to_dict(snap.params), indent=2) + "\n").encode()
+    if snap.starts:
+        files[STARTS_NAME] = starts_file(snap)
     return ExportBundle(stage, dict(tf.transforms), files)
+
+
+def starts_file(snap: Snapshot) -> bytes:
+    """The start poses in force (`Snapshot.starts`) as a transforms.json a start file may be
+    (`treereg_core.io.start`): each maps its scan as its file gives it onto the reference."""
+    doc = {"reference": snap.scans[0].name,
+           "transforms": {n: np.asarray(s.T_ref_scan, dtype=float).tolist() for n, s in snap.starts.items()},
+           "sources": {n: s.source for n, s in snap.starts.items()}}
+    return (json.dumps(doc, indent=2) + "\n").encode()
 
 
 def file_names(scan_names: Iterable[str]) -> list[str]:
     """Every file an export of these scans may write (any cloud format)."""
     return ([p.name for p in export_paths(".", list(scan_names))] + [f"merged.{f}" for f in CLOUD_FORMATS]
-            + [PARAMS_NAME])
+            + [PARAMS_NAME, STARTS_NAME])
 
 
 def check_not_inputs(out_dir: Path, names: Iterable[str], inputs: Iterable[str | Path]) -> None:

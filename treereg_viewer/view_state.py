@@ -49,4 +49,5 @@ class ViewState:
     branch: int | None = None  # cross-section of an evaluated branch (its index) instead of the stem
     tour_step: int | None = None  # the guided tour's step, when the tour is on
     slice_shown: int | None = None  # Arcs, Fits, Fine: one slice (0-based), ALL_SLICES, or None = the busiest
+    align_scan: str | None = None  # Align: the scan this tab aligns by hand (its layers hidden meanwhile)
     rival: str | None = None  # Hypotheses: the rival drawn beside the chosen pose (None = the best distinct one)

@@ -28,6 +28,7 @@ from treereg_core.params import Params
 
 from . import camera
 from .actions import AppHost
+from .align import AlignPanel
 from .controller import Controller, Snapshot
 from .derived import default_height, prepared_scans
 from .drawer import Drawer
@@ -54,7 +55,7 @@ NARROW_PANEL_PX = 330
 NARROW_WINDOW_PX = 1500
 #: What a follower takes over from the presenter: everything it looks at (not its display sizes).
 FOLLOWED = tuple(f.name for f in fields(ViewState) if f.name not in ("point_size", "max_points", "hidden_scans",
-                                                                    "show_stations", "tour_step"))
+                                                                    "show_stations", "tour_step", "align_scan"))
 
 
 class Viewer:
@@ -105,6 +106,8 @@ class Viewer:
             self.stages.build_folders(gui)
         with tabs.add_tab("Scans", viser.Icon.TREE):
             self.scans = ScanPanel(gui, self)
+        with tabs.add_tab("Align", viser.Icon.HAND_CLICK):
+            self.align = AlignPanel(gui, scene, self.controller, lambda name: self.set_view(align_scan=name), self._look)
         with tabs.add_tab("Files", viser.Icon.FILE_EXPORT):
             self.files = ExportPanel(gui, self)
         with tabs.add_tab("Teach", viser.Icon.SCHOOL):
@@ -307,6 +310,8 @@ class Viewer:
         """A click in 3-D: on the Fits and Fine stages a fitted section picks its table row; on the
         Result stage a branch ring picks that branch's cross-section; anywhere on the registered tree
         the click sets the cross-section's height."""
+        if self.align.pick(origin, direction):  # aligning a scan by hand: the click picks a point of a pair
+            return
         snap = self.controller.snapshot
         view = self.view
         if not section_available(snap, view.stage):
@@ -446,6 +451,7 @@ class Viewer:
             return
         self.stages.show_snapshot(snap, self.view)
         self.scans.show_snapshot(snap)
+        self.align.show_snapshot(snap)
         self.stages.sync_params(self.controller.params)  # another tab may have changed them
         self.drawer.request()
 

@@ -1,0 +1,150 @@
+"""Align by hand in the app (issue 33 item 2), without a browser: a scan the coarse stage lost (forced
+with coarse.max_tilt_deg = 0 on the demo) rescued with three point pairs clicked in 3-D, refined from
+there by the pipeline, verified, and its start exported (starts.json, which `register --initial`
+reads back, and transforms.json's started_from).
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+import viser
+
+from treereg_core.demo import demo_case
+from treereg_core.geometry.point_pairs import as_file_frames, fit_point_pairs
+from treereg_core.geometry.rigid import apply_transform, invert, make_transform, rotation_error_deg, rotation_z
+from treereg_core.io.start import read_start
+from treereg_core.params import Params
+from treereg_core.prepare.ground import PreparedScan
+from treereg_viewer.align import candidates
+from treereg_viewer.app import TreeregApp
+from treereg_viewer.controller import Controller
+from treereg_viewer.export import STARTS_NAME, export_bundle
+
+
+def _idle(app: TreeregApp, timeout: float = 120.0) -> None:
+    assert app.controller.wait_idle(timeout), "the pipeline did not finish"
+    assert app.drawer.wait_idle(30.0), "drawing did not finish"
+
+
+def test_fit_point_pairs_and_file_frames():
+    rng = np.random.default_rng(1)
+    tgt = rng.normal(size=(5, 3))
+    T = make_transform(rotation_z(30.0), np.array([1.0, -2.0, 0.5]))
+    fit = fit_point_pairs(apply_transform(T, tgt), tgt)
+    assert fit.ok and fit.rms_m < 1e-9 and np.allclose(fit.T_ref_tgt, T)
+    assert not fit_point_pairs(tgt[:2], tgt[:2]).ok
+    line = np.outer(np.arange(4.0), [1.0, 0.0, 0.0])
+    assert "one line" in fit_point_pairs(line, line).message
+    # The inverse of the coarse stage's to_stage_frames: P_ref^-1 U P_tgt, levelled, gives T back.
+    P_ref, P_tgt = make_transform(rotation_z(10.0), np.array([5.0, 0, 0])), make_transform(rotation_z(-40.0), np.ones(3))
+    L = make_transform(rotation_z(3.0), np.zeros(3))
+    U = as_file_frames(T, ref_pose=P_ref, tgt_pose=P_tgt, ref_level=None, tgt_level=L)
+    assert np.allclose(invert(P_ref) @ U @ P_tgt @ invert(L), T)
+
+
+@pytest.fixture(scope="module")
+def refused():
+    """The app on the demo whose coarse stage refuses every pose (max_tilt_deg = 0): scans 2 and 3 fail."""
+    case = demo_case()
+    params = Params().with_value("coarse", "max_tilt_deg", 0.0)
+    server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    app = TreeregApp(server, Controller(list(case.scans), params, case.truth), tabs="shared")
+    _idle(app)
+    yield app, case
+    app.close()
+    server.stop()
+
+
+def _ray_at(point: np.ndarray, away: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A click's ray from 2 m off `point` (towards `away`, from the tree) straight at it."""
+    d = np.asarray(away, float)
+    d = d / np.linalg.norm(d)
+    return point + 2.0 * d, -d
+
+
+def test_a_refused_scan_rescued_with_three_point_pairs(refused):
+    app, case = refused
+    snap = app.controller.snapshot
+    name = snap.scans[1].name
+    assert snap.verdicts[name][0] == "failed"
+    assert name in candidates(snap)
+    align = app.viewer.align
+    assert name in align.scan_choice.options
+    align.scan_choice.value = name
+    align.start_button.value = True  # "Align this scan by hand"
+    assert app.view.align_scan == name and align.state.scan == name
+    _idle(app)
+    assert not app.drawer._scans_root.visible  # the scan layer makes way for the two trees
+
+    ref_prep = snap.scan_item("prepare", 0, PreparedScan)
+    tgt_prep = snap.scan_item("prepare", 1, PreparedScan)
+    T_true = invert(case.truth[snap.scans[0].name]) @ case.truth[name]  # no levelling in the demo
+    assert ref_prep.T_level is None and tgt_prep.T_level is None
+    # Three points both stations saw (a person picks what both show), spread over the tree: low on the
+    # stem, the crown's top, a branch to the side.
+    tgt = tgt_prep.scan.points
+    near, _ = cKDTree(ref_prep.scan.points).query(apply_transform(T_true, tgt))
+    tgt = tgt[near < 0.02]
+    centre = np.median(tgt, axis=0)
+    chosen = [tgt[np.argmin(tgt[:, 2])], tgt[np.argmax(tgt[:, 2])],
+              tgt[np.argmax(np.hypot(*(tgt[:, :2] - centre[:2]).T))]]
+    for p in chosen:
+        shown = align._D[:3, :3] @ p + align._D[:3, 3]
+        away = np.append(shown[:2] - (align._D[:3, :3] @ centre + align._D[:3, 3])[:2], 0.5)
+        app.viewer.pick(*_ray_at(shown, away))  # a click on the scan
+        picked = np.asarray(align.state.tgt_pick)
+        assert np.linalg.norm(picked - p) < 0.3
+        q = apply_transform(T_true, picked[None])[0]  # the same point on the reference
+        app.viewer.pick(*_ray_at(q, np.append(q[:2] - np.median(ref_prep.scan.points[:, :2], axis=0), 0.5)))
+    assert len(align.state.pairs) == 3 and align.state.tgt_pick is None
+    fit = align.state.fit()
+    assert fit.ok and fit.rms_m < 0.15, fit.message
+    assert "RMS residual" in align.status_md.content and "| 3 |" in align.pairs_md.content
+    assert not align.refine_button.disabled
+
+    # A pair can be removed (the fit then asks for another) and picked again.
+    last = align.state.pairs[-1]
+    align.pair_choice.value = "Pair 3"
+    align.remove_button.value = True
+    assert len(align.state.pairs) == 2 and align.refine_button.disabled
+    align.add_pick(ref=last.ref_xyz)
+    align.add_pick(tgt=last.tgt_xyz)
+    assert len(align.state.pairs) == 3
+
+    start = align.start_pose()
+    assert rotation_error_deg(start.T_ref_scan, snap.scans[0].pose @ T_true @ invert(snap.scans[1].pose)) < 5.0
+    align.refine_button.value = True  # "Refine from here"
+    assert app.view.align_scan is None
+    _idle(app)
+    snap = app.controller.snapshot
+    assert name in snap.starts
+    assert snap.verdicts[name][0] == "verified", snap.verdicts[name]
+    T = snap.transforms[name]
+    truth_user = snap.scans[0].pose @ T_true @ invert(snap.scans[1].pose)
+    assert rotation_error_deg(T, truth_user) < 0.5
+    assert np.linalg.norm(T[:3, 3] - truth_user[:3, 3]) < 0.05
+    assert "verified" in align.verdict_md.content and "Started from" in align.verdict_md.content
+
+    bundle = export_bundle(snap)
+    doc = json.loads(bundle.files["transforms.json"])
+    assert name in doc["transforms"]
+    assert "the app" in json.dumps(doc["quality"]["scans"][name])
+    starts = json.loads(bundle.files[STARTS_NAME])
+    assert starts["reference"] == snap.scans[0].name and name in starts["transforms"]
+
+
+def test_starts_json_reads_back_as_a_start_file(refused, tmp_path):
+    app, _ = refused
+    snap = app.controller.snapshot
+    if not snap.starts:
+        pytest.skip("needs the rescue above")
+    path = tmp_path / STARTS_NAME
+    path.write_bytes(export_bundle(snap).files[STARTS_NAME])
+    name = next(iter(snap.starts))
+    pose = read_start(path, name)
+    assert np.allclose(pose.T_ref_scan, snap.starts[name].T_ref_scan)
+    assert pose.reference == snap.scans[0].name

@@ -1,0 +1,428 @@
+"""The "Align" tab: a failed or unverified scan aligned by hand (issue 33), then refined by the pipeline.
+
+The user picks the same point on the reference and on the scan, three times or more (a click in 3-D
+on either tree: the reference stands where it is, the scan beside it), the pairs are listed, each
+removable, with the fit's residual (the core's `geometry.point_pairs`: Kabsch on the pairs); *Refine
+from here* gives the fit to the pipeline as the scan's start pose (`Controller.start` ->
+`Pipeline.start`, on the worker): the stages from the coarse stage on run from it, and the verdict
+judges it as any pose. The app computes no geometry here: the fit and its frames are the core's.
+
+While a tab aligns, its drawer hides the scan and stage layers (`ViewState.align_scan`); this panel
+draws the two trees and the picks under `/align`.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from dataclasses import dataclass, replace
+from typing import Any, Callable
+
+import numpy as np
+import viser
+
+from treereg_core.coarse.start import StartPose
+from treereg_core.geometry.picking import nearest_to_ray
+from treereg_core.geometry.point_pairs import MIN_PAIRS, PairFit, as_file_frames, fit_point_pairs
+from treereg_core.prepare.ground import PreparedScan
+
+from .camera import CameraPose
+from .controller import Controller, Snapshot
+from .draw.common import display_subset, pose_kwargs
+from .labels import verdict_badge
+from .palette import scan_color
+from .text import md
+
+log = logging.getLogger(__name__)
+
+#: Points of each tree drawn (and clicked on) while aligning.
+ALIGN_POINTS = 20_000
+#: How close to a click's ray a point must be to count (deg).
+PICK_ANGLE_DEG = 0.8
+#: Room between the reference's tree and the scan's drawn beside it (m).
+GAP_M = 2.0
+#: Where the start came from, as transforms.json's quality ("started_from") and the messages say it.
+SOURCE = "the app (point pairs picked by hand)"
+NONE = "(none)"
+
+Xyz = tuple[float, float, float]
+
+
+@dataclass(frozen=True, kw_only=True)
+class PickedPair:
+    """One pair: the same point on the reference and on the scan, each in its scan's frame as the
+    stages see it (scanner frame, levelled)."""
+
+    ref_xyz: Xyz
+    tgt_xyz: Xyz
+
+
+@dataclass(frozen=True, kw_only=True)
+class AlignState:
+    """What one tab is aligning: the scan, the pairs so far and the half-picked pair."""
+
+    scan: str | None = None
+    pairs: tuple[PickedPair, ...] = ()
+    ref_pick: Xyz | None = None
+    tgt_pick: Xyz | None = None
+    preview: bool = False
+
+    def fit(self) -> PairFit:
+        ref = np.array([p.ref_xyz for p in self.pairs], dtype=float).reshape(-1, 3)
+        tgt = np.array([p.tgt_xyz for p in self.pairs], dtype=float).reshape(-1, 3)
+        return fit_point_pairs(ref, tgt)
+
+
+def candidates(snap: Snapshot) -> list[str]:
+    """The scans a person may align by hand: those the Placement stage failed or left unverified, and
+    those started by hand already (to adjust the start)."""
+    names = [s.name for s in snap.scans[1:]]
+    return [n for n in names if snap.verdicts.get(n, ("",))[0] in ("failed", "unverified") or n in snap.starts]
+
+
+def _xyz(p: np.ndarray) -> Xyz:
+    return (float(p[0]), float(p[1]), float(p[2]))
+
+
+class AlignPanel:
+    """The Align tab of one viewer.
+
+    Parameters
+    ----------
+    gui, scene
+        The viewer's.
+    controller
+        Where the start goes.
+    set_align
+        Tells the viewer which scan this tab aligns (None: none), so its drawer hides its layers.
+    look
+        Points the tab's camera.
+    """
+
+    def __init__(self, gui: viser.GuiApi, scene: viser.SceneApi, controller: Controller,
+                 set_align: Callable[[str | None], None], look: Callable[[CameraPose], None]) -> None:
+        self.gui = gui
+        self.scene = scene
+        self.controller = controller
+        self._set_align = set_align
+        self._look = look
+        self._lock = threading.RLock()
+        self.state = AlignState()
+        self._nodes: dict[str, Any] = {}
+        self._clouds_key: tuple[Any, ...] | None = None
+        self._ref_pts = np.zeros((0, 3))
+        self._tgt_pts = np.zeros((0, 3))
+        self._D = np.eye(4)  # where the scan is drawn: its displayed point = D @ its point
+        gui.add_markdown(
+            "**Align by hand** a scan that *11 Placement* failed (✗) or left unverified (⚠): click the same "
+            "point on the reference (left) and on the scan (right), three times or more, spread over the tree "
+            "(the stem low and high, a branch to each side). *Refine from here* then runs the stages from "
+            "*4 Coarse* on from your alignment; the verdict judges it as any pose (a wrong one is refused).")
+        self.scan_choice = gui.add_dropdown("Scan", (NONE,), hint="A scan whose verdict is ✗ failed or ⚠ unverified.")
+        self.start_button = gui.add_button("Align this scan by hand", icon=viser.Icon.HAND_CLICK, disabled=True)
+        self.stop_button = gui.add_button("Stop aligning", icon=viser.Icon.X, color="gray", visible=False)
+        self.status_md = gui.add_markdown("")
+        self.pairs_md = gui.add_markdown("")
+        self.pair_choice = gui.add_dropdown("Pair", (NONE,), visible=False)
+        self.remove_button = gui.add_button("Remove pair", icon=viser.Icon.TRASH, color="gray", visible=False)
+        self.clear_button = gui.add_button("Clear all pairs", icon=viser.Icon.TRASH, color="gray", visible=False)
+        self.preview_box = gui.add_checkbox("Show the scan at the fit", False, visible=False,
+                                            hint="Draws the scan where the picked pairs put it, over the reference.")
+        self.refine_button = gui.add_button("Refine from here", icon=viser.Icon.PLAYER_PLAY, color="blue",
+                                            visible=False, disabled=True)
+        self.forget_button = gui.add_button("Forget the start pose", icon=viser.Icon.X, color="gray", visible=False,
+                                            hint="The coarse stage estimates this scan's pose again.")
+        self.verdict_md = gui.add_markdown("")
+        self.start_button.on_click(lambda _: self.begin(str(self.scan_choice.value)))
+        self.stop_button.on_click(lambda _: self.end())
+        self.remove_button.on_click(lambda _: self.remove(self._pair_index()))
+        self.clear_button.on_click(lambda _: self.clear())
+        self.preview_box.on_update(lambda _: self.set_preview(bool(self.preview_box.value)))
+        self.refine_button.on_click(lambda _: self.refine())
+        self.forget_button.on_click(lambda _: self.forget())
+        self.scan_choice.on_update(lambda _: self._show_verdict(self.controller.snapshot))
+        self._names: tuple[str, ...] = ()
+
+    # ---- the snapshot --------------------------------------------------------------------------
+    def show_snapshot(self, snap: Snapshot) -> None:
+        """The scans a person may align, and the chosen scan's verdict (after a refine: the new one)."""
+        names = tuple(candidates(snap))
+        with self._lock:
+            if names != self._names:
+                self._names = names
+                current = self.scan_choice.value
+                self.scan_choice.options = names or (NONE,)
+                if current in names:
+                    self.scan_choice.value = current
+            self.start_button.disabled = not names or self.state.scan is not None
+            if self.state.scan is not None and self.state.scan not in [s.name for s in snap.scans]:
+                self.end()  # the scan was removed
+        self._show_verdict(snap)
+
+    def _show_verdict(self, snap: Snapshot) -> None:
+        name = self.state.scan or str(self.scan_choice.value)
+        if name not in [s.name for s in snap.scans[1:]]:
+            self.verdict_md.content = ("" if snap.verdicts else
+                                       "*Run the pipeline to its verdicts first: a scan to align is one it failed "
+                                       "or left unverified.*")
+            self.forget_button.visible = False
+            return
+        verdict, reasons, _ = snap.verdicts.get(name, ("", (), ""))
+        start = snap.starts.get(name)
+        lines = []
+        if snap.busy:
+            lines.append(f"*Running… ({md(name)})*")
+        elif verdict:
+            lines.append(f"**{md(name)}: {verdict_badge(verdict)}**")
+            lines += [f"- {md(r)}" for r in reasons[:3]]
+        if start is not None:
+            lines.append(f"Started from the pose given in {md(start.source)}.")
+        self.verdict_md.content = "\n\n".join(lines)
+        self.forget_button.visible = start is not None
+
+    # ---- aligning --------------------------------------------------------------------------------
+    def begin(self, name: str) -> None:
+        """Start aligning scan `name`: both trees drawn side by side, the tab's layers hidden."""
+        snap = self.controller.snapshot
+        names = [s.name for s in snap.scans]
+        if name not in names[1:]:
+            return
+        i = names.index(name)
+        ref, tgt = snap.scan_item("prepare", 0, PreparedScan), snap.scan_item("prepare", i, PreparedScan)
+        if ref is None or tgt is None:
+            self.status_md.content = "The scans are not prepared yet: run the pipeline first."
+            return
+        with self._lock:
+            self.state = AlignState(scan=name)
+            r, t = ref.scan.points, tgt.scan.points
+            self._ref_pts = r[display_subset(len(r), ALIGN_POINTS, seed=5)]
+            self._tgt_pts = t[display_subset(len(t), ALIGN_POINTS, seed=6)]
+            self._D = self._beside()
+            self._clouds_key = None
+            self._set_align(name)
+            self._draw()
+            self._show_controls(True)
+        lo, hi = self._bounds()
+        centre = (lo + hi) / 2
+        size = float(np.max(hi - lo))
+        self._look(CameraPose(position=_xyz(centre + np.array([0.0, -1.1 * size, 0.35 * size])), look_at=_xyz(centre)))
+
+    def end(self) -> None:
+        """Stop aligning: the picks are dropped, the tab's layers come back."""
+        with self._lock:
+            self.state = AlignState()
+            for h in self._nodes.values():
+                try:
+                    h.remove()
+                except Exception:  # gone with its tab
+                    pass
+            self._nodes = {}
+            self._clouds_key = None
+            self._set_align(None)
+            self._show_controls(False)
+        self._show_verdict(self.controller.snapshot)
+
+    def _beside(self) -> np.ndarray:
+        """Where the scan is drawn while pairs are picked: beside the reference's tree (to its right
+        as the camera looks), their lowest points level, so a click is on one tree or the other."""
+        r, t = self._ref_pts, self._tgt_pts
+        shift = np.array([r[:, 0].max() + GAP_M - t[:, 0].min(),
+                          float(np.median(r[:, 1]) - np.median(t[:, 1])),
+                          r[:, 2].min() - t[:, 2].min()])
+        D = np.eye(4)
+        D[:3, 3] = shift
+        return D
+
+    def _bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        t = self._tgt_pts @ self._D[:3, :3].T + self._D[:3, 3]
+        both = np.vstack([self._ref_pts, t])
+        return both.min(axis=0), both.max(axis=0)
+
+    def pick(self, origin: np.ndarray, direction: np.ndarray) -> bool:
+        """A click in 3-D while aligning: the point it meant on either tree (the nearer to the camera
+        when both are near the ray) completes a pair with the other tree's last pick. False when this
+        tab is not aligning (the viewer handles the click)."""
+        with self._lock:
+            if self.state.scan is None:
+                return False
+            shown_tgt = self._tgt_pts @ self._D[:3, :3].T + self._D[:3, 3]
+            hits = []
+            for side, pts in (("ref", self._ref_pts), ("tgt", shown_tgt)):
+                k = nearest_to_ray(pts, origin, direction, max_angle_deg=PICK_ANGLE_DEG)
+                if k is not None:
+                    hits.append((float((pts[k] - origin) @ direction), side, k))
+            if not hits:
+                return True
+            _, side, k = min(hits)
+            if side == "ref":
+                self.add_pick(ref=_xyz(self._ref_pts[k]))
+            else:
+                self.add_pick(tgt=_xyz(self._tgt_pts[k]))
+            return True
+
+    def add_pick(self, ref: Xyz | None = None, tgt: Xyz | None = None) -> None:
+        """A point picked on the reference (`ref`) or the scan (`tgt`), in its scan's frame; a pair is
+        complete when both sides have one."""
+        with self._lock:
+            s = self.state
+            s = replace(s, ref_pick=ref if ref is not None else s.ref_pick, tgt_pick=tgt if tgt is not None else s.tgt_pick)
+            if s.ref_pick is not None and s.tgt_pick is not None:
+                s = replace(s, pairs=(*s.pairs, PickedPair(ref_xyz=s.ref_pick, tgt_xyz=s.tgt_pick)),
+                            ref_pick=None, tgt_pick=None)
+            self.state = s
+            self._changed()
+
+    def remove(self, k: int | None) -> None:
+        with self._lock:
+            if k is None or not 0 <= k < len(self.state.pairs):
+                return
+            pairs = self.state.pairs
+            self.state = replace(self.state, pairs=pairs[:k] + pairs[k + 1:])
+            self._changed()
+
+    def clear(self) -> None:
+        with self._lock:
+            self.state = replace(self.state, pairs=(), ref_pick=None, tgt_pick=None)
+            self._changed()
+
+    def set_preview(self, on: bool) -> None:
+        with self._lock:
+            if self.state.scan is None or on == self.state.preview:
+                return
+            self.state = replace(self.state, preview=on)
+            self._changed()
+
+    def _pair_index(self) -> int | None:
+        v = str(self.pair_choice.value)
+        return int(v.split()[1]) - 1 if v.startswith("Pair ") else None
+
+    def _changed(self) -> None:
+        fit = self.state.fit()
+        if not fit.ok and self.state.preview:
+            self.state = replace(self.state, preview=False)
+        self._D = fit.T_ref_tgt if self.state.preview and fit.ok else self._beside()
+        self._draw()
+        self._show_pairs(fit)
+
+    # ---- refining ----------------------------------------------------------------------------------
+    def start_pose(self) -> StartPose | None:
+        """The fit of the pairs as a start pose (between the scans as their files give them), None
+        until the pairs fix one."""
+        with self._lock:
+            name, fit = self.state.scan, self.state.fit()
+        if name is None or not fit.ok:
+            return None
+        snap = self.controller.snapshot
+        names = [s.name for s in snap.scans]
+        if name not in names:
+            return None
+        i = names.index(name)
+        ref, tgt = snap.scan_item("prepare", 0, PreparedScan), snap.scan_item("prepare", i, PreparedScan)
+        if ref is None or tgt is None:
+            return None
+        U = as_file_frames(fit.T_ref_tgt, ref_pose=snap.scans[0].pose, tgt_pose=snap.scans[i].pose,
+                           ref_level=ref.T_level, tgt_level=tgt.T_level)
+        U.setflags(write=False)
+        return StartPose(T_ref_scan=U, source=f"{SOURCE[:-1]}, {len(self.state.pairs)} pairs)",
+                         reference=snap.scans[0].name)
+
+    def refine(self) -> None:
+        """Refine from here: the fit becomes the scan's start pose and the stages from coarse on run."""
+        name = self.state.scan
+        pose = self.start_pose()
+        if name is None or pose is None:
+            return
+        self.controller.start(name, pose)
+        self.end()
+        self.verdict_md.content = f"*Refining {md(name)} from your alignment…*"
+
+    def forget(self) -> None:
+        name = str(self.scan_choice.value)
+        if name in self.controller.snapshot.starts:
+            self.controller.start(name, None)
+
+    # ---- drawing and text ----------------------------------------------------------------------------
+    def _show_controls(self, aligning: bool) -> None:
+        self.scan_choice.disabled = aligning
+        self.start_button.visible = not aligning
+        self.stop_button.visible = aligning
+        for h in (self.pair_choice, self.remove_button, self.clear_button, self.preview_box, self.refine_button):
+            h.visible = aligning
+        if aligning:
+            self._show_pairs(self.state.fit())
+        else:
+            self.status_md.content = ""
+            self.pairs_md.content = ""
+            self.preview_box.value = False
+
+    def _show_pairs(self, fit: PairFit) -> None:
+        s = self.state
+        name = md(s.scan or "")
+        if s.ref_pick is not None:
+            nxt = f"Now click the same point on **{name}** (right)."
+        elif s.tgt_pick is not None:
+            nxt = "Now click the same point on the **reference** (left)."
+        else:
+            nxt = f"Click a point on the reference (left) or on **{name}** (right)."
+        self.status_md.content = f"{nxt} {md(fit.message)}"
+        if s.pairs:
+            rows = ["| pair | reference (m) | scan (m) | residual |", "|---|---|---|---|"]
+            for k, p in enumerate(s.pairs):
+                res = f"{fit.residuals_m[k] * 100:.1f} cm" if fit.ok else "–"
+                rows.append(f"| {k + 1} | {_fmt(p.ref_xyz)} | {_fmt(p.tgt_xyz)} | {res} |")
+            self.pairs_md.content = "\n".join(rows)
+        else:
+            self.pairs_md.content = ""
+        options = tuple(f"Pair {k + 1}" for k in range(len(s.pairs))) or (NONE,)
+        self.pair_choice.options = options
+        self.remove_button.disabled = not s.pairs
+        self.clear_button.disabled = not s.pairs
+        self.preview_box.disabled = not fit.ok
+        if self.preview_box.value != s.preview:
+            self.preview_box.value = s.preview
+        self.refine_button.disabled = not fit.ok
+
+    def _draw(self) -> None:
+        """The two trees (the scan where it is drawn, `_D`) and the picks under /align."""
+        name = self.state.scan
+        if name is None:
+            return
+        snap = self.controller.snapshot
+        i = [s.name for s in snap.scans].index(name) if name in [s.name for s in snap.scans] else 1
+        key = (name, len(self._ref_pts), len(self._tgt_pts))
+        if self._clouds_key != key:
+            self._nodes["ref"] = self.scene.add_point_cloud(
+                "/align/ref", self._ref_pts.astype(np.float32), scan_color(0), point_size=0.02, precision="float32")
+            self._nodes["tgt"] = self.scene.add_point_cloud(
+                "/align/tgt", self._tgt_pts.astype(np.float32), scan_color(i), point_size=0.02, precision="float32")
+            self._clouds_key = key
+        tgt = self._nodes["tgt"]
+        kw = pose_kwargs(self._D)
+        tgt.wxyz, tgt.position = kw["wxyz"], kw["position"]
+        s = self.state
+
+        def shown(p: Xyz) -> np.ndarray:
+            out: np.ndarray = self._D[:3, :3] @ np.asarray(p) + self._D[:3, 3]
+            return out
+
+        refs = [np.asarray(p.ref_xyz) for p in s.pairs] + ([np.asarray(s.ref_pick)] if s.ref_pick else [])
+        tgts = [shown(p.tgt_xyz) for p in s.pairs] + ([shown(s.tgt_pick)] if s.tgt_pick else [])
+        marks = np.array(refs + tgts, dtype=np.float32).reshape(-1, 3)
+        self._nodes["marks"] = self.scene.add_point_cloud(
+            "/align/marks", marks if len(marks) else np.zeros((1, 3), np.float32), (255, 215, 0),
+            point_size=0.12, point_shape="circle", precision="float32", visible=bool(len(marks)))
+        if s.pairs:
+            segs = np.array([[p.ref_xyz, shown(p.tgt_xyz)] for p in s.pairs], dtype=np.float32)
+            self._nodes["lines"] = self.scene.add_line_segments("/align/lines", segs, (255, 215, 0), thickness=2.0)
+        elif "lines" in self._nodes:
+            self._nodes.pop("lines").remove()
+        for key_ in [k for k in self._nodes if k.startswith("label")]:
+            self._nodes.pop(key_).remove()
+        for k, p in enumerate(s.pairs):
+            for side, at in (("r", np.asarray(p.ref_xyz)), ("t", shown(p.tgt_xyz))):
+                self._nodes[f"label{side}{k}"] = self.scene.add_label(
+                    f"/align/label{side}{k}", f"{k + 1}", position=_xyz(at + np.array([0.0, 0.0, 0.15])))
+
+
+def _fmt(p: Xyz) -> str:
+    return ", ".join(f"{v:.2f}" for v in p)

@@ -7,14 +7,19 @@ import argparse
 import errno
 import math
 import socket
+import warnings
 from pathlib import Path
 
-from treereg_core.demo import DEMO_DIR, demo_case
-from treereg_core.errors import ConfigError
+import numpy as np
+
+from treereg_core.demo import DEMO_DIR
+from treereg_core.errors import ConfigError, ScanError
 from treereg_core.io.atomic import check_output_dir
-from treereg_core.io.cases import read_truth, truth_beside
+from treereg_core.io.cases import TRUTH_NAME, read_truth, truth_beside
 from treereg_core.limits import MAX_UPLOAD_POINTS
 from treereg_core.parallel import APP_SPARE_CORES
+from treereg_core.params import Params
+from treereg_core.scan import Scan
 
 from .common import add_param_args, add_workers_arg, load_params, read_scans, workers_of
 
@@ -32,7 +37,9 @@ def add(sub: argparse._SubParsersAction) -> None:
     p.add_argument("scans", nargs="*", metavar="SCAN", help="scan files (first = reference); none = the demo")
     add_param_args(p)
     add_workers_arg(p, "threads a registration uses", spare=APP_SPARE_CORES)
-    p.add_argument("--truth", help="truth.json with the true transforms (default: the one beside the scans, if any)")
+    p.add_argument("--truth", help="truth.json with the true transforms (default: the one beside the scans, if any; "
+                   "one that cannot be read is a warning, and the app shows no errors against truth)")
+    p.add_argument("--no-truth", action="store_true", help="do not look for a truth.json beside the scans")
     p.add_argument("--out", help="folder to also write exports to (besides the browser downloads)")
     p.add_argument("--port", type=int, default=8080, help="port (default 8080; 0 = any free port); a port in use is an error")
     p.add_argument("--host", default="127.0.0.1",
@@ -79,16 +86,7 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--max-upload-points: {args.max_upload_points} must be a positive number of points")
     params = load_params(args)
     workers = workers_of(args)
-    if args.scans:
-        scans = read_scans(args.scans, params, args.scanner_position)
-        truth_path = Path(args.truth) if args.truth else truth_beside([Path(f) for f in args.scans])
-        truth = read_truth(truth_path) if truth_path else None
-    else:
-        print(f"treereg view: no scans given, opening the demo in {DEMO_DIR}", flush=True)
-        case = demo_case(params.prepare.angular_step_deg)
-        scans, truth = list(case.scans), case.truth
-        if args.truth:
-            truth = read_truth(Path(args.truth))
+    scans, truth = scans_and_truth(args, params)
     # The app (viser, its web client) is imported only here: every other command stays light.
     from treereg_viewer.app import serve
     from treereg_viewer.controller import Controller
@@ -101,3 +99,41 @@ def run(args: argparse.Namespace) -> int:
     serve(Controller(scans, params, truth, workers=workers), host=args.host, port=args.port, out_dir=out_dir,
           max_upload_bytes=int(args.max_upload_mb * 1e6), max_upload_points=args.max_upload_points)
     return 0
+
+
+def scans_and_truth(args: argparse.Namespace, params: Params) -> tuple[list[Scan], dict[str, np.ndarray] | None]:
+    """The scans the app opens (the demo's without SCAN files) and their truth, if any."""
+    if args.truth and args.no_truth:
+        raise ConfigError("--truth and --no-truth: give one of them")
+    files = list(args.scans)
+    if not files:
+        # The demo's files read as `treereg register` reads any files (the angular steps estimated
+        # from each scan, or --angular-step): the app and the command line give the same transforms.
+        files = [str(DEMO_DIR / name) for name in read_truth(DEMO_DIR / TRUTH_NAME)]
+        print(f"treereg view: no scans given, opening the demo in {DEMO_DIR}", flush=True)
+    scans = read_scans(files, params, args.scanner_position)
+    if args.truth:  # asked for: it must be read
+        return scans, read_truth(Path(args.truth))
+    if args.no_truth:
+        return scans, None
+    return scans, _truth_beside([Path(f) for f in files], [s.name for s in scans])
+
+
+def _truth_beside(files: list[Path], names: list[str]) -> dict[str, np.ndarray] | None:
+    """The truth.json beside the scans, if there is one the app can use: one it cannot read, or one
+    that names none of these scans, is a warning (the app then shows no errors against truth), never
+    a reason not to start."""
+    path = truth_beside(files)
+    if path is None:
+        return None
+    try:
+        truth = read_truth(path)
+    except (ConfigError, ScanError) as e:
+        warnings.warn(f"{e}: not read as the truth of these scans (the app shows no errors against truth; "
+                      "--truth FILE gives one, --no-truth stops looking)", UserWarning, stacklevel=2)
+        return None
+    if not any(n in truth for n in names):
+        warnings.warn(f"{path}: names none of these scans, so it is not their truth (the app shows no errors "
+                      "against truth)", UserWarning, stacklevel=2)
+        return None
+    return truth

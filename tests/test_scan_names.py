@@ -91,9 +91,11 @@ def test_register_names_them_in_transforms_json_the_merged_clouds_and_the_export
     merged = tmp_path / "res" / "m.las"
     capsys.readouterr()
     assert main(["register", *(str(stations / n) for n in NAMES), "--out", str(out), "--exports",
-                 "--merged", str(merged)]) == 0
+                 "--merged", str(merged), "--details"]) == 0
     lines = capsys.readouterr().out
     assert "b/scan1.ply -> a/scan1.ply" in lines and re.search(r"^\s+c/scan1\.ply\s+verified", lines, re.M)
+    # The summary: a row per scan, by its name, the reference as such.
+    assert re.search(r"^\s+a/scan1\.ply\s+reference$", lines, re.M) and re.search(r"^\s+b/scan1\.ply\s+verified\s+0\.9", lines, re.M)
     tf = read_transforms(out)
     assert tf.reference == "a/scan1.ply" and list(tf.transforms) == NAMES
     assert set(tf.extra["sources"]) == set(NAMES)

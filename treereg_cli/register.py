@@ -22,6 +22,7 @@ from treereg_core.io.transforms import (export_paths, registered_e57_name, regis
 from treereg_core.pipeline import register
 from treereg_core.stages import UNTIL
 from treereg_core.verify.report import motion_lines, quality_report, verdict_lines, verdict_text
+from treereg_core.verify.summary import scan_summaries, summary_table
 
 from treereg_core.text import shown
 
@@ -52,6 +53,9 @@ def add(sub: argparse._SubParsersAction) -> None:
     add_param_args(p)
     add_initial_arg(p)
     add_workers_arg(p, "pairs and scans registered side by side")
+    p.add_argument("--details", action="store_true",
+                   help="also print every pair's numbers, stage by stage (by default one row per scan: its verdict "
+                   "and the checks it rests on, each beside its threshold)")
     p.add_argument("--exports", action="store_true",
                    help="also write CloudCompare and PDAL matrix files beside --out, named after it "
                    "(<out>.<scan>.cloudcompare.txt, <out>.<scan>.pdal.txt), and <out>.registered.e57")
@@ -129,12 +133,15 @@ def run(args: argparse.Namespace) -> int:
                 written.append(write_merged(args.merged, scans, tf.transforms))
     except OSError as e:  # one line naming the file, not a traceback
         raise ScanError(e.filename or str(out), f"cannot write the results ({e.strerror or e}); nothing was written") from None
-    for name, rows in metrics.items():
+    for name, rows in metrics.items() if args.details else ():
         print(f"\n{name}" if " -> " in name else f"\n{name} -> {scans[0].name}")
         for r in rows:
             v = r["value"]
-            text = f"{v:.4g}" if isinstance(v, float) else str(v)
-            print(f"  {r['stage']:<10} {r['metric']:<40} {text} {r['unit']}")
+            print(f"  {r['stage']:<10} {r['metric']:<40} {_value_text(v, r['unit'])}")
+    if pipe.output("graph") is not None:
+        print()
+        for line in summary_table(scan_summaries(scans, pipe.pairs, pipe.outputs)):
+            print(f"  {line}")
     print()
     for name, (verdict, _, _) in verdicts.items():
         start = f" (started from the pose given in {starts[name].source})" if name in starts else ""
@@ -151,3 +158,15 @@ def run(args: argparse.Namespace) -> int:
             line = f"{name} (started from the pose given in {starts[name].source}): {line[len(name) + 2:]}"
         print(f"treereg: {line}", file=sys.stderr)
     return 1 if lines else 0
+
+
+def _value_text(v: object, unit: str) -> str:
+    """A metric as `--details` prints it: four significant digits and its unit; "not measured" for
+    NaN, "beyond reach" for infinity (never "nan" or "inf")."""
+    if isinstance(v, float):
+        if v != v:
+            return "not measured"
+        if v in (float("inf"), float("-inf")):
+            return "beyond reach"
+        return f"{v:.4g} {unit}".rstrip()
+    return f"{v} {unit}".rstrip()

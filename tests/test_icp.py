@@ -45,7 +45,7 @@ def test_icp_on_two_stations_runs_from_a_near_pose_and_reports(case):
     T_true = case.T_ref_scan[1]
     start = _offset(apply_transform(T_true, tgt.points), 0.2, [0.01, 0.005, 0.0]) @ T_true
     res = align_icp(ref.points, tgt.points, start, icp=IcpParams())
-    assert res.ok and res.iterations >= 1 and 0 < res.fitness <= 1 and np.isfinite(res.rmse_m)
+    assert res.ok and res.iterations >= 1 and 0 < res.overlap <= 1 and np.isfinite(res.rmse_m)
     # Partial overlap (each station sees other sides of thin branches) biases ICP; from 1 cm it
     # stays within a few cm of the truth.
     assert mean_displacement(res.T_ref_target, T_true, tgt.points) < 0.03
@@ -67,3 +67,19 @@ def test_voxel_downsample_and_normals():
     assert 90 <= len(sub) <= 100
     n = estimate_normals(sub)
     assert np.all(np.abs(n[:, 2]) > 0.99)
+
+
+def test_icp_says_whether_it_converged_and_measures_its_overlap(case):
+    """Issue 32: "fitness 0.5" was the trim fraction (a setting), and "stopped after 50 iterations"
+    hid that ICP had not converged."""
+    ref, tgt = case.scans[0], case.scans[1]
+    start = _offset(apply_transform(case.T_ref_scan[1], tgt.points), 0.2, [0.01, 0.005, 0.0]) @ case.T_ref_scan[1]
+    said = {m.description: m.value for m in align_icp(ref.points, tgt.points, start, icp=IcpParams()).metrics}
+    assert said["ICP converged"] == "yes"
+    assert said["ICP overlap (target points within icp.max_distance_m)"] > IcpParams().trim
+    capped = align_icp(ref.points, tgt.points, start, icp=IcpParams(max_iterations=2))
+    assert not capped.converged
+    assert dict((m.description, m.value) for m in capped.metrics)["ICP converged"] == "no (stopped at icp.max_iterations = 2)"
+    # Nothing near: the overlap says so (no trimmed share of far points passes for a fit).
+    near = align_icp(ref.points, tgt.points, start, icp=IcpParams(max_distance_m=0.002, max_iterations=1))
+    assert near.overlap < 0.9

@@ -34,8 +34,9 @@ class IcpResult:
         Final 4x4 (the initial transform when not ok).
     rmse_m
         RMS distance of the kept correspondences at the end (point-to-plane distance for that metric).
-    fitness
-        Fraction of the target's (subsampled) points with a kept correspondence at the end.
+    overlap
+        Fraction of the target's (subsampled) points with a reference point within
+        `icp.max_distance_m` at the end: a measurement (the share kept, `icp.trim` of those, is a setting).
     iterations
         Iterations run.
     converged
@@ -49,7 +50,7 @@ class IcpResult:
     metrics: tuple[Metric, ...]
     T_ref_target: np.ndarray
     rmse_m: float
-    fitness: float
+    overlap: float
     iterations: int
     converged: bool
     ran: bool = True
@@ -58,7 +59,7 @@ class IcpResult:
 def icp_off(T_init: np.ndarray) -> IcpResult:
     """The result when the ICP baseline is switched off: nothing ran, the start stands."""
     return IcpResult(ok=True, message="the ICP baseline is off (icp.enabled)", metrics=(),
-                     T_ref_target=np.asarray(T_init, dtype=float).copy(), rmse_m=float("nan"), fitness=0.0,
+                     T_ref_target=np.asarray(T_init, dtype=float).copy(), rmse_m=float("nan"), overlap=0.0,
                      iterations=0, converged=False, ran=False)
 
 
@@ -101,7 +102,7 @@ def align_icp(ref_points: np.ndarray, tgt_points: np.ndarray, T_init: np.ndarray
     src = voxel_downsample(tgt_points, p.voxel_m)
     tree = cKDTree(ref)
     normals = estimate_normals(ref, tree=tree) if p.method == "point_to_plane" else None
-    rmse, fit, it, converged = np.nan, 0.0, 0, False
+    rmse, overlap, it, converged = np.nan, 0.0, 0, False
     for it in range(1, p.max_iterations + 1):
         progress(it / p.max_iterations, f"ICP iteration {it}")
         moved = apply_transform(T, src)
@@ -110,7 +111,7 @@ def align_icp(ref_points: np.ndarray, tgt_points: np.ndarray, T_init: np.ndarray
         if valid.sum() < 6:
             return IcpResult(ok=False, message="ICP found fewer than 6 correspondences within icp.max_distance_m; "
                              "the start transform is too far off", metrics=(Metric("ICP iterations", "", it),),
-                             T_ref_target=np.asarray(T_init, dtype=float).copy(), rmse_m=np.nan, fitness=0.0,
+                             T_ref_target=np.asarray(T_init, dtype=float).copy(), rmse_m=np.nan, overlap=0.0,
                              iterations=it, converged=False)
         idx = np.flatnonzero(valid)
         # Trim by the residual the metric minimises: for point-to-plane that is the distance along
@@ -127,7 +128,7 @@ def align_icp(ref_points: np.ndarray, tgt_points: np.ndarray, T_init: np.ndarray
         else:
             step = kabsch(moved[idx], ref[j[idx]])
         rmse = float(np.sqrt(np.mean(resid ** 2)))
-        fit = len(idx) / len(src)
+        overlap = float(valid.sum()) / len(src)
         T = step @ T
         ang = np.arccos(np.clip((np.trace(step[:3, :3]) - 1) / 2, -1, 1))
         if ang < _STOP_RAD and np.linalg.norm(step[:3, 3]) < _STOP_M:
@@ -136,7 +137,8 @@ def align_icp(ref_points: np.ndarray, tgt_points: np.ndarray, T_init: np.ndarray
     metrics = (
         Metric("ICP iterations", "", it),
         Metric("ICP RMSE", "m", rmse),
-        Metric("ICP fitness", "", fit),
+        Metric("ICP overlap (target points within icp.max_distance_m)", "", overlap),
+        Metric("ICP converged", "", "yes" if converged else f"no (stopped at icp.max_iterations = {p.max_iterations})"),
     )
-    return IcpResult(ok=True, message="", metrics=metrics, T_ref_target=T, rmse_m=rmse, fitness=fit, iterations=it,
+    return IcpResult(ok=True, message="", metrics=metrics, T_ref_target=T, rmse_m=rmse, overlap=overlap, iterations=it,
                      converged=converged)

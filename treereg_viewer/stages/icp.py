@@ -28,8 +28,9 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
     if not item.ran:
         return [], PanelContent(title("icp", snap, t), text=md_sentence(item.message))
     text = (f"{md(pair_label(snap, t))}: ICP ({snap.params.icp.method.replace('_', '-')}) "
-            f"{'converged' if item.converged else 'stopped'} after {item.iterations} iterations"
-            f"{'' if item.ok else f' — {md(item.message)}'}. Every target is shown at its ICP pose.")
+            + (f"converged after {item.iterations} iterations" if item.converged else
+               f"did not converge: stopped at icp.max_iterations = {snap.params.icp.max_iterations}")
+            + f"{'' if item.ok else f' — {md(item.message)}'}. Every target is shown at its ICP pose.")
     rows = []
     for k in range(len(out.items)):
         pair, fine = snap.pair(k), target_pose(snap, "fine", k)

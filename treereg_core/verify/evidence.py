@@ -569,7 +569,7 @@ def _consistency(e: Evidence, p: VerifyParams, why_not: str, wind: bool) -> Chec
                   judged=not why_not, hint=hint, reason=reason)
 
 
-def _same_tree(e: Evidence, p: VerifyParams, judged: bool, target: str, reference: str) -> Check:
+def _same_tree(e: Evidence, p: VerifyParams, why_not: str, target: str, reference: str) -> Check:
     """Support at chance level and much of the target in the reference's free space (right poses leave
     6% or less there, two different trees 7% to 93%): the scans show two different trees, and the
     pair fails rather than stays a best guess."""
@@ -577,9 +577,8 @@ def _same_tree(e: Evidence, p: VerifyParams, judged: bool, target: str, referenc
                   f"verify.other_tree_consistency = {p.other_tree_consistency:g}, judged when the tie support is at chance "
                   "level and the pose stands the scanner level (verify.max_tilt_deg): below it more of the target lies "
                   "in the reference's free space than a right pose leaves"
-                  + ("" if judged else " (not judged: the tie support is above chance, the overlap too small, or the "
-                                       "pose tilts the scanner: no evidence of another tree)"),
-                  judged=judged, hint=f"check the files: {target} and {reference} may be scans of different trees",
+                  + (f" (not judged: {why_not})" if why_not else ""),
+                  judged=not why_not, hint=f"check the files: {target} and {reference} may be scans of different trees",
                   reason=lambda: f"{OTHER_TREE} {reference}")
 
 
@@ -736,8 +735,13 @@ def checks(e: Evidence, *, verify: VerifyParams, coarse: CoarseParams, acceptanc
     # "Another tree" needs its evidence: support at chance, the overlap to judge, and the scanner standing
     # level at the pose (scans compared upright; a pose that tips one over is wrong, whatever the trees).
     upright = _measured(e.tilt_deg) and e.tilt_deg <= p.max_tilt_deg
-    same = _same_tree(e, p, support.passed is False and bool(overlap.passed) and _measured(e.consistency) and upright,
-                      target, reference)
+    # Why "another tree" is not judged, in the words of the first missing piece of its evidence.
+    unjudged = ("the tie support is above chance level (these scans share tie points: no evidence of another tree)"
+                if support.passed is not False else
+                "too little overlap to compare the scans" if not overlap.passed else
+                "the consistency was not measured" if not _measured(e.consistency) else
+                "the pose tilts the scanner beyond verify.max_tilt_deg (scans compared only upright)" if not upright else "")
+    same = _same_tree(e, p, unjudged, target, reference)
     still = (_check("free-space consistency, no motion granted", e.consistency_still, "", ">=", p.min_consistency,
                     "verify.min_consistency", "shown, not judged: the target unbent, none of its points counted as moved",
                     judged=False),) if e.sway_m > 0 and _measured(e.consistency_still) else ()

@@ -44,6 +44,9 @@ GAP_M = 2.0
 #: Where the start came from, as transforms.json's quality ("started_from") and the messages say it.
 SOURCE = "the app (point pairs picked by hand)"
 NONE = "(none)"
+#: The picked points: small spheres, and each pair's line, in a colour no scan has.
+MARK_RADIUS_M = 0.05
+MARK_COLOUR = (255, 200, 0)
 
 Xyz = tuple[float, float, float]
 
@@ -97,15 +100,19 @@ class AlignPanel:
         Tells the viewer which scan this tab aligns (None: none), so its drawer hides its layers.
     look
         Points the tab's camera.
+    refined
+        Called once a start is given (the viewer shows the Placement stage, where the verdict comes).
     """
 
     def __init__(self, gui: viser.GuiApi, scene: viser.SceneApi, controller: Controller,
-                 set_align: Callable[[str | None], None], look: Callable[[CameraPose], None]) -> None:
+                 set_align: Callable[[str | None], None], look: Callable[[CameraPose], None],
+                 refined: Callable[[], None] = lambda: None) -> None:
         self.gui = gui
         self.scene = scene
         self.controller = controller
         self._set_align = set_align
         self._look = look
+        self._refined = refined
         self._lock = threading.RLock()
         self.state = AlignState()
         self._nodes: dict[str, Any] = {}
@@ -335,6 +342,7 @@ class AlignPanel:
         self.controller.start(name, pose)
         self.end()
         self.verdict_md.content = f"*Refining {md(name)} from your alignment…*"
+        self._refined()
 
     def forget(self) -> None:
         name = str(self.scan_choice.value)
@@ -405,19 +413,21 @@ class AlignPanel:
             out: np.ndarray = self._D[:3, :3] @ np.asarray(p) + self._D[:3, 3]
             return out
 
-        refs = [np.asarray(p.ref_xyz) for p in s.pairs] + ([np.asarray(s.ref_pick)] if s.ref_pick else [])
-        tgts = [shown(p.tgt_xyz) for p in s.pairs] + ([shown(s.tgt_pick)] if s.tgt_pick else [])
-        marks = np.array(refs + tgts, dtype=np.float32).reshape(-1, 3)
-        self._nodes["marks"] = self.scene.add_point_cloud(
-            "/align/marks", marks if len(marks) else np.zeros((1, 3), np.float32), (255, 215, 0),
-            point_size=0.12, point_shape="circle", precision="float32", visible=bool(len(marks)))
+        for key_ in [k for k in self._nodes if k.startswith(("label", "mark"))]:
+            self._nodes.pop(key_).remove()
+        marks = [(f"r{k}", np.asarray(p.ref_xyz)) for k, p in enumerate(s.pairs)]
+        marks += [(f"t{k}", shown(p.tgt_xyz)) for k, p in enumerate(s.pairs)]
+        marks += [("rnext", np.asarray(s.ref_pick))] if s.ref_pick else []
+        marks += [("tnext", shown(s.tgt_pick))] if s.tgt_pick else []
+        for key_, at in marks:
+            self._nodes[f"mark{key_}"] = self.scene.add_icosphere(
+                f"/align/mark{key_}", radius=MARK_RADIUS_M, color=MARK_COLOUR, position=_xyz(at), cast_shadow=False)
         if s.pairs:
             segs = np.array([[p.ref_xyz, shown(p.tgt_xyz)] for p in s.pairs], dtype=np.float32)
-            self._nodes["lines"] = self.scene.add_line_segments("/align/lines", segs, (255, 215, 0), thickness=2.0)
+            self._nodes["lines"] = self.scene.add_line_segments("/align/lines", segs, MARK_COLOUR, thickness=2.0,
+                                                                 thickness_units="screen")
         elif "lines" in self._nodes:
             self._nodes.pop("lines").remove()
-        for key_ in [k for k in self._nodes if k.startswith("label")]:
-            self._nodes.pop(key_).remove()
         for k, p in enumerate(s.pairs):
             for side, at in (("r", np.asarray(p.ref_xyz)), ("t", shown(p.tgt_xyz))):
                 self._nodes[f"label{side}{k}"] = self.scene.add_label(

@@ -107,7 +107,8 @@ class Viewer:
         with tabs.add_tab("Scans", viser.Icon.TREE):
             self.scans = ScanPanel(gui, self)
         with tabs.add_tab("Align", viser.Icon.HAND_CLICK):
-            self.align = AlignPanel(gui, scene, self.controller, lambda name: self.set_view(align_scan=name), self._look)
+            self.align = AlignPanel(gui, scene, self.controller, lambda name: self.set_view(align_scan=name), self._look,
+                                    refined=lambda: self.select_stage("graph"))
         with tabs.add_tab("Files", viser.Icon.FILE_EXPORT):
             self.files = ExportPanel(gui, self)
         with tabs.add_tab("Teach", viser.Icon.SCHOOL):

@@ -1,0 +1,129 @@
+"""Align by hand in Chromium (issue 33 item 2): `treereg view` on the demo with its coarse stage
+forced to refuse every pose (coarse.max_tilt_deg = 0); a user opens the Align tab, picks scan2, clicks
+three point pairs on the two trees in the 3-D view (the reference's point, the scan's point), reads the
+pairs and the fit's residual, presses Refine from here and reads the verdict: verified.
+"""
+
+from __future__ import annotations
+
+import re
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+pytestmark = pytest.mark.browser
+
+playwright_api = pytest.importorskip("playwright.sync_api")
+from browser import choose, close_toast, open_page, view  # noqa: E402
+from conftest import CHROMIUM  # noqa: E402
+
+if not CHROMIUM.exists():
+    pytest.skip(f"{CHROMIUM} is not installed", allow_module_level=True)
+
+from treereg_core.demo import demo_case  # noqa: E402
+from treereg_core.geometry.rigid import apply_transform, invert  # noqa: E402
+from treereg_core.params import Params  # noqa: E402
+from treereg_core.pipeline import Pipeline  # noqa: E402
+
+W, H = 1280, 720
+#: Where the screenshots go (the README's picture is taken from the second).
+SHOTS = Path("/tmp/treereg-align")
+
+#: Pixels of points of scene node `name` (their coordinates in its frame), as the page's camera shows
+#: them now: through the node's world matrix, the camera's view and projection, onto the canvas.
+PROJECT = """([name, pts]) => {
+  const m = window.__viserMutable, node = m.nodeRefFromName[name], cam = m.camera;
+  node.updateMatrixWorld(); cam.updateMatrixWorld();
+  const mul = (e, v) => [0, 1, 2, 3].map(r => e[r] * v[0] + e[4 + r] * v[1] + e[8 + r] * v[2] + e[12 + r] * v[3]);
+  const rect = document.querySelector('canvas').getBoundingClientRect();
+  return pts.map(p => {
+    const c = mul(cam.projectionMatrix.elements, mul(cam.matrixWorldInverse.elements, mul(node.matrixWorld.elements, [...p, 1])));
+    return [rect.left + (c[0] / c[3] + 1) / 2 * rect.width, rect.top + (1 - c[1] / c[3]) / 2 * rect.height];
+  });
+}"""
+
+
+def _frame(page) -> int:
+    return int(page.evaluate("() => window.__viserTestpoints.rendererInfo.render.frame"))
+
+
+def _settled(page) -> None:
+    """The scene drew a frame since now (rendering is on demand)."""
+    f = _frame(page)
+    page.wait_for_function(f"() => window.__viserTestpoints.rendererInfo.render.frame > {f}", timeout=30_000)
+
+
+def _pairs_to_click():
+    """Three points of scan2 that scan1 saw too (a person picks what both show), spread over the tree
+    (the stem low, the crown's top, a branch far out), and their partners on scan1: in each scan's
+    prepared frame, as the app draws them."""
+    case = demo_case()
+    pipe = Pipeline(list(case.scans), Params(), dict(case.truth), workers=1)
+    pipe.run("prepare")
+    ref, tgt = (pipe.output("prepare").items[i].scan.points for i in (0, 1))
+    T_true = invert(case.truth[case.scans[0].name]) @ case.truth[case.scans[1].name]
+    near, _ = cKDTree(ref).query(apply_transform(T_true, tgt))
+    # The camera looks along +y: points on the near side (small y) are in front.
+    both = tgt[(near < 0.02) & (apply_transform(T_true, tgt)[:, 1] < np.median(ref[:, 1]))]
+    centre = np.median(both, axis=0)
+    chosen = np.array([both[np.argmin(both[:, 2])], both[np.argmax(both[:, 2])],
+                       both[np.argmax(np.hypot(*(both[:, :2] - centre[:2]).T))]])
+    return chosen, apply_transform(T_true, chosen)
+
+
+@pytest.fixture(scope="module")
+def refused():
+    """The demo with every coarse pose refused: scan2 and scan3 fail."""
+    for url, _, _ in view(["--set", "coarse.max_tilt_deg=0"]):
+        yield url
+
+
+def test_a_refused_scan_rescued_by_three_point_pairs_in_the_browser(refused, browser):
+    SHOTS.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    context, page, blocked = open_page(browser, refused, width=W, height=H)
+    try:
+        # The run's end: the coarse stage refused every pose.
+        page.wait_for_function("() => /4 Coarse failed/.test(document.body.innerText) && "
+                               "/nothing is running/.test(document.body.innerText)", timeout=120_000)
+        close_toast(page)
+        page.get_by_role("tab", name="Align").click()
+        choose(page, "Scan", "scan2.ply")
+        page.get_by_role("button", name="Align this scan by hand", exact=True).click()
+        page.wait_for_function("() => !!window.__viserMutable.nodeRefFromName['/align/tgt']?.parent")
+        _settled(page)
+        tgt_pts, ref_pts = _pairs_to_click()
+        for k in range(3):
+            for name, p in (("/align/ref", ref_pts[k]), ("/align/tgt", tgt_pts[k])):
+                (x, y), = page.evaluate(PROJECT, [name, [p.tolist()]])
+                page.mouse.click(x, y)
+                expect_text = f"| {k + 1} |" if name == "/align/tgt" else None
+                if expect_text is None:
+                    playwright_api.expect(page.get_by_text("Now click the same point on", exact=False)).to_be_visible()
+            playwright_api.expect(page.locator("table").filter(has_text="residual").locator("tr")).to_have_count(k + 2)
+        status = page.get_by_text("RMS residual", exact=False)
+        playwright_api.expect(status).to_be_visible()
+        rms = float(re.search(r"RMS residual ([0-9.]+) m", status.inner_text()).group(1))
+        assert rms < 0.15, status.inner_text()
+        _settled(page)
+        page.screenshot(path=str(SHOTS / "1-pairs.png"))
+        page.get_by_label("Show the scan at the fit", exact=True).check()
+        _settled(page)
+        page.screenshot(path=str(SHOTS / "2-fit.png"))
+        page.get_by_role("button", name="Refine from here", exact=True).click()
+        verdict = page.get_by_text("scan2.ply: ✓ verified", exact=False)
+        playwright_api.expect(verdict).to_be_visible(timeout=120_000)
+        playwright_api.expect(page.get_by_text("Started from the pose given in", exact=False)).to_be_visible()
+        took = time.perf_counter() - t0
+        _settled(page)
+        page.screenshot(path=str(SHOTS / "3-verified.png"))
+        assert took < 120, f"the rescue took {took:.0f} s"
+        assert not blocked, blocked
+    except Exception:
+        page.screenshot(path=str(SHOTS / "failed.png"))
+        raise
+    finally:
+        context.close()

@@ -6,6 +6,7 @@ pairs and the fit's residual, presses Refine from here and reads the verdict: ve
 
 from __future__ import annotations
 
+import os
 import re
 import time
 from pathlib import Path
@@ -29,8 +30,9 @@ from treereg_core.params import Params  # noqa: E402
 from treereg_core.pipeline import Pipeline  # noqa: E402
 
 W, H = 1280, 720
-#: Where the screenshots go (the README's picture is taken from the second).
-SHOTS = Path("/tmp/treereg-align")
+#: Where the screenshots go, when wanted (`TREEREG_SHOTS=DIR`): 1-pairs.png (the README's
+#: assets/align_pairs.png), 2-fit.png, 3-verified.png.
+SHOTS = Path(os.environ["TREEREG_SHOTS"]) if os.environ.get("TREEREG_SHOTS") else None
 
 #: Pixels of points of scene node `name` (their coordinates in its frame), as the page's camera shows
 #: them now: through the node's world matrix, the camera's view and projection, onto the canvas.
@@ -81,8 +83,14 @@ def refused():
         yield url
 
 
+def _shot(page, name: str) -> None:
+    if SHOTS is not None:
+        SHOTS.mkdir(parents=True, exist_ok=True)
+        page.screenshot(path=str(SHOTS / name))
+
+
+@pytest.mark.slow  # about 25 s: the run, three pairs clicked, the refine
 def test_a_refused_scan_rescued_by_three_point_pairs_in_the_browser(refused, browser):
-    SHOTS.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     context, page, blocked = open_page(browser, refused, width=W, height=H)
     try:
@@ -109,21 +117,21 @@ def test_a_refused_scan_rescued_by_three_point_pairs_in_the_browser(refused, bro
         rms = float(re.search(r"RMS residual ([0-9.]+) m", status.inner_text()).group(1))
         assert rms < 0.15, status.inner_text()
         _settled(page)
-        page.screenshot(path=str(SHOTS / "1-pairs.png"))
+        _shot(page, "1-pairs.png")
         page.get_by_label("Show the scan at the fit", exact=True).check()
         _settled(page)
-        page.screenshot(path=str(SHOTS / "2-fit.png"))
+        _shot(page, "2-fit.png")
         page.get_by_role("button", name="Refine from here", exact=True).click()
         verdict = page.get_by_text("scan2.ply: ✓ verified", exact=False)
         playwright_api.expect(verdict).to_be_visible(timeout=120_000)
         playwright_api.expect(page.get_by_text("Started from the pose given in", exact=False)).to_be_visible()
         took = time.perf_counter() - t0
         _settled(page)
-        page.screenshot(path=str(SHOTS / "3-verified.png"))
+        _shot(page, "3-verified.png")
         assert took < 120, f"the rescue took {took:.0f} s"
         assert not blocked, blocked
     except Exception:
-        page.screenshot(path=str(SHOTS / "failed.png"))
+        _shot(page, "failed.png")
         raise
     finally:
         context.close()

@@ -378,7 +378,9 @@ def test_failed_stage_shows_its_message_and_later_stages_stay_stale(small_app):
     assert snap.status("coarse") == "failed"
     assert snap.status("fine") == "stale" and snap.status("evaluation") == "stale"
     assert "4 Coarse failed" in read(app.stages.message_md.content)
-    assert app.stages.progress.value == pytest.approx(300.0 / len(STAGE_NAMES))  # 3 stages up to date, not a full bar
+    # The failed stage ran for these inputs: 4 of 13 run, one failed (said so), not a full bar.
+    assert app.stages.progress.value == pytest.approx(400.0 / len(STAGE_NAMES))
+    assert read(app.stages.progress_text.content).strip() == "4 of 13 stages run for these parameters (1 failed); nothing is running."
     assert "Failed" in read(app.panel._text.content)
     assert "Traceback" not in read(app.stages.message_md.content) + read(app.panel._text.content)
     app.select_stage("slices")  # a failure upstream: stepping on does not run anything

@@ -177,11 +177,15 @@ class StagePanel:
         if not snap.busy:
             # At rest the bar shows how much of the pipeline is up to date (a failure stops it there),
             # and says so: a part-full bar must not read as a run that hangs.
+            # A stage that failed ran for these inputs too: counted as run, and its failures said.
             done = sum(snap.status(s) == "done" for s in STAGE_NAMES)
-            self.progress.value = 100.0 * done / len(STAGE_NAMES)
+            failed = [s for s in STAGE_NAMES if snap.status(s) == "failed"]
+            ran = done + len(failed)
+            self.progress.value = 100.0 * ran / len(STAGE_NAMES)
             self.progress.animated = False
-            self.progress_text.content = (f"*{done} of {len(STAGE_NAMES)} stages up to date; nothing is running.*"
-                                          if done < len(STAGE_NAMES) else "")
+            failures = f" ({len(failed)} failed)" if failed else ""
+            self.progress_text.content = (f"*{ran} of {len(STAGE_NAMES)} stages run for these parameters{failures}; "
+                                          "nothing is running.*" if done < len(STAGE_NAMES) else "")
         else:
             self.progress.animated = True
         # Ranges of the view controls follow the results (counted from 1).

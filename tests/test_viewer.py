@@ -765,6 +765,13 @@ def test_the_tour_sets_stage_and_panel_and_ends(env):
     v.tour.nav.value = "End tour"
     _idle(app)
     assert not v.tour.card.visible and app.view.tour_step is None and not any(n.startswith("/tour/") for n in _nodes(server))
+    # The last step's Next ends the tour (it did nothing), and its card says so.
+    v.tour_go(len(STEPS) - 1)
+    _idle(app)
+    assert "Next ends the tour" in read(v.tour.card.content) and "Next ends" not in STEPS[-1].try_this
+    v.tour.nav.value = "Next ▶"
+    _idle(app)
+    assert not v.tour.card.visible and app.view.tour_step is None
     app.set_view(panel="stage")
     _idle(app)
 

@@ -34,8 +34,8 @@ class TourPanel:
     def _nav(self, which: str) -> None:
         if self.step is None:
             return
-        if which == "End tour":
-            self._go_to(None)
+        if which == "End tour" or (which.startswith("Next") and self.step == len(STEPS) - 1):
+            self._go_to(None)  # Next on the last step ends the tour (it used to do nothing)
         else:
             self._go_to(max(0, min(len(STEPS) - 1, self.step + (1 if which.startswith("Next") else -1))))
 
@@ -48,7 +48,8 @@ class TourPanel:
             self.nav.visible = False
             return
         s = STEPS[step]
+        last = "\n\n*The last step: Next ends the tour.*" if step == len(STEPS) - 1 and not following else ""
         self.card.content = (f"#### Tour · step {step + 1} of {len(STEPS)}: {s.title}\n\n{s.why}\n\n"
-                             f"**Try:** {s.try_this}")
+                             f"**Try:** {s.try_this}{last}")
         self.card.visible = True
         self.nav.visible = not following

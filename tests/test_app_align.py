@@ -148,3 +148,31 @@ def test_starts_json_reads_back_as_a_start_file(refused, tmp_path):
     pose = read_start(path, name)
     assert np.allclose(pose.T_ref_scan, snap.starts[name].T_ref_scan)
     assert pose.reference == snap.scans[0].name
+
+
+def test_a_refused_scan_rescued_by_moving_it_with_the_gizmo(refused):
+    """The second way: the scan moved with the transform controls (as their updates set it) to 5 deg
+    and 0.3 m from where it belongs, then Refine from here."""
+    app, case = refused
+    snap = app.controller.snapshot
+    name = snap.scans[2].name
+    assert snap.verdicts[name][0] == "failed"
+    align = app.viewer.align
+    align.scan_choice.value = name
+    align.start_button.value = True
+    align.gizmo_box.value = True
+    assert align._gizmo is not None and not align.refine_button.disabled
+    T_true = invert(case.truth[snap.scans[0].name]) @ case.truth[name]
+    off = make_transform(rotation_z(5.0), np.array([0.3, -0.1, 0.0]))
+    C = np.eye(4)
+    C[:3, 3] = align._centre()
+    align.move_to(off @ T_true @ C)  # the gizmo dragged there: the scan drawn at off @ T_true
+    assert np.allclose(align._D, off @ T_true)
+    assert "the scan moved by hand" in align.start_pose().source
+    align.refine_button.value = True
+    _idle(app)
+    snap = app.controller.snapshot
+    assert snap.verdicts[name][0] == "verified", snap.verdicts[name]
+    truth_user = snap.scans[0].pose @ T_true @ invert(snap.scans[2].pose)
+    assert rotation_error_deg(snap.transforms[name], truth_user) < 0.5
+    assert np.linalg.norm(snap.transforms[name][:3, 3] - truth_user[:3, 3]) < 0.05

@@ -129,6 +129,15 @@ def test_a_refused_scan_rescued_by_three_point_pairs_in_the_browser(refused, bro
         _settled(page)
         _shot(page, "3-verified.png")
         assert took < 120, f"the rescue took {took:.0f} s"
+        # The second way shows its transform controls on scan3 (dragging them is the in-process test's).
+        choose(page, "Scan", "scan3.ply")
+        page.get_by_role("button", name="Align this scan by hand", exact=True).click()
+        page.get_by_label("Move the scan with the gizmo", exact=True).check()
+        page.wait_for_function("() => !!window.__viserMutable.nodeRefFromName['/align/gizmo']?.parent")
+        playwright_api.expect(page.get_by_text("where you moved it with the gizmo", exact=False)).to_be_visible()
+        _settled(page)
+        _shot(page, "4-gizmo.png")
+        page.get_by_role("button", name="Stop aligning", exact=True).click()
         assert not blocked, blocked
     except Exception:
         _shot(page, "failed.png")

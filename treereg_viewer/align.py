@@ -20,6 +20,7 @@ from typing import Any, Callable
 
 import numpy as np
 import viser
+import viser.transforms as vtf
 
 from treereg_core.coarse.start import StartPose
 from treereg_core.geometry.picking import nearest_to_ray
@@ -42,7 +43,7 @@ PICK_ANGLE_DEG = 0.8
 #: Room between the reference's tree and the scan's drawn beside it (m).
 GAP_M = 2.0
 #: Where the start came from, as transforms.json's quality ("started_from") and the messages say it.
-SOURCE = "the app (point pairs picked by hand)"
+SOURCE = "the app"
 NONE = "(none)"
 #: The picked points: small spheres, and each pair's line, in a colour no scan has.
 MARK_RADIUS_M = 0.05
@@ -69,6 +70,10 @@ class AlignState:
     ref_pick: Xyz | None = None
     tgt_pick: Xyz | None = None
     preview: bool = False
+    moved: tuple[tuple[float, ...], ...] | None = None  # the scan moved with the gizmo: its 4x4 T_ref_tgt
+
+    def moved_pose(self) -> np.ndarray | None:
+        return None if self.moved is None else np.array(self.moved, dtype=float)
 
     def fit(self) -> PairFit:
         ref = np.array([p.ref_xyz for p in self.pairs], dtype=float).reshape(-1, 3)
@@ -135,6 +140,9 @@ class AlignPanel:
         self.clear_button = gui.add_button("Clear all pairs", icon=viser.Icon.TRASH, color="gray", visible=False)
         self.preview_box = gui.add_checkbox("Show the scan at the fit", False, visible=False,
                                             hint="Draws the scan where the picked pairs put it, over the reference.")
+        self.gizmo_box = gui.add_checkbox("Move the scan with the gizmo", False, visible=False,
+                                          hint="Drag the arrows and rings to put the scan over the reference; "
+                                               "Refine from here then starts from where you put it.")
         self.refine_button = gui.add_button("Refine from here", icon=viser.Icon.PLAYER_PLAY, color="blue",
                                             visible=False, disabled=True)
         self.forget_button = gui.add_button("Forget the start pose", icon=viser.Icon.X, color="gray", visible=False,
@@ -145,6 +153,8 @@ class AlignPanel:
         self.remove_button.on_click(lambda _: self.remove(self._pair_index()))
         self.clear_button.on_click(lambda _: self.clear())
         self.preview_box.on_update(lambda _: self.set_preview(bool(self.preview_box.value)))
+        self.gizmo_box.on_update(lambda _: self.set_gizmo(bool(self.gizmo_box.value)))
+        self._gizmo: Any = None
         self.refine_button.on_click(lambda _: self.refine())
         self.forget_button.on_click(lambda _: self.forget())
         self.scan_choice.on_update(lambda _: self._show_verdict(self.controller.snapshot))
@@ -224,6 +234,9 @@ class AlignPanel:
                 except Exception:  # gone with its tab
                     pass
             self._nodes = {}
+            if self._gizmo is not None:
+                self._gizmo.remove()
+                self._gizmo = None
             self._clouds_key = None
             self._set_align(None)
             self._show_controls(False)
@@ -307,18 +320,68 @@ class AlignPanel:
         fit = self.state.fit()
         if not fit.ok and self.state.preview:
             self.state = replace(self.state, preview=False)
-        self._D = fit.T_ref_tgt if self.state.preview and fit.ok else self._beside()
+        moved = self.state.moved_pose()
+        self._D = moved if moved is not None else fit.T_ref_tgt if self.state.preview and fit.ok else self._beside()
         self._draw()
         self._show_pairs(fit)
+
+    # ---- the gizmo ---------------------------------------------------------------------------------
+    def _centre(self) -> np.ndarray:
+        """The scan's tree's centre (its frame): where the gizmo turns it about."""
+        out: np.ndarray = np.median(self._tgt_pts, axis=0)
+        return out
+
+    def set_gizmo(self, on: bool) -> None:
+        """Move the scan with viser's transform controls (on), from where it is drawn now; off: the
+        pairs' fit (or beside the reference) again."""
+        with self._lock:
+            if self.state.scan is None or on == (self.state.moved is not None):
+                return
+            if not on:
+                self.state = replace(self.state, moved=None)
+                if self._gizmo is not None:
+                    self._gizmo.remove()
+                    self._gizmo = None
+                self._changed()
+                return
+            C = np.eye(4)
+            C[:3, 3] = self._centre()
+            G = self._D @ C
+            self._gizmo = self.scene.add_transform_controls("/align/gizmo", scale=3.0, depth_test=False,
+                                                            **pose_kwargs(G))
+            self._gizmo.on_update(lambda _: self._dragged())
+            self.move_to(G)
+
+    def _dragged(self) -> None:
+        g = self._gizmo
+        if g is None:
+            return
+        G = np.eye(4)
+        G[:3, :3] = vtf.SO3(np.asarray(g.wxyz, dtype=float)).as_matrix()
+        G[:3, 3] = np.asarray(g.position, dtype=float)
+        self.move_to(G)
+
+    def move_to(self, G: np.ndarray) -> None:
+        """The gizmo at pose `G` (its centre at the scan's tree's centre): the scan drawn, and started
+        from, at G @ inv(centre)."""
+        with self._lock:
+            if self.state.scan is None:
+                return
+            C_inv = np.eye(4)
+            C_inv[:3, 3] = -self._centre()
+            T = np.asarray(G, dtype=float) @ C_inv
+            self.state = replace(self.state, moved=tuple(tuple(float(v) for v in row) for row in T))
+            self._changed()
 
     # ---- refining ----------------------------------------------------------------------------------
     def start_pose(self) -> StartPose | None:
         """The fit of the pairs as a start pose (between the scans as their files give them), None
         until the pairs fix one."""
         with self._lock:
-            name, fit = self.state.scan, self.state.fit()
-        if name is None or not fit.ok:
+            name, fit, moved, n = self.state.scan, self.state.fit(), self.state.moved_pose(), len(self.state.pairs)
+        if name is None or (moved is None and not fit.ok):
             return None
+        T = moved if moved is not None else fit.T_ref_tgt
         snap = self.controller.snapshot
         names = [s.name for s in snap.scans]
         if name not in names:
@@ -327,11 +390,11 @@ class AlignPanel:
         ref, tgt = snap.scan_item("prepare", 0, PreparedScan), snap.scan_item("prepare", i, PreparedScan)
         if ref is None or tgt is None:
             return None
-        U = as_file_frames(fit.T_ref_tgt, ref_pose=snap.scans[0].pose, tgt_pose=snap.scans[i].pose,
+        U = as_file_frames(T, ref_pose=snap.scans[0].pose, tgt_pose=snap.scans[i].pose,
                            ref_level=ref.T_level, tgt_level=tgt.T_level)
         U.setflags(write=False)
-        return StartPose(T_ref_scan=U, source=f"{SOURCE[:-1]}, {len(self.state.pairs)} pairs)",
-                         reference=snap.scans[0].name)
+        how = "the scan moved by hand" if moved is not None else f"{n} point pairs picked by hand"
+        return StartPose(T_ref_scan=U, source=f"{SOURCE} ({how})", reference=snap.scans[0].name)
 
     def refine(self) -> None:
         """Refine from here: the fit becomes the scan's start pose and the stages from coarse on run."""
@@ -354,7 +417,8 @@ class AlignPanel:
         self.scan_choice.disabled = aligning
         self.start_button.visible = not aligning
         self.stop_button.visible = aligning
-        for h in (self.pair_choice, self.remove_button, self.clear_button, self.preview_box, self.refine_button):
+        for h in (self.pair_choice, self.remove_button, self.clear_button, self.preview_box, self.gizmo_box,
+                  self.refine_button):
             h.visible = aligning
         if aligning:
             self._show_pairs(self.state.fit())
@@ -362,6 +426,7 @@ class AlignPanel:
             self.status_md.content = ""
             self.pairs_md.content = ""
             self.preview_box.value = False
+            self.gizmo_box.value = False
 
     def _show_pairs(self, fit: PairFit) -> None:
         s = self.state
@@ -385,10 +450,13 @@ class AlignPanel:
         self.pair_choice.options = options
         self.remove_button.disabled = not s.pairs
         self.clear_button.disabled = not s.pairs
-        self.preview_box.disabled = not fit.ok
+        self.preview_box.disabled = not fit.ok or s.moved is not None
         if self.preview_box.value != s.preview:
             self.preview_box.value = s.preview
-        self.refine_button.disabled = not fit.ok
+        self.refine_button.disabled = not fit.ok and s.moved is None
+        if s.moved is not None:
+            self.status_md.content += (" The scan stands where you moved it with the gizmo: *Refine from here* "
+                                       "starts from there (untick the gizmo for the pairs' fit).")
 
     def _draw(self) -> None:
         """The two trees (the scan where it is drawn, `_D`) and the picks under /align."""

@@ -170,7 +170,7 @@ class AlignPanel:
                 current = self.scan_choice.value
                 self.scan_choice.options = names or (NONE,)
                 if current in names:
-                    self.scan_choice.value = current
+                    self.scan_choice.value = current  # type: ignore[misc]
             self.start_button.disabled = not names or self.state.scan is not None
             if self.state.scan is not None and self.state.scan not in [s.name for s in snap.scans]:
                 self.end()  # the scan was removed
@@ -194,6 +194,11 @@ class AlignPanel:
             lines += [f"- {md(r)}" for r in reasons[:3]]
         if start is not None:
             lines.append(f"Started from the pose given in {md(start.source)}.")
+        i = [s.name for s in snap.scans].index(name)
+        if snap.pairs and snap.reference_pair(i) is None:
+            # The pipeline takes a start for a scan's pair with the reference (or a pair of two started scans).
+            lines.append(f"⚠ {md(name)} is not paired with the reference in this run, so a start pose given "
+                         "here takes effect only for its pairs with other scans given starts too.")
         self.verdict_md.content = "\n\n".join(lines)
         self.forget_button.visible = start is not None
 
@@ -347,8 +352,9 @@ class AlignPanel:
             C = np.eye(4)
             C[:3, 3] = self._centre()
             G = self._D @ C
+            kw = pose_kwargs(G)
             self._gizmo = self.scene.add_transform_controls("/align/gizmo", scale=3.0, depth_test=False,
-                                                            **pose_kwargs(G))
+                                                            wxyz=kw["wxyz"], position=kw["position"])
             self._gizmo.on_update(lambda _: self._dragged())
             self.move_to(G)
 
@@ -425,8 +431,8 @@ class AlignPanel:
         else:
             self.status_md.content = ""
             self.pairs_md.content = ""
-            self.preview_box.value = False
-            self.gizmo_box.value = False
+            self.preview_box.value = False  # type: ignore[misc]
+            self.gizmo_box.value = False  # type: ignore[misc]
 
     def _show_pairs(self, fit: PairFit) -> None:
         s = self.state
@@ -452,7 +458,7 @@ class AlignPanel:
         self.clear_button.disabled = not s.pairs
         self.preview_box.disabled = not fit.ok or s.moved is not None
         if self.preview_box.value != s.preview:
-            self.preview_box.value = s.preview
+            self.preview_box.value = s.preview  # type: ignore[misc]
         self.refine_button.disabled = not fit.ok and s.moved is None
         if s.moved is not None:
             self.status_md.content += (" The scan stands where you moved it with the gizmo: *Refine from here* "

@@ -13,6 +13,7 @@ import pytest
 from scipy.spatial import cKDTree
 import viser
 
+from conftest import read
 from treereg_core.demo import demo_case
 from treereg_core.geometry.point_pairs import as_file_frames, fit_point_pairs
 from treereg_core.geometry.rigid import apply_transform, invert, make_transform, rotation_error_deg, rotation_z
@@ -176,3 +177,28 @@ def test_a_refused_scan_rescued_by_moving_it_with_the_gizmo(refused):
     truth_user = snap.scans[0].pose @ T_true @ invert(snap.scans[2].pose)
     assert rotation_error_deg(snap.transforms[name], truth_user) < 0.5
     assert np.linalg.norm(snap.transforms[name][:3, 3] - truth_user[:3, 3]) < 0.05
+
+
+def test_the_align_tab_escapes_a_hostile_scan_name():
+    """A scan named as markup reads as its characters in every markdown of the Align tab."""
+    case = demo_case()
+    hostile = "<img src=x onerror=alert(1)>*scan2*.ply"
+    scans = list(case.scans)
+    scans[1] = scans[1].with_points(scans[1].points, name=hostile)
+    truth = {hostile if k == case.scans[1].name else k: v for k, v in case.truth.items()}
+    server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    app = TreeregApp(server, Controller(scans, Params().with_value("coarse", "max_tilt_deg", 0.0), truth), tabs="shared")
+    try:
+        _idle(app)
+        align = app.viewer.align
+        assert hostile in align.scan_choice.options  # a dropdown shows text, not markup
+        align.scan_choice.value = hostile
+        align.start_button.value = True
+        assert align.state.scan == hostile
+        for t in (align.status_md.content, align.verdict_md.content):
+            assert hostile in read(t), t  # rendered as viser renders markdown: the name as given, no tag
+        align.stop_button.value = True
+        assert app.view.align_scan is None
+    finally:
+        app.close()
+        server.stop()

@@ -179,6 +179,40 @@ def test_a_refused_scan_rescued_by_moving_it_with_the_gizmo(refused):
     assert np.linalg.norm(snap.transforms[name][:3, 3] - truth_user[:3, 3]) < 0.05
 
 
+
+def test_start_poses_forgotten_then_loaded_back_from_their_file(refused, tmp_path):
+    """Forget the start pose: the scan fails again; the starts.json downloaded before brings it back
+    (its source the file's name, not the upload's temporary path); a bad file is one message."""
+    app, _ = refused
+    snap = app.controller.snapshot
+    name = snap.scans[1].name
+    if name not in snap.starts:
+        pytest.skip("needs the rescue above")
+    saved = export_bundle(snap).files[STARTS_NAME]
+    align = app.viewer.align
+    align.scan_choice.value = name
+    assert align.forget_button.visible
+    align.forget_button.value = True
+    _idle(app)
+    snap = app.controller.snapshot
+    assert name not in snap.starts and snap.verdicts[name][0] == "failed"
+    bad = tmp_path / "a" / "upload"  # each upload in a folder of its own, which discard removes
+    bad.parent.mkdir()
+    bad.write_text("1 0 0\n")
+    align.load_start_file("mine.txt", bad)
+    _idle(app)
+    assert app.controller.snapshot.error and "mine.txt" in app.controller.snapshot.message
+    assert str(bad) not in app.controller.snapshot.message and not bad.exists()
+    good = tmp_path / "b" / "upload"
+    good.parent.mkdir()
+    good.write_bytes(saved)
+    align.load_start_file(STARTS_NAME, good)
+    _idle(app)
+    snap = app.controller.snapshot
+    assert snap.starts[name].source == STARTS_NAME
+    assert snap.verdicts[name][0] == "verified", snap.verdicts[name]
+
+
 def test_the_align_tab_escapes_a_hostile_scan_name():
     """A scan named as markup reads as its characters in every markdown of the Align tab."""
     case = demo_case()

@@ -16,6 +16,7 @@ from __future__ import annotations
 import logging
 import threading
 from dataclasses import dataclass, replace
+from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
@@ -23,6 +24,10 @@ import viser
 import viser.transforms as vtf
 
 from treereg_core.coarse.start import StartPose
+from treereg_core.errors import ConfigError
+from treereg_core.io.json_input import parse_json
+from treereg_core.io.start import MAX_START_BYTES, read_start
+from treereg_core.text import shown as shown_text
 from treereg_core.geometry.picking import nearest_to_ray
 from treereg_core.geometry.point_pairs import MIN_PAIRS, PairFit, as_file_frames, fit_point_pairs
 from treereg_core.prepare.ground import PreparedScan
@@ -32,7 +37,9 @@ from .controller import Controller, Snapshot
 from .draw.common import display_subset, pose_kwargs
 from .labels import verdict_badge
 from .palette import scan_color
+from .export import STARTS_NAME, starts_file
 from .text import md
+from .uploads import UploadReceiver, discard
 
 log = logging.getLogger(__name__)
 
@@ -107,11 +114,14 @@ class AlignPanel:
         Points the tab's camera.
     refined
         Called once a start is given (the viewer shows the Placement stage, where the verdict comes).
+    uploads, send_file
+        The app's upload receiver and browser downloads (the start poses as a file, and back).
     """
 
     def __init__(self, gui: viser.GuiApi, scene: viser.SceneApi, controller: Controller,
                  set_align: Callable[[str | None], None], look: Callable[[CameraPose], None],
-                 refined: Callable[[], None] = lambda: None) -> None:
+                 refined: Callable[[], None] = lambda: None, uploads: UploadReceiver | None = None,
+                 send_file: Callable[[Any, str, bytes], None] | None = None) -> None:
         self.gui = gui
         self.scene = scene
         self.controller = controller
@@ -148,6 +158,18 @@ class AlignPanel:
         self.forget_button = gui.add_button("Forget the start pose", icon=viser.Icon.X, color="gray", visible=False,
                                             hint="The coarse stage estimates this scan's pose again.")
         self.verdict_md = gui.add_markdown("")
+        self.download_starts = gui.add_button(f"Download start poses ({STARTS_NAME})", icon=viser.Icon.DOWNLOAD,
+                                              visible=False, hint="The start poses given by hand, as a file "
+                                              "`treereg register --initial SCAN=starts.json` reads (the exports hold it too).")
+        self.load_starts = gui.add_upload_button("Load start poses (JSON or 4x4 text)", icon=viser.Icon.UPLOAD,
+                                                 mime_type="*/*", hint="A starts.json or transforms.json (its entries "
+                                                 "for the loaded scans), or 4 rows of 4 numbers for the scan chosen above.")
+        self._send_file = send_file
+        self.download_starts.on_click(lambda e: self._download_starts(e.client))
+        if uploads is not None:
+            uploads.add(self.load_starts, self.load_start_file, MAX_START_BYTES, what="start pose file")
+        else:
+            self.load_starts.visible = False
         self.start_button.on_click(lambda _: self.begin(str(self.scan_choice.value)))
         self.stop_button.on_click(lambda _: self.end())
         self.remove_button.on_click(lambda _: self.remove(self._pair_index()))
@@ -174,7 +196,45 @@ class AlignPanel:
             self.start_button.disabled = not names or self.state.scan is not None
             if self.state.scan is not None and self.state.scan not in [s.name for s in snap.scans]:
                 self.end()  # the scan was removed
+        self.download_starts.visible = bool(snap.starts) and self._send_file is not None
         self._show_verdict(snap)
+
+    def _download_starts(self, client: Any) -> None:
+        snap = self.controller.snapshot
+        if snap.starts and self._send_file is not None:
+            self._send_file(client, STARTS_NAME, starts_file(snap))
+
+    def load_start_file(self, filename: str, path: Path) -> None:
+        """A start pose file received from the browser (`io.start`, as `register --initial` reads it):
+        a transforms.json's entries for every loaded target scan it names, or a matrix for the scan
+        chosen above; each given to the pipeline, which runs from there. A bad file: one message."""
+        snap = self.controller.snapshot
+        names = [s.name for s in snap.scans]
+        name = Path(filename).name or "upload"
+        try:
+            data = path.read_bytes()
+            text = data.decode("utf-8-sig", errors="replace")
+            doc = parse_json(data, name) if text.lstrip().startswith(("{", "[")) else None
+            listed = (list(doc.get("transforms") or {}) + list(doc.get("unverified") or {})
+                      if isinstance(doc, dict) and isinstance(doc.get("transforms"), dict) else None)
+            if listed is not None:
+                wanted = [n for n in names[1:] if n in listed]
+                if not wanted:
+                    raise ConfigError(f"{name}: names none of the loaded target scans ({', '.join(names[1:])})")
+            else:
+                chosen = str(self.scan_choice.value)
+                if chosen not in names[1:]:
+                    raise ConfigError(f"{name}: a matrix is the start of the scan chosen above: choose one first")
+                wanted = [chosen]
+            poses = [(n, replace(read_start(path, n), source=shown_text(name))) for n in wanted]
+        except (ConfigError, OSError) as e:
+            self.controller.note(f"Start poses not loaded — {str(e).replace(str(path), name)}", error=True)
+            return
+        finally:
+            discard(path)
+        for n, pose in poses:
+            self.controller.start(n, pose)
+        self._refined()
 
     def _show_verdict(self, snap: Snapshot) -> None:
         name = self.state.scan or str(self.scan_choice.value)

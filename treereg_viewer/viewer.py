@@ -108,7 +108,8 @@ class Viewer:
             self.scans = ScanPanel(gui, self)
         with tabs.add_tab("Align", viser.Icon.HAND_CLICK):
             self.align = AlignPanel(gui, scene, self.controller, lambda name: self.set_view(align_scan=name), self._look,
-                                    refined=lambda: self.select_stage("graph"))
+                                    refined=lambda: self.select_stage("graph"), uploads=host.uploads,
+                                    send_file=self.send_file)
         with tabs.add_tab("Files", viser.Icon.FILE_EXPORT):
             self.files = ExportPanel(gui, self)
         with tabs.add_tab("Teach", viser.Icon.SCHOOL):
@@ -468,5 +469,5 @@ class Viewer:
     def close(self) -> None:
         self._closed = True
         self.drawer.close()
-        for button in (self.scans.upload, self.files.load_params):
+        for button in (self.scans.upload, self.files.load_params, self.align.load_starts):
             self.host.uploads.remove(button)

@@ -160,7 +160,7 @@ class AlignPanel:
         self.verdict_md = gui.add_markdown("")
         self.download_starts = gui.add_button(f"Download start poses ({STARTS_NAME})", icon=viser.Icon.DOWNLOAD,
                                               visible=False, hint="The start poses given by hand, as a file "
-                                              "`treereg register --initial SCAN=starts.json` reads (the exports hold it too).")
+                                              "treereg register --initial SCAN=starts.json reads (the exports hold it too).")
         self.load_starts = gui.add_upload_button("Load start poses (JSON or 4x4 text)", icon=viser.Icon.UPLOAD,
                                                  mime_type="*/*", hint="A starts.json or transforms.json (its entries "
                                                  "for the loaded scans), or 4 rows of 4 numbers for the scan chosen above.")

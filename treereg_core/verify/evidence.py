@@ -23,9 +23,10 @@ wind.flutter_share of the top's sway, in proportion to a point's height above th
 never more than verify.max_motion_m), never within whatever the consistency check would need; the
 consistency is shown with and without that allowance. A bend that moves the stem's base is no
 wind's (a cantilever's base does not move: `_base_offset`), a heading the free-space evidence
-prefers elsewhere is the pose's, and the wind is named as a reason only for a pose that passes its
-own checks (stem lean, shift and base, heading, tilt, height): otherwise the pose is refused for
-itself. The support is counted at the final pose, unbent, and the competing hypotheses are judged
+prefers elsewhere is the pose's, one it cannot fix within verify.max_heading_deg (a broad top of
+fluttering leaves) is not verified, and the wind is named as a reason only for a pose that passes
+its own checks (stem lean, shift and base, heading, tilt, height): otherwise the pose is refused
+for itself. The support is counted at the final pose, unbent, and the competing hypotheses are judged
 the same way.
 
 Plausibility checks are judged only with their evidence: the scanner height only when each scan
@@ -99,8 +100,8 @@ class Evidence:
     stem_shift_m: float = float("nan")
     stem_shift_std_m: float = float("nan")
     #: Wind, the sections leaving the turn about the stem open: how far from the pose the free-space
-    #: evidence puts the heading (deg, a turn about the stem; its reach when the evidence is flat;
-    #: NaN when not measured).
+    #: evidence puts the heading (deg, a turn about the stem; when the evidence is flat, its reach or
+    #: the farthest turn that fits as well as the best; NaN when not measured).
     heading_offset_deg: float = float("nan")
     #: The fine stage kept its update; False: the pose is the coarse one, millimetres less certain
     #: (what the joint placement weighs the pair by, not part of the verdict).
@@ -285,7 +286,7 @@ def gather_evidence(scene: PairScene, results: PairResults, *, verify: VerifyPar
     heading, flat = float("nan"), False
     if bend is not None and turn_held and axis_xy is not None:
         heading, flat = _heading_offset(ref_image, pts, T, axis_xy, unbend, hypotheses.tolerance_m,
-                                        4.0 * verify.max_heading_deg)
+                                        4.0 * verify.max_heading_deg, verify.max_heading_deg)
     base = _base_offset(profile, bend, wind.base_share) if bend is not None and profile is not None else {}
     ground = {}
     if scene.ref_station is not None and scene.tgt_station is not None:
@@ -368,13 +369,17 @@ _HEADING_DROP = 0.005
 
 
 def _heading_offset(ref_image: RangeImage, pts: np.ndarray, T: np.ndarray, axis_xy: np.ndarray, unbend,
-                    tolerance_m: float, reach_deg: float) -> tuple[float, bool]:
+                    tolerance_m: float, reach_deg: float, within_deg: float | None = None) -> tuple[float, bool]:
     """The heading the free-space evidence prefers, relative to the pose: the pose turned about the
     stem (at `axis_xy`, reference frame) in steps up to `reach_deg` each way, the consistency of the
     unbent target at each turn, and the vertex of a parabola through the best turn and its
     neighbours (deg). `reach_deg` when the best lies at either end or the evidence is flat; and
     whether it is flat (the best no better than the pose's own by `_HEADING_DROP`, or not above
-    either end by as much): it cannot fix the heading, rather than preferring another."""
+    either end by as much): it cannot fix the heading, rather than preferring another. Also flat, with
+    the farthest such turn returned, when every turn that fits within `_HEADING_DROP` of the best lies
+    on one side of the pose and one more than `within_deg` from it: a broad top (fluttering leaves)
+    that the pose sits at the edge of bounds its heading no closer than its far end, however near the
+    pose the parabola's vertex lies."""
     offsets = np.linspace(-reach_deg, reach_deg, 2 * _HEADING_STEPS + 1)
     c = np.array([axis_xy[0], axis_xy[1], 0.0])
     cons = []
@@ -388,6 +393,10 @@ def _heading_offset(ref_image: RangeImage, pts: np.ndarray, T: np.ndarray, axis_
         return float(reach_deg), bool(cons[best] - cons[_HEADING_STEPS] < _HEADING_DROP)
     if min(cons[best] - cons[0], cons[best] - cons[-1]) < _HEADING_DROP:
         return float(reach_deg), True
+    alike = offsets[np.asarray(cons) >= cons[best] - _HEADING_DROP]
+    one_side = alike.max() <= 1e-9 or alike.min() >= -1e-9
+    if within_deg is not None and one_side and np.abs(alike).max() > within_deg + 1e-9:
+        return float(np.abs(alike).max()), True
     near = slice(max(best - 2, 0), best + 3)
     a, b, _ = np.polyfit(offsets[near], cons[near], 2)
     vertex = -b / (2.0 * a) if a < 0 else offsets[best]

@@ -55,7 +55,8 @@ def test_hostile_scan_names_forge_no_line_and_reach_the_terminal_escaped(case_di
     shutil.copy(case_dir / "scan3.ply", d / TITLE)
     out = tmp_path / "res" / "t.json"
     capsys.readouterr()
-    rc = main(["register", str(d / "scan1.ply"), str(d / FORGED), str(d / TITLE), "--out", str(out), "--exports"])
+    rc = main(["register", str(d / "scan1.ply"), str(d / FORGED), str(d / TITLE), "--out", str(out), "--exports",
+               "--details"])
     got = capsys.readouterr()
     assert rc in (0, 1), got.err
     _no_control(got.out + got.err)
@@ -65,6 +66,8 @@ def test_hostile_scan_names_forge_no_line_and_reach_the_terminal_escaped(case_di
     for name in (FORGED_SHOWN, TITLE_SHOWN):
         assert re.search(rf"^  {re.escape(name)} +\S", got.out, re.M), got.out
     assert f"\n{TITLE_SHOWN} -> {FORGED_SHOWN}\n" in got.out
+    # ... and the summary's rows too (a row per scan, starting with its name).
+    assert len(re.findall(rf"^  {re.escape(FORGED_SHOWN)} +(verified|unverified|failed) ", got.out, re.M)) == 1, got.out
     # transforms.json keys its scans by the names printed; the files named after them hold no control.
     tf = read_transforms(out)
     keys = [*tf.transforms, *tf.extra.get("unverified", {}), *tf.extra.get("unregistered", {})]

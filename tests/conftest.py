@@ -59,16 +59,19 @@ def pytest_collection_modifyitems(config, items):
 
     Under pytest-xdist with `--dist loadgroup` (README's command: two workers, one per core) a test
     module stays on one worker (its module fixtures are made once) and every browser test on the same
-    one, started first: one Chromium at a time, and the longest group does not start last. Tests that
-    bound a time (`timed`) run in a pass of their own before, on a machine doing nothing else."""
+    one: one Chromium at a time. (xdist starts the groups with the most tests first, so the browser
+    group, a few long tests, starts after a while; started first it took longer: 669 s against 612 s,
+    the other worker's registrations slowing the pages.) Tests that bound a time (`timed`) run in a
+    pass of their own before, on a machine doing nothing else."""
     for item in items:
         if item.get_closest_marker("browser") or item.get_closest_marker("soak"):
             item.add_marker(pytest.mark.slow)
     if not (getattr(config.option, "loadgroup", False) or getattr(config.option, "dist", "no") == "loadgroup"):
         return  # (xdist's workers are told by `loadgroup`, the controller by `dist`)
+
     def chromium(item) -> bool:
         return item.get_closest_marker("browser") is not None or "browser" in getattr(item, "fixturenames", ())
 
     for item in items:
         item.add_marker(pytest.mark.xdist_group("browser" if chromium(item) else item.nodeid.split("::")[0]))
-    items.sort(key=lambda item: not chromium(item))  # stable: the order within a module kept
+    items.sort(key=lambda item: not chromium(item))  # (stable) the browser group first among groups of its size

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from conftest import REAL_TREES, needs
+from test_verdict_checks import _evidence  # a right pair's evidence, changed by keyword
 from treereg_core.demo import demo_case
 from treereg_core.fine.bend import Bend
 from treereg_core.params import Params
@@ -108,15 +109,6 @@ def test_the_motion_granted_grows_with_height_from_nothing_at_the_base_and_never
     assert a[0] == a[1] == pytest.approx(0.02)  # the base does not move
     assert np.all(np.diff(a) >= 0) and a.max() == pytest.approx(0.1)  # the cap
     assert a[2] == pytest.approx(0.02 + 0.5 * 0.3 * 0.25)
-
-
-def _evidence(**changes) -> Evidence:
-    good = dict(inliers=400, ties=900, chance_inliers=12, consistency=0.998, seen_by_both=5000, violations=10,
-                residual_m=0.0015, noise_m=0.0015, chosen="coarse", rival="turned 180°", margin=0.3, tilt_deg=0.2,
-                height_difference_m=0.01, stem_tilt_deg=0.02, stem_tilt_std_deg=0.01, stem_shift_m=0.001,
-                stem_shift_std_m=0.0005)
-    good.update(changes)
-    return Evidence(**good)
 
 
 def _assess(e: Evidence):

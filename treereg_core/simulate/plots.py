@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import asdict, dataclass
-from typing import Any
+from typing import Any, Callable, Protocol, Sequence
 
 import numpy as np
 
@@ -27,7 +27,7 @@ from ..results import Metric, Progress
 from ..scan import Scan
 from .cases import SimulatedCase, Station, _station_azimuths
 from .scanner import scan_scene
-from .tree import TreeInfo, TreeShape, make_ground, make_tree, merge_scenes, tilt_rotation
+from .tree import GroundPlane, Scene, TreeInfo, TreeShape, make_ground, make_tree, merge_scenes, tilt_rotation
 
 #: Trunks start this far below the ground plane, so a slope leaves no gap at their base.
 _SINK_M = 0.3
@@ -121,22 +121,93 @@ class PlotSpec:
         return True
 
 
-def _place(n: int, distance: tuple[float, float], avoid: list[np.ndarray], clearance: list[float],
-           rng: np.random.Generator) -> list[np.ndarray]:
-    """Up to `n` positions `distance` from the origin, each at least the matching clearance from
-    every point of `avoid` and from each other (drawn by rejection; fewer if the plot is full)."""
+def place(n: int, draw: Callable[[np.random.Generator], np.ndarray], avoid: list[np.ndarray],
+          clearance: list[float], rng: np.random.Generator) -> list[np.ndarray]:
+    """Up to `n` positions drawn by `draw(rng)`, each at least the matching clearance from every
+    point of `avoid` and `_TRUNK_CLEARANCE_M` from each other (by rejection; fewer if the plot is
+    full). Plots draw around the target, surveys over a rectangle."""
     out: list[np.ndarray] = []
-    pts, gaps = list(avoid), list(clearance)
+    pts = np.array(avoid, dtype=float).reshape(-1, 2)
+    gaps = np.array(clearance, dtype=float)
     for _ in range(n):
         for _ in range(200):
-            a, d = rng.uniform(0, 2 * np.pi), rng.uniform(*distance)
-            xy = d * np.array([np.cos(a), np.sin(a)])
-            if all(np.hypot(*(xy - p)) >= g for p, g in zip(pts, gaps)):
+            xy = draw(rng)
+            if np.all(np.hypot(*(xy - pts).T) >= gaps):
                 out.append(xy)
-                pts.append(xy)
-                gaps.append(_TRUNK_CLEARANCE_M)
+                pts = np.vstack([pts, xy])
+                gaps = np.append(gaps, _TRUNK_CLEARANCE_M)
                 break
     return out
+
+
+def _around_target(distance: tuple[float, float]) -> Callable[[np.random.Generator], np.ndarray]:
+    """A position `distance` from the origin (the target), at any azimuth."""
+    def draw(rng: np.random.Generator) -> np.ndarray:
+        a, d = rng.uniform(0, 2 * np.pi), rng.uniform(*distance)
+        return d * np.array([np.cos(a), np.sin(a)])
+    return draw
+
+
+def grow_neighbour(height_m: float, xy: np.ndarray, ground: GroundPlane, leaves: bool,
+                   rng: np.random.Generator) -> TreeInfo:
+    """A tree of `height_m` standing on the ground at `xy`: DBH about 2.5 cm per metre, 2-3
+    branching orders, a lean of up to 5 deg."""
+    d = float(np.clip(0.025 * height_m * rng.uniform(0.7, 1.3), 0.1, 0.8))
+    shape = TreeShape(height_m=round(height_m, 3), dbh_m=round(d, 4), orders=int(rng.integers(2, 4)), leaves=leaves,
+                      lean_deg=float(rng.uniform(0, 5)))
+    return make_tree(shape, rng, base=np.array([xy[0], xy[1], float(ground.height_at(xy))]), sink_m=_SINK_M)
+
+
+def grow_shrub(height_m: tuple[float, float], xy: np.ndarray, ground: GroundPlane, rng: np.random.Generator) -> TreeInfo:
+    """A small leafy bush on the ground at `xy`."""
+    h = float(rng.uniform(*height_m))
+    shape = TreeShape(height_m=round(h, 3), dbh_m=0.03, orders=2, leaves=True, leaves_per_m=40.0)
+    return make_tree(shape, rng, base=np.array([xy[0], xy[1], float(ground.height_at(xy))]), sink_m=0.1)
+
+
+def primitive_owners(trees: Sequence[TreeInfo]) -> np.ndarray:
+    """Which tree each primitive of `merge_scenes` of these trees belongs to (cylinders, then
+    spheres, then disks, as the scanner counts them)."""
+    return np.concatenate([np.concatenate([np.full(len(getattr(t.scene, part)), k, dtype=np.int32)
+                                           for k, t in enumerate(trees)])
+                           for part in ("cylinders", "spheres", "disks")])
+
+
+class Instrument(Protocol):
+    """What a station's scan needs of a plot's or a survey's spec."""
+
+    angular_step_deg: tuple[float, float]
+    elevation_deg: tuple[float, float]
+    range_sigma_m: float
+    dropout: float
+    real_like: bool
+    second_returns: float
+
+
+@dataclass(frozen=True, eq=False)
+class StationScan:
+    """One station's full panorama: the scan, each point's part label, tree (-1 ground) and return."""
+
+    scan: Scan
+    labels: np.ndarray
+    tree_ids: np.ndarray
+    return_index: np.ndarray
+    n_rays: int
+
+
+def scan_station(scene: Scene, owner: np.ndarray, station: Station, name: str, spec: Instrument,
+                 rng: np.random.Generator, progress: Progress | None = None) -> StationScan:
+    """Ray-cast a full panorama (360 deg by the spec's elevation window) of `scene` (world frame)
+    from `station`; `owner` is `primitive_owners` of the scene's trees."""
+    window = (-180.0, 180.0, spec.elevation_deg[0], spec.elevation_deg[1])
+    rs = scan_scene(scene.transformed(invert(station.T_world_scan)), spec.angular_step_deg, rng,
+                    spec.range_sigma_m, spec.dropout, window_deg=window, progress=progress,
+                    second_returns=spec.second_returns if spec.real_like else 0.0)
+    pts = np.round(rs.points, 3) if spec.real_like else rs.points
+    ids = np.where(rs.primitive >= 0, owner[np.maximum(rs.primitive, 0)], -1).astype(np.int32)
+    ret = rs.return_index if rs.return_index is not None else np.zeros(len(pts), dtype=np.int8)
+    return StationScan(Scan.from_points(pts, name=name, angular_step_deg=spec.angular_step_deg), rs.labels, ids,
+                       ret, rs.n_rays)
 
 
 def _build(spec: PlotSpec, progress: Progress | None) -> SimulatedCase:
@@ -169,28 +240,18 @@ def _build(spec: PlotSpec, progress: Progress | None) -> SimulatedCase:
     st_xy = [s.position_m[:2] for s in stations]
 
     n_nb = int(rng_oth.integers(spec.n_neighbours[0], spec.n_neighbours[1] + 1))
-    nb_xy = _place(n_nb, spec.neighbour_distance_m, [np.zeros(2)] + st_xy,
-                   [_TRUNK_CLEARANCE_M] + [_STATION_CLEARANCE_M] * len(st_xy), rng_oth)
+    nb_xy = place(n_nb, _around_target(spec.neighbour_distance_m), [np.zeros(2)] + st_xy,
+                  [_TRUNK_CLEARANCE_M] + [_STATION_CLEARANCE_M] * len(st_xy), rng_oth)
     trees: list[TreeInfo] = [target]
     for xy in nb_xy:
-        h = H * rng_oth.uniform(*spec.neighbour_height_ratio)
-        d = float(np.clip(0.025 * h * rng_oth.uniform(0.7, 1.3), 0.1, 0.8))
-        shape = TreeShape(height_m=round(h, 3), dbh_m=round(d, 4), orders=int(rng_oth.integers(2, 4)), leaves=spec.leaves,
-                          lean_deg=float(rng_oth.uniform(0, 5)))
-        trees.append(make_tree(shape, rng_oth, base=np.array([xy[0], xy[1], float(ground.height_at(xy))]), sink_m=_SINK_M))
+        trees.append(grow_neighbour(H * rng_oth.uniform(*spec.neighbour_height_ratio), xy, ground, spec.leaves, rng_oth))
     n_sh = int(rng_oth.integers(spec.n_shrubs[0], spec.n_shrubs[1] + 1))
-    sh_xy = _place(n_sh, spec.shrub_distance_m, [np.zeros(2)] + st_xy + nb_xy,
-                   [1.0] + [1.0] * len(st_xy) + [1.0] * len(nb_xy), rng_oth)
-    for xy in sh_xy:
-        h = float(rng_oth.uniform(*spec.shrub_height_m))
-        shape = TreeShape(height_m=round(h, 3), dbh_m=0.03, orders=2, leaves=True, leaves_per_m=40.0)
-        trees.append(make_tree(shape, rng_oth, base=np.array([xy[0], xy[1], float(ground.height_at(xy))]), sink_m=0.1))
+    sh_xy = place(n_sh, _around_target(spec.shrub_distance_m), [np.zeros(2)] + st_xy + nb_xy,
+                  [1.0] + [1.0] * len(st_xy) + [1.0] * len(nb_xy), rng_oth)
+    trees += [grow_shrub(spec.shrub_height_m, xy, ground, rng_oth) for xy in sh_xy]
     scene = merge_scenes([t.scene for t in trees], ground)
-    # Which tree each primitive belongs to (cylinders, then spheres, then disks, as the scanner counts).
-    owner = np.concatenate([np.concatenate([np.full(len(getattr(t.scene, part)), k) for k, t in enumerate(trees)])
-                            for part in ("cylinders", "spheres", "disks")])
+    owner = primitive_owners(trees)
 
-    window = (-180.0, 180.0, spec.elevation_deg[0], spec.elevation_deg[1])
     scans, labels, ids, rets = [], [], [], []
     n_rays = 0
     for k, st in enumerate(stations):
@@ -199,15 +260,12 @@ def _build(spec: PlotSpec, progress: Progress | None) -> SimulatedCase:
         def sub(f: float, text: str, k: int = k) -> None:
             say((k + f) / len(stations), f"{name}: {text}")
 
-        rs = scan_scene(scene.transformed(invert(st.T_world_scan)), spec.angular_step_deg, rng_noise[k],
-                        spec.range_sigma_m, spec.dropout, window_deg=window, progress=sub,
-                        second_returns=spec.second_returns if spec.real_like else 0.0)
-        pts = np.round(rs.points, 3) if spec.real_like else rs.points
-        n_rays += rs.n_rays
-        scans.append(Scan.from_points(pts, name=name, angular_step_deg=spec.angular_step_deg))
-        labels.append(rs.labels)
-        ids.append(np.where(rs.primitive >= 0, owner[np.maximum(rs.primitive, 0)], -1))
-        rets.append(rs.return_index)
+        one = scan_station(scene, owner, st, name, spec, rng_noise[k], sub)
+        n_rays += one.n_rays
+        scans.append(one.scan)
+        labels.append(one.labels)
+        ids.append(one.tree_ids)
+        rets.append(one.return_index)
     T_world_ref = stations[0].T_world_scan
     T_ref_scan = (np.eye(4),) + tuple(invert(T_world_ref) @ st.T_world_scan for st in stations[1:])
     seconds = time.perf_counter() - t0

@@ -173,7 +173,8 @@ def _checks(spec: SurveySpec) -> list[tuple[bool, str]]:
         (2.0 <= spec.spacing_m <= 100.0, f"spacing_m: {spec.spacing_m:g} m is outside 2-100 m"),
         (0.0 <= spec.jitter_m <= spec.spacing_m / 4, f"jitter_m: {spec.jitter_m:g} m is outside 0 to a quarter of the spacing"),
         (0.0 <= spec.margin_m <= 50.0, f"margin_m: {spec.margin_m:g} m is outside 0-50 m"),
-        (0 <= n_trees[0] and n_trees[1] <= 2000, f"n_trees: {spec.n_trees} is outside 0-2000 trees"),
+        (0 <= n_trees[0] and n_trees[1] <= 2000,
+         f"n_trees: {_range_text(n_trees)} is outside 0-2000 trees"),
         (0.0 <= spec.trees_per_ha[0] and spec.trees_per_ha[1] <= 2000, f"trees_per_ha: {spec.trees_per_ha} is outside 0-2000"),
         (0.0 <= spec.shrubs_per_ha[0] and spec.shrubs_per_ha[1] <= 2000, f"shrubs_per_ha: {spec.shrubs_per_ha} is outside 0-2000"),
         (2.0 <= spec.tree_height_m[0] and spec.tree_height_m[1] <= 60.0, f"tree_height_m: {spec.tree_height_m} is outside 2-60 m"),
@@ -190,6 +191,10 @@ def _checks(spec: SurveySpec) -> list[tuple[bool, str]]:
         (0.0 <= spec.dropout < 1.0, f"dropout: {spec.dropout:g} is outside [0, 1)"),
         (0.0 <= spec.second_returns <= 1.0, f"second_returns: {spec.second_returns:g} is not a probability in [0, 1]"),
     ]
+
+
+def _range_text(v: tuple[float, float]) -> str:
+    return f"{v[0]:g}" if v[0] == v[1] else f"{v[0]:g}-{v[1]:g}"
 
 
 def station_names(n: int) -> tuple[str, ...]:

@@ -176,12 +176,18 @@ def primitive_owners(trees: Sequence[TreeInfo]) -> np.ndarray:
 class Instrument(Protocol):
     """What a station's scan needs of a plot's or a survey's spec."""
 
-    angular_step_deg: tuple[float, float]
-    elevation_deg: tuple[float, float]
-    range_sigma_m: float
-    dropout: float
-    real_like: bool
-    second_returns: float
+    @property
+    def angular_step_deg(self) -> tuple[float, float]: ...
+    @property
+    def elevation_deg(self) -> tuple[float, float]: ...
+    @property
+    def range_sigma_m(self) -> float: ...
+    @property
+    def dropout(self) -> float: ...
+    @property
+    def real_like(self) -> bool: ...
+    @property
+    def second_returns(self) -> float: ...
 
 
 @dataclass(frozen=True, eq=False)

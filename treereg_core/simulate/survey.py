@@ -20,7 +20,7 @@ from __future__ import annotations
 import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 import numpy as np
 
@@ -99,7 +99,11 @@ class SurveySpec:
     @property
     def half_extent_m(self) -> tuple[float, float]:
         """Half the plot's size in x and y (the plot is centred on the world origin)."""
-        return tuple((n - 1) / 2 * self.spacing_m + self.jitter_m + self.margin_m for n in self.grid)  # type: ignore[return-value]
+        cols, rows = self.grid
+        return (self._half(cols), self._half(rows))
+
+    def _half(self, n: int) -> float:
+        return (n - 1) / 2 * self.spacing_m + self.jitter_m + self.margin_m
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -246,7 +250,7 @@ def _grid_stations(spec: SurveySpec, ground: GroundPlane, rng: np.random.Generat
     return out
 
 
-def _in_plot(half: tuple[float, float]):  # type: ignore[no-untyped-def]
+def _in_plot(half: tuple[float, float]) -> Callable[[np.random.Generator], np.ndarray]:
     """A position drawn uniformly over the plot's rectangle."""
     def draw(rng: np.random.Generator) -> np.ndarray:
         return rng.uniform([-half[0], -half[1]], [half[0], half[1]])

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from treereg_core.fine.pose import FineSections
-from treereg_core.params import SECTIONS, Params
+from treereg_core.params import SECTIONS, STAGE_SECTIONS, Params
 from treereg_core.pipeline import Pipeline
 from treereg_core.simulate.cases import CaseSpec, benchmark_cases
 from treereg_core.stage import DeclaredParams, UndeclaredSection
@@ -44,7 +44,7 @@ INERT_HERE = {"graph"}
 #: Sections whose changes re-run the same stages are changed together: a stage that read one of
 #: them undeclared stays cached just as it would for one alone, and is caught the same. Not those
 #: the prepare stage reads: a change to them re-runs every stage, nothing cached can go stale.
-GROUPS = [tuple(sec for sec in SECTIONS if affected_by(sec) == d) for d in dict.fromkeys(map(affected_by, SECTIONS))
+GROUPS = [tuple(sec for sec in STAGE_SECTIONS if affected_by(sec) == d) for d in dict.fromkeys(map(affected_by, STAGE_SECTIONS))
           if d != STAGE_NAMES]
 
 
@@ -64,7 +64,7 @@ def test_a_stage_reads_only_the_sections_it_declares():
 def test_every_section_is_one_stages_own_and_borrowed_ones_are_declared_apart():
     owners = Counter(sec for s in STAGES for sec in s.sections)
     # The app's folder of the owner edits it (`stage_panel.build_folders`): each shown once.
-    assert owners == Counter(SECTIONS), owners
+    assert owners == Counter(STAGE_SECTIONS), owners
     for s in STAGES:
         assert set(s.borrows) <= set(SECTIONS) and not set(s.borrows) & set(s.sections), s.name
         assert s.reads == s.sections + s.borrows

@@ -333,6 +333,29 @@ class GraphParams:
 
 
 @dataclass(frozen=True)
+class SurveyParams:
+    """Whole-plot surveys: every station registered on every stem and the ground it shares with its neighbours (treereg_core/survey)."""
+
+    mode: str = _f("auto", "", "auto: a survey when the stations do not stand round one tree (more than 8, or some far nearer the chosen tree than others); survey: always; one_tree: register the tree the stations surround (target.tree_at also keeps it)",
+                   choices=("auto", "survey", "one_tree"))
+    heights_m: tuple[float, ...] = _f((0.5, 0.9, 1.3, 1.8, 2.4, 3.1, 3.9, 4.8, 5.8, 7.0), "m", "stem sections are cut at these heights above the ground (the paper's slices, on every shared stem)", lo=0.0, hi=50.0, max_len=32)
+    slab_m: float = _f(0.12, "m", "thickness of a stem section", lo=0.01, hi=1.0)
+    margin_m: float = _f(0.06, "m", "a section takes the points within the stem's radius plus this of its centre", lo=0.005, hi=0.5)
+    max_section_points: int = _f(120, "points", "points per station and section used in the pair's fit (more cost time, not accuracy)", lo=10, hi=10_000)
+    max_fit_rms_m: float = _f(0.012, "m", "a station's circle fit of a section with a larger RMS residual is not used (a branch, a shrub)", lo=0.001, hi=0.1)
+    min_stems: int = _f(4, "stems", "a pair is registered on at least this many stems both stations see", lo=3, hi=1000)
+    neighbours: int = _f(4, "pairs", "each station is paired with this many stations it shares most stems with (besides a spanning tree)", lo=1, hi=20)
+    loss_scale_m: float = _f(0.003, "m", "robust (soft-L1) scale of the pair fit's residuals", lo=0.0001, hi=0.1)
+    max_stem_offset_m: float = _f(0.004, "m", "after the fit a stem whose two views stand farther apart than this is left out (it moved, or is another stem)", lo=0.0005, hi=0.1)
+    max_residual_m: float = _f(0.006, "m", "a pair is verified when its stems' robust residual is at most this", lo=0.001, hi=0.05)
+    ground_voxel_m: float = _f(0.25, "m", "ground points in the pair's fit, one per this cell", lo=0.02, hi=5.0)
+    ground_range_m: float = _f(25.0, "m", "ground points used lie within this of both scanners", lo=1.0, hi=500.0)
+    cloud_voxel_m: float = _f(0.1, "m", "a station's whole cloud, one point per this cell: the check that the crowns agree too, and the joint placement's samples", lo=0.01, hi=2.0)
+    ambiguity: float = _f(0.9, "", "a stem map that also fits shifted (a regular planting): the pair is refused when the second fit's crowns agree at least this share as well as the first's", lo=0.5, hi=1.0)
+    max_loop_m: float = _f(0.005, "m", "loops of pairs close within this (mean displacement of the stations' samples)", lo=0.0005, hi=0.1)
+
+
+@dataclass(frozen=True)
 class IcpParams:
     """Baseline: trimmed ICP from the coarse result."""
 
@@ -382,6 +405,7 @@ class Params:
     acceptance: AcceptanceParams = field(default_factory=AcceptanceParams)
     verify: VerifyParams = field(default_factory=VerifyParams)
     graph: GraphParams = field(default_factory=GraphParams)
+    survey: SurveyParams = field(default_factory=SurveyParams)
     icp: IcpParams = field(default_factory=IcpParams)
     evaluation: EvaluationParams = field(default_factory=EvaluationParams)
 
@@ -401,6 +425,10 @@ class Params:
 
 
 SECTIONS: tuple[str, ...] = tuple(f.name for f in fields(Params))
+#: Sections read outside the one-tree pipeline's stages: the survey registration (treereg_core/survey).
+SURVEY_SECTIONS: tuple[str, ...] = ("survey",)
+#: The sections a stage owns (tests/test_stage_contract.py: each exactly one stage's).
+STAGE_SECTIONS: tuple[str, ...] = tuple(s for s in SECTIONS if s not in SURVEY_SECTIONS)
 
 #: Parameters that moved to another section or name: config files written before still load.
 MOVED: dict[tuple[str, str], tuple[str, str]] = {

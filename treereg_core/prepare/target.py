@@ -133,14 +133,22 @@ def match_stem_maps(ref: Stems, tgt: Stems, tol_m: float = 0.2,
     ways round; each is scored by the stems landing within `target.match_gate_m` of a stem of
     similar radius (`target.match_radius_tolerance`), the best refitted on its matches.
     """
+    found = stem_map_hypotheses(ref, tgt, tol_m=tol_m, target=target, n=1)
+    return found[0] if found else (None, np.zeros((0, 2), dtype=np.int64))
+
+
+def stem_map_hypotheses(ref: Stems, tgt: Stems, *, tol_m: float = 0.2, target: TargetParams = TargetParams(),
+                        n: int = 1, distinct_m: float = 1.0) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Up to `n` distinct stem-map transforms, best first (see `match_stem_maps`), each with its
+    matched pairs; a later one moves the target's stems at least `distinct_m` from every earlier
+    one's (a regular planting fits its stem map shifted by a row as well)."""
     gate, tolerance = target.match_gate_m, target.match_radius_tolerance
-    none = (None, np.zeros((0, 2), dtype=np.int64))
     if len(ref) < 2 or len(tgt) < 2:
-        return none
+        return []
     ai, aj, ad = _pairs(ref)
     bi, bj, bd = _pairs(tgt)
     if len(ad) == 0 or len(bd) == 0:
-        return none
+        return []
     order = np.argsort(ad)
     ad_s = ad[order]
     lo = np.searchsorted(ad_s, bd - tol_m)
@@ -149,7 +157,7 @@ def match_stem_maps(ref: Stems, tgt: Stems, tol_m: float = 0.2,
     hb = np.repeat(np.arange(len(bd)), cnt)
     ha = order[np.concatenate([np.arange(a, b) for a, b in zip(lo, hi)])] if cnt.sum() else np.zeros(0, dtype=np.int64)
     if len(ha) == 0:
-        return none
+        return []
     # Both orientations of each pair: (i -> p, j -> q) and (i -> q, j -> p).
     A0 = np.concatenate([ai[ha], ai[ha]])
     A1 = np.concatenate([aj[ha], aj[ha]])
@@ -159,7 +167,7 @@ def match_stem_maps(ref: Stems, tgt: Stems, tol_m: float = 0.2,
             & _radius_ok(ref.radius_m[A1], tgt.radius_m[B1], tolerance))
     A0, A1, B0, B1 = A0[keep], A1[keep], B0[keep], B1[keep]
     if len(A0) == 0:
-        return none
+        return []
     va = ref.xy[A1] - ref.xy[A0]
     vb = tgt.xy[B1] - tgt.xy[B0]
     yaw = np.arctan2(va[:, 1], va[:, 0]) - np.arctan2(vb[:, 1], vb[:, 0])
@@ -169,11 +177,14 @@ def match_stem_maps(ref: Stems, tgt: Stems, tol_m: float = 0.2,
     t = mid_a - np.stack([c * mid_b[:, 0] - s * mid_b[:, 1], s * mid_b[:, 0] + c * mid_b[:, 1]], axis=1)
     radius_ok = _radius_ok(ref.radius_m[None, :], tgt.radius_m[:, None], tolerance)  # K_t x K_r
 
+    def moved(k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return (c[k, None] * tgt.xy[None, :, 0] - s[k, None] * tgt.xy[None, :, 1] + t[k, 0:1],
+                s[k, None] * tgt.xy[None, :, 0] + c[k, None] * tgt.xy[None, :, 1] + t[k, 1:2])
+
     def nearest_ref(k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Under hypotheses `k`: per target stem, the distance to and index of the nearest
         reference stem of similar radius."""
-        mx = c[k, None] * tgt.xy[None, :, 0] - s[k, None] * tgt.xy[None, :, 1] + t[k, 0:1]
-        my = s[k, None] * tgt.xy[None, :, 0] + c[k, None] * tgt.xy[None, :, 1] + t[k, 1:2]
+        mx, my = moved(k)
         d = np.hypot(mx[:, :, None] - ref.xy[None, None, :, 0], my[:, :, None] - ref.xy[None, None, :, 1])
         d = np.where(radius_ok[None], d, np.inf)
         return d.min(axis=2), d.argmin(axis=2)
@@ -185,16 +196,26 @@ def match_stem_maps(ref: Stems, tgt: Stems, tol_m: float = 0.2,
         near, _ = nearest_ref(np.arange(k0, min(k0 + chunk, len(yaw))))
         hit = near < gate
         score[k0:k0 + len(near)] = hit.sum(axis=1) - 1e-3 * np.where(hit, near, 0.0).sum(axis=1)
-    h = int(np.argmax(score))
-    nearest, which = (a[0] for a in nearest_ref(np.array([h])))
-    inl = np.flatnonzero(nearest < gate)
-    if len(inl) < target.min_matched:
-        return none
-    pairs = np.column_stack([which[inl], inl])
-    # Refit yaw + shift on the matched stems (as 3-D points at z = 0).
-    src = np.column_stack([tgt.xy[pairs[:, 1]], np.zeros(len(pairs))])
-    dst = np.column_stack([ref.xy[pairs[:, 0]], np.zeros(len(pairs))])
-    return kabsch_yaw(src, dst), pairs
+    out: list[tuple[np.ndarray, np.ndarray]] = []
+    taken: list[np.ndarray] = []  # where each kept hypothesis puts the target's stems
+    for h in np.argsort(-score, kind="stable"):
+        if len(out) == n or score[h] < target.min_matched - 1:
+            break
+        mx, my = moved(np.array([h]))
+        at = np.column_stack([mx[0], my[0]])
+        if any(np.linalg.norm(at - a, axis=1).max() < distinct_m for a in taken):
+            continue
+        taken.append(at)
+        nearest, which = (a[0] for a in nearest_ref(np.array([h])))
+        inl = np.flatnonzero(nearest < gate)
+        if len(inl) < target.min_matched:
+            continue
+        pairs = np.column_stack([which[inl], inl])
+        # Refit yaw + shift on the matched stems (as 3-D points at z = 0).
+        src = np.column_stack([tgt.xy[pairs[:, 1]], np.zeros(len(pairs))])
+        dst = np.column_stack([ref.xy[pairs[:, 0]], np.zeros(len(pairs))])
+        out.append((kabsch_yaw(src, dst), pairs))
+    return out
 
 
 def _surrounded(xy: np.ndarray, stations: np.ndarray) -> tuple[float, float]:

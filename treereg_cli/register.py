@@ -7,6 +7,7 @@ one line per scan that is not, with the reason and what to try), 2 for input to 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
@@ -17,9 +18,13 @@ from treereg_core.io.atomic import check_distinct, check_output_file
 from treereg_core.io.e57 import write_registered_e57
 from treereg_core.io.merged import write_merged
 from treereg_core.io.scans import WRITE_EXTENSIONS, extension
-from treereg_core.io.transforms import (export_paths, registered_e57_name, registration_file, stale_exports,
+from treereg_core.io.transforms import (TransformFile, export_paths, registered_e57_name, registration_file, stale_exports,
                                         write_exports, write_transforms)
+from treereg_core.params import Params
 from treereg_core.pipeline import register
+from treereg_core.survey.mode import is_survey
+from treereg_core.survey.register import register_survey
+from treereg_core.survey.summary import survey_quality, survey_table
 from treereg_core.stages import UNTIL
 from treereg_core.verify.report import motion_lines, quality_report, verdict_lines, verdict_text
 from treereg_core.verify.summary import scan_summaries, summary_table
@@ -64,6 +69,13 @@ def add(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--merged", metavar="FILE",
                    help="also write the merged registered cloud (.ply, .las or .laz), each point tagged with "
                    "its scan's number (PLY property scan_id, LAS point_source_id; 1 = the reference)")
+    mode = p.add_mutually_exclusive_group()
+    mode.add_argument("--survey", action="store_true",
+                      help="a whole-plot survey: every station registered on every stem and the ground it shares with its "
+                      "neighbours, all placed together (the default for more than 8 stations; survey.mode)")
+    mode.add_argument("--one-tree", action="store_true",
+                      help="register the one tree the stations surround, even with more than 8 stations (survey.mode; "
+                      "--tree-at keeps it too)")
     p.set_defaults(func=run)
 
 
@@ -88,6 +100,8 @@ def run(args: argparse.Namespace) -> int:
         if extra is not None:
             check_output_file(extra)
     params = load_params(args)
+    if args.survey or args.one_tree:
+        params = params.with_value("survey", "mode", "survey" if args.survey else "one_tree")
     starts = read_initial(args.initial)  # a bad start file is said before the scans are read
     workers = workers_of(args)
     t_read = time.perf_counter()
@@ -101,6 +115,14 @@ def run(args: argparse.Namespace) -> int:
         check_distinct(outputs + [("an --exports matrix file (named after --out)", p) for p in matrices], inputs)
         for path in matrices:
             check_output_file(path)
+    if is_survey(len(scans), params):
+        if starts:
+            raise ConfigError("--initial: start poses are for the one-tree registration; a survey places its stations "
+                              "from their stem maps (give --one-tree to register one tree from a start)")
+        if args.until != "fine":
+            raise ConfigError(f"--until {args.until}: a survey has no coarse stage of its own (its stem maps place "
+                              "every station); leave --until out, or give --one-tree")
+        return _run_survey(args, scans, params, out=out, e57=e57, inputs=inputs, workers=workers, read_s=read_s)
     t0 = time.perf_counter()
     bar = ProgressBar("register")
     # The command line runs no threads of its own: its GIL-bound stages may fork processes.
@@ -119,25 +141,9 @@ def run(args: argparse.Namespace) -> int:
                            sources={s.name: str(s.source.resolve()) if s.source.exists() else str(s.source) for s in scans},
                            seconds=seconds,
                            stage_seconds={"read": read_s, **{n: o.seconds for n, o in pipe.outputs.items()}})
-    # An earlier --exports run's matrices of scans this run refuses go with this one's files.
-    stale = stale_exports(out.parent, tf, out.name, inputs) if args.exports else []
-    # One batch: the transform file, its matrices, the E57 and the merged cloud all land, or none.
-    try:
-        with atomic.batch():
-            written = (write_exports(out.parent, tf, name=out.name, inputs=inputs) if args.exports
-                       else [write_transforms(out, tf)])
-            if e57 is not None:
-                written.append(write_registered_e57(e57, scans, tf))
-            if args.merged:
-                # The same scans as "transforms": unverified guesses only with --keep-unverified.
-                written.append(write_merged(args.merged, scans, tf.transforms))
-    except OSError as e:  # one line naming the file, not a traceback
-        raise ScanError(e.filename or str(out), f"cannot write the results ({e.strerror or e}); nothing was written") from None
-    for name, rows in metrics.items() if args.details else ():
-        print(f"\n{name}" if " -> " in name else f"\n{name} -> {scans[0].name}")
-        for r in rows:
-            v = r["value"]
-            print(f"  {r['stage']:<10} {r['metric']:<40} {_value_text(v, r['unit'])}")
+    written, stale = _write_results(args, scans, tf, out=out, e57=e57, inputs=inputs)
+    if args.details:
+        _print_details(metrics, scans)
     if pipe.output("graph") is not None:
         print()
         for line in summary_table(scan_summaries(scans, pipe.pairs, pipe.outputs)):
@@ -158,6 +164,64 @@ def run(args: argparse.Namespace) -> int:
             line = f"{name} (started from the pose given in {starts[name].source}): {line[len(name) + 2:]}"
         print(f"treereg: {line}", file=sys.stderr)
     return 1 if lines else 0
+
+
+def _run_survey(args: argparse.Namespace, scans: list, params: Params, *, out: Path, e57: Path | None,
+                inputs: list, workers: int | None, read_s: float) -> int:
+    """`register` of a whole-plot survey (treereg_core/survey): the same files, one row per station."""
+    t0 = time.perf_counter()
+    bar = ProgressBar("survey")
+    survey = register_survey(scans, params, workers=workers or os.cpu_count() or 1, progress=bar)
+    bar.finish()
+    seconds = time.perf_counter() - t0
+    verdicts = survey.verdicts()
+    metrics = survey.pair_metrics()
+    tf = registration_file(scans, survey.transforms(), params, stage="survey", metrics=metrics, verdicts=verdicts,
+                           quality=survey_quality(survey), keep_unverified=args.keep_unverified,
+                           sources={s.name: str(s.source.resolve()) if s.source.exists() else str(s.source) for s in scans},
+                           seconds=seconds, stage_seconds={"read": read_s, **survey.seconds})
+    written, stale = _write_results(args, scans, tf, out=out, e57=e57, inputs=inputs)
+    if args.details:
+        _print_details(metrics, scans)
+    print()
+    for line in survey_table(survey):
+        print(f"  {line}")
+    print(f"\nwrote {', '.join(shown(w) for w in written)} in {seconds:.1f} s")
+    if stale:
+        print(f"removed {', '.join(shown(p) for p in stale)}: an earlier run's matrices of stations this run does not place")
+    lines = verdict_lines(verdicts)
+    for line in lines:
+        print(f"treereg: {line}", file=sys.stderr)
+    return 1 if lines else 0
+
+
+def _write_results(args: argparse.Namespace, scans: list, tf: TransformFile, *, out: Path, e57: Path | None,
+                   inputs: list) -> tuple[list, list]:
+    """Write the transform file and what was asked beside it as one batch; (written, stale removed)."""
+    # An earlier --exports run's matrices of scans this run refuses go with this one's files.
+    stale = stale_exports(out.parent, tf, out.name, inputs) if args.exports else []
+    # One batch: the transform file, its matrices, the E57 and the merged cloud all land, or none.
+    try:
+        with atomic.batch():
+            written = (write_exports(out.parent, tf, name=out.name, inputs=inputs) if args.exports
+                       else [write_transforms(out, tf)])
+            if e57 is not None:
+                written.append(write_registered_e57(e57, scans, tf))
+            if args.merged:
+                # The same scans as "transforms": unverified guesses only with --keep-unverified.
+                written.append(write_merged(args.merged, scans, tf.transforms))
+    except OSError as e:  # one line naming the file, not a traceback
+        raise ScanError(e.filename or str(out), f"cannot write the results ({e.strerror or e}); nothing was written") from None
+    return written, stale
+
+
+def _print_details(metrics: dict, scans: list) -> None:
+    """Every pair's numbers, stage by stage (`--details`)."""
+    for name, rows in metrics.items():
+        print(f"\n{name}" if " -> " in name else f"\n{name} -> {scans[0].name}")
+        for r in rows:
+            v = r["value"]
+            print(f"  {r['stage']:<10} {r['metric']:<40} {_value_text(v, r['unit'])}")
 
 
 def _value_text(v: object, unit: str) -> str:

@@ -137,7 +137,7 @@ TYPED = ("treereg_core/stage.py", "treereg_core/stages", "treereg_core/pipeline.
          "treereg_viewer/stages/__init__.py", "treereg_viewer/stages/base.py", "treereg_viewer/controller.py",
          "treereg_viewer/align.py", "treereg_core/geometry/point_pairs.py", "treereg_core/verify/summary.py",
          *(f"treereg_viewer/draw/{name}.py" for name in (
-             "__init__", "common", "fits", "motion", "images", "cross_section", "scan_layer")),
+             "__init__", "common", "fits", "motion", "images", "cross_section", "scan_layer", "before")),
          *(f"treereg_viewer/stages/{name}.py" for name in (
              "prepare", "projection", "matching", "coarse", "hypotheses", "slices", "arcs", "sections", "fine", "verify",
              "icp", "graph", "evaluation")))

@@ -296,6 +296,81 @@ def test_an_arcs_parameter_reruns_arcs_and_what_follows_never_slices(small_app):
     assert "Ran 7 Arcs, 8 Fits, 9 Fine, 10 Verify, 11 Placement, 13 Result in" in snap.message
 
 
+@pytest.mark.slow
+def test_the_tuners_loop_keeps_the_slice_and_shows_before_and_after(small_app):
+    """Issue 32 item 1: on 7 Arcs, a slice picked, an arcs parameter changed and Run pressed. Meanwhile
+    the last result stays drawn, marked stale; then the new arcs of the same slice are drawn, listed
+    under *Slice* and framed, and *Previous run* draws the previous run with what changed."""
+    from treereg_core.fine.slicing import SliceResult
+    from treereg_viewer.camera import frame
+    from treereg_viewer.draw.fits import busiest_slice
+    from treereg_viewer.stages.slices import SliceControl
+
+    app = small_app
+    server = app.server
+    ctl = app.controller
+    app.stages.run_button.value = True
+    _idle(app)
+    app.select_stage("arcs")
+    _idle(app)
+    snap = ctl.snapshot
+    sl = snap.pair(0).item("slices", SliceResult)
+    busiest = busiest_slice(snap, 0)
+    assert app.view.slice_shown == busiest  # pinned once resolved: the view, the list and the panel say one slice
+    control = app.stages.control("arcs", SliceControl)
+    assert control.dropdown.value.startswith(f"slice {busiest + 1} at ")
+    k = (busiest + 3) % sl.n_slices  # the tuner looks at another slice than the busiest
+    control.dropdown.value = control.dropdown.options[k + 1]
+    _idle(app)
+    assert app.view.slice_shown == k
+
+    def shows_slice(k: int) -> None:
+        text = read(app.panel.text)
+        assert f"Shown: slice {k + 1} at {sl.heights_m[k]:.2f} m" in text, text[:400]
+        assert control.dropdown.value.startswith(f"slice {k + 1} at ")
+        assert {n for n in _nodes(server) if n.startswith("/arcs/ref")} == {f"/arcs/ref{k}"}
+        pose = frame(ctl.snapshot, "arcs", app.view)  # *Frame the view* looks at that slice
+        assert abs(pose.look_at[2] - sl.heights_m[k]) < 0.3, (pose.look_at, sl.heights_m[k])
+
+    shows_slice(k)
+    assert not app.stages.before_box.visible  # no run before yet
+    app.stages.sections["arcs"].handles["min_points"].value = 20
+    _idle(app)
+    assert ctl.snapshot.output("arcs") is None
+    text = read(app.panel.text)
+    assert text.strip().startswith("Stale — the last run's result. 7 Arcs must run again: press Run (arcs.min_points 15 → 20)")
+    assert "smaller than 15 points" in text  # the last run's drawing, not an empty view
+    shows_slice(k)
+    app.stages.run_button.value = True
+    _idle(app)
+    assert ctl.snapshot.output("arcs") is not None and busiest_slice(ctl.snapshot, 0) != k
+    shows_slice(k)  # the same slice, though another is now the busiest
+    text = read(app.panel.text)
+    assert text.strip().startswith("The latest run (arcs.min_points 15 → 20)") and "smaller than 20 points" in text
+    assert "| changed | before | now |" in app.panel.text  # the metrics that moved
+    assert app.stages.before_box.visible and not app.stages.before_box.value
+    app.stages.before_box.value = True  # compare
+    _idle(app)
+    text = read(app.panel.text)
+    assert app.view.show_before and text.strip().startswith("The previous run (arcs.min_points 15 → 20)")
+    assert "smaller than 15 points" in text
+    shows_slice(k)
+    app.stages.before_box.value = False
+    _idle(app)
+    assert "smaller than 20 points" in read(app.panel.text)
+    # Stepping on keeps the slice: the Fits and Fine views show it too.
+    for name in ("sections", "fine"):
+        app.select_stage(name)
+        _idle(app)
+        assert app.view.slice_shown == k and f"Shown: slice {k + 1} at" in read(app.panel.table)
+    # Another pair has other slices: its own busiest.
+    app.select_stage("arcs")
+    pairs = app.stages.control("arcs", TargetControl).dropdown
+    pairs.value = pairs.options[1]  # the browser's pick
+    _idle(app)
+    assert app.view.slice_shown == busiest_slice(ctl.snapshot, 1)
+
+
 def test_bad_upload_shows_a_message_and_changes_nothing(env, case):
     server, app = env
     ctl = app.controller

@@ -55,10 +55,12 @@ def _slice_points(snap: Snapshot, view: ViewState) -> np.ndarray | None:
     """What to frame of the slice the view shows: its fitted sections (centres and rims) once the
     Fits stage has them, else the reference's points in it (None: every slice, or none yet); where
     they are shown, i.e. moved with the pair's reference scan (the drawer's `pair_reference`)."""
+    from .draw.before import drawn
     from .draw.common import target_index
     from .draw.fits import slice_shown
     from .draw.scan_layer import scan_poses
 
+    snap = drawn(snap, view)[0]  # the run the view draws (the last one, while its stage is stale)
     if snap.output("slices") is None:
         return None
     t = target_index(snap, "slices", view)

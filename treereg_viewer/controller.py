@@ -123,6 +123,10 @@ class Snapshot:
     verdicts: Mapping[str, tuple[str, tuple[str, ...], str]] = field(default_factory=dict)  # scan -> (verdict, reasons, hint)
     choices: Mapping[str, str] = field(default_factory=dict)  # hypotheses picked by hand: pair label -> candidate
     starts: Mapping[str, StartPose] = field(default_factory=dict)  # start poses given by hand: scan name -> start
+    #: The run before, per stage: the last published state that held the stage's previous result (a
+    #: changed parameter dropped it, or a run replaced it), for the tuner's before and after. Its own
+    #: `before` is empty; the scans were the same (new scans forget it).
+    before: Mapping[str, Snapshot] = field(default_factory=dict, repr=False, compare=False)
 
     def status(self, stage: str) -> str:
         """'done', 'failed', 'running' or 'stale' for a pipeline stage."""
@@ -291,6 +295,7 @@ class Controller:
         self._stopped = False
         self._crashed: dict[str, str] = {}  # stages that raised, until inputs change or Run is pressed
         self._give_way = _GiveWay()
+        self._before: dict[str, Snapshot] = {}
         self._snapshot = self._make_snapshot(busy=False, running=None, message="", error=False)
         self._thread = threading.Thread(target=self._loop, name="treereg-worker", daemon=True)
         self._thread.start()
@@ -601,6 +606,7 @@ class Controller:
     def _make_snapshot(self, busy: bool, running: str | None, message: str, error: bool) -> Snapshot:
         pipe = self._pipeline
         outputs = {s: o for s in STAGES if (o := pipe.output(s)) is not None}
+        self._remember_before(outputs)
         self._version += 1
         return Snapshot(
             version=self._version,
@@ -620,7 +626,24 @@ class Controller:
             verdicts=_safe(pipe.verdicts, {}),
             choices=dict(pipe.choices),
             starts=dict(pipe.starts),
+            before=dict(self._before),
         )
+
+    def _remember_before(self, outputs: Mapping[str, StageOutput]) -> None:
+        """Keep, for every stage whose result is going (dropped by a change, or replaced by a run), the
+        last published state that held it: what the app shows as the run before. New scans forget
+        every run before (their results are of other scans)."""
+        prev: Snapshot | None = getattr(self, "_snapshot", None)
+        if prev is None:
+            return
+        scans = self._pipeline.scans
+        if len(prev.scans) != len(scans) or any(a is not b for a, b in zip(prev.scans, scans)):
+            self._before.clear()
+            return
+        kept = replace(prev, before={})
+        for s, old in prev.outputs.items():
+            if outputs.get(s) is not old:
+                self._before[s] = kept
 
     def _publish(self, busy: bool = False, running: str | None = None, message: str = "", error: bool = False) -> None:
         snap = self._make_snapshot(busy, running, message, error)

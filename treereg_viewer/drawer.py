@@ -35,6 +35,7 @@ from treereg_core.stages import stage as core_stage
 from .controller import Snapshot
 from .derived import Derived, default_height, evaluated_branches, height_range
 from .draw import cross_section
+from .draw.before import comparison_text, drawn
 from .draw.common import item_message, not_ready_text, target_index, title
 from .draw.scan_layer import apply_poses, draw_scan_layer, residual_mode, scan_layer_key, scan_poses, scans_shown
 from .stages import STAGE_NAMES, section_available, stage_of
@@ -56,7 +57,17 @@ PLOTS_PENDING_IDLE_S = 0.5
 
 def render_stage(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> tuple[list[Any], PanelContent]:
     """The current stage's drawing; what every renderer would otherwise begin with is done here:
-    nothing to show yet (the panel says why), or the chosen pair skipped (its message)."""
+    nothing to show yet (the panel says why), or the chosen pair skipped (its message). A stage whose
+    result a changed parameter dropped draws its last result, marked stale, and one with a run
+    before can draw that run (`draw.before`); the panel then says which, and what changed."""
+    snap, note = drawn(snap, view)[0], comparison_text(snap, view)
+    handles, content = _render(scene, root, snap, view)
+    if note:
+        content = replace(content, text=f"{note}\n\n{content.text}" if content.text else note)
+    return handles, content
+
+
+def _render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) -> tuple[list[Any], PanelContent]:
     name = view.stage
     r = stage_of(name)
     out = snap.output(name)
@@ -213,9 +224,11 @@ class Drawer:
             except Exception:  # one tab's GUI failing must not stop its drawing
                 log.exception("GUI update failed")
 
-    def draw(self, snap: Snapshot, view: ViewState) -> None:
-        """Bring the scene and the panel up to date with `snap` and `view`."""
+    def draw(self, latest: Snapshot, view: ViewState) -> None:
+        """Bring the scene and the panel up to date with `latest` and `view` (the whole view of the
+        run it draws: the latest, or the run before, `draw.before.drawn`)."""
         scene = self.scene
+        snap, _ = drawn(latest, view)
         # On-demand results (residuals, the cross-section) are computed before the atomic block:
         # the connection's other messages are not held back meanwhile.
         residuals = (self.derived.residuals(snap, view.result_pose, view.max_points, view.residual_max_m)
@@ -251,11 +264,11 @@ class Drawer:
             # Drawn anew when its output or an earlier one (its inputs, the poses it draws at) changed,
             # or a view choice it uses.
             upto = STAGE_NAMES[: STAGE_NAMES.index(name) + 1]
-            key = (name, tuple(id(snap.outputs.get(n)) for n in upto), snap.running == name, len(snap.scans),
-                   tuple(getattr(view, f) for f in fields))
+            key = (name, tuple(id(snap.outputs.get(n)) for n in upto), latest.running == name, len(snap.scans),
+                   tuple(getattr(view, f) for f in fields), comparison_text(latest, view))
             stage_changed = self._keys.get("stage") != key
             if stage_changed:
-                handles, content = render_stage(scene, f"/{name}", snap, view)
+                handles, content = render_stage(scene, f"/{name}", latest, view)
                 self._replace("stage", handles)
                 self._keys["stage"] = key
                 self._stage_content = content

@@ -18,6 +18,7 @@ from treereg_core.stages import stage as core_stage
 from .actions import AppActions
 from .checks import stage_warnings
 from .controller import Snapshot
+from .draw.before import has_before
 from .labels import VERDICT_MARKS
 from .param_widgets import SectionWidgets
 from .stages import STAGE_NAMES, by_label, label, stage_of
@@ -70,6 +71,11 @@ class StagePanel:
         self.frame_button = gui.add_button("Frame the view", icon=viser.Icon.FOCUS_CENTERED, color="gray",
                                            hint="Point the camera at what this stage draws.")
         self.frame_button.on_click(lambda _: app.frame_view())
+        # Before and after: shown once the stage has a run before to compare with (`draw.before`).
+        self.before_box = gui.add_checkbox("Previous run", False, visible=False,
+                                           hint="Draw this stage's result from before the last change of its "
+                                           "parameters; untick for the latest. The panel lists what changed.")
+        self.before_box.on_update(lambda _: self.set_view(show_before=bool(self.before_box.value)))
         self.progress = gui.add_progress_bar(0.0, animated=False)
         self.progress_text = gui.add_markdown("")
         # Below the buttons: the stages' status grows by a line as a run goes on (the verdicts), and
@@ -191,6 +197,9 @@ class StagePanel:
         # Ranges of the view controls follow the results (counted from 1).
         self._local.quiet = True
         try:
+            self.before_box.visible = has_before(snap, view.stage)
+            if self.before_box.value != view.show_before:
+                self.before_box.value = view.show_before
             for c in self.all_controls():
                 c.show_snapshot(snap, view)
         finally:

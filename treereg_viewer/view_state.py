@@ -50,4 +50,5 @@ class ViewState:
     tour_step: int | None = None  # the guided tour's step, when the tour is on
     slice_shown: int | None = None  # Arcs, Fits, Fine: one slice (0-based), ALL_SLICES, or None = the busiest
     align_scan: str | None = None  # Align: the scan this tab aligns by hand (its layers hidden meanwhile)
+    show_before: bool = False  # draw the stage's run before (a parameter changed since) instead of the latest
     rival: str | None = None  # Hypotheses: the rival drawn beside the chosen pose (None = the best distinct one)

@@ -34,14 +34,15 @@ from .derived import default_height, prepared_scans
 from .drawer import Drawer
 from .export_panel import ExportPanel
 from .draw.common import display_subset
-from .draw.fits import focus_rows
+from .draw.before import drawn
+from .draw.fits import focus_rows, pinned_slice
 from .scan_panel import ScanPanel
 from .stage_panel import StagePanel
 from .stages import STAGE_NAMES, registered, section_available
 from .stages.base import pair_labels
 from .tour import STEPS, TourPanel
 from .view_panel import ViewPanel
-from .view_state import ViewState
+from .view_state import ALL_SLICES, ViewState
 
 log = logging.getLogger(__name__)
 
@@ -161,8 +162,11 @@ class Viewer:
             changes["focus_section"] = None  # a fits row belongs to its stage's table
         if "target" in changes and changes["target"] != self._view.target:
             changes.setdefault("branch", None)  # branches are a pair's
+            if self._view.slice_shown != ALL_SLICES:
+                changes.setdefault("slice_shown", None)  # and so are slices: the new pair's busiest
         with self._lock:
             new = replace(self._view, **changes)
+            new = replace(new, slice_shown=_pinned(self.controller.snapshot, new))
             changed = new != self._view
             self._view = new
         if changed:
@@ -451,6 +455,13 @@ class Viewer:
     def _show_snapshot(self, snap: Snapshot) -> None:
         if self._closed:
             return
+        # The slice shown is pinned once known, and kept while the pair has it (a re-run draws the same
+        # slice, the list says so, the framing frames it); the run before is shown only until a change.
+        view = self.view
+        pinned = _pinned(snap, view)
+        before = view.show_before and snap.output(view.stage) is not None
+        if pinned != view.slice_shown or before != view.show_before:
+            self.set_view(slice_shown=pinned, show_before=before)
         self.stages.show_snapshot(snap, self.view)
         self.scans.show_snapshot(snap)
         self.align.show_snapshot(snap)
@@ -471,3 +482,12 @@ class Viewer:
         self.drawer.close()
         for button in (self.scans.upload, self.files.load_params, self.align.load_starts):
             self.host.uploads.remove(button)
+
+
+def _pinned(snap: Snapshot, view: ViewState) -> int | None:
+    """`ViewState.slice_shown` as it should be (`draw.fits.pinned_slice`): the busiest slice is chosen
+    when the view is on a stage that shows one slice (what the person sees first), not while they look
+    elsewhere during a run (the busiest by arcs is not the busiest by fits)."""
+    if view.slice_shown is None and view.stage not in camera.SLICE_STAGES:
+        return None
+    return pinned_slice(drawn(snap, view)[0], view)

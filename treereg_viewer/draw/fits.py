@@ -80,12 +80,41 @@ def busiest_slice(snap: Snapshot, t: int) -> int:
     return max(counts, key=lambda k: (counts[k], -k)) if counts else 0
 
 
+def pinned_slice(snap: Snapshot, view: ViewState) -> int | None:
+    """What `ViewState.slice_shown` should hold for the pair in view: the slice already chosen while the
+    pair has it (kept across re-runs: the Arcs, Fits and Fine views, the *Slice* list and the framing
+    stay on it), else the busiest slice once the arcs or fits are known (None until then); every
+    slice (`ALL_SLICES`) stays so."""
+    if view.slice_shown == ALL_SLICES or snap.output("slices") is None or snap.n_pairs == 0:
+        return view.slice_shown
+    t = target_index(snap, "slices", view)
+    pair = snap.pair(t)
+    sl = pair.item("slices", SliceResult)
+    if sl is None or not sl.ok or sl.n_slices == 0:
+        return view.slice_shown  # nothing to choose from (yet): as it is
+    if view.slice_shown is not None and 0 <= view.slice_shown < sl.n_slices:
+        return view.slice_shown
+    if pair.item("arcs", SliceArcs) is None and pair.item("sections", SectionsResult) is None:
+        return None  # the busiest slice is not known before the arcs are
+    return busiest_slice(snap, t)
+
+
 def slice_shown(snap: Snapshot, t: int, view: ViewState, n_slices: int) -> int | None:
     """The slice the Arcs, Fits and Fine views show for pair `t` (None: every slice)."""
     if view.slice_shown == ALL_SLICES or n_slices == 0:
         return None
     k = busiest_slice(snap, t) if view.slice_shown is None else view.slice_shown
     return int(min(max(k, 0), n_slices - 1))
+
+
+#: Points of one slice seen close up are drawn this share of the view's point size (at the size that
+#: reads over a whole tree they merged into blobs a third of the stem wide, hiding the arcs' colours).
+CLOSE_UP_POINTS = 0.5
+
+
+def slice_point_size(view: ViewState, only: int | None, whole: float = 1.0) -> float:
+    """The point size of slice points: `whole` times the view's over every slice, smaller for one slice."""
+    return view.point_size * (whole if only is None else CLOSE_UP_POINTS)
 
 
 def slice_label(k: int, heights_m: Any) -> str:
@@ -196,7 +225,8 @@ def draw_sections(scene: viser.SceneApi, root: str, snap: Snapshot, t: int, sl: 
     # The scans are hidden on these stages (points on a fitted surface would hide it): the fitted
     # slices' points stay as context.
     pair = snap.pair(t)
-    handles: list[Any] = slice_points(scene, root, pair, sl, sec.T_ref_target, ref, tgt, view.point_size, only)
+    handles: list[Any] = slice_points(scene, root, pair, sl, sec.T_ref_target, ref, tgt, slice_point_size(view, only),
+                                      only)
     rows, hidden = fit_rows(snap, t, sl, sec, ref, tgt, view.show_rejected, only)
     shown = [r for r in rows if drawable(r)]
     for who, i in (("ref", pair.ref), ("tgt", pair.tgt)):

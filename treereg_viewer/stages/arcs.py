@@ -15,7 +15,7 @@ from treereg_core.geometry.rigid import apply_transform
 
 from ..controller import Snapshot
 from ..draw.common import Drawing, md_table, metrics_table, pair_label, target_index, target_pose, title
-from ..draw.fits import fine_scans, slice_label, slice_shown
+from ..draw.fits import fine_scans, slice_label, slice_point_size, slice_shown
 from ..palette import categorical
 from ..view_panel import PanelContent
 from ..text import md
@@ -58,8 +58,8 @@ def render_arcs(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewStat
     assert ar is not None and sl is not None, pair.label  # the drawer draws a pair that was not skipped
     ref, tgt = fine_scans(snap, t)
     only = slice_shown(snap, t, view, sl.n_slices)
-    handles, counts = _arc_points(scene, root, ar, target_pose(snap, "hypothesis", t), ref, tgt, 2.0 * view.point_size,
-                                  only)
+    handles, counts = _arc_points(scene, root, ar, target_pose(snap, "hypothesis", t), ref, tgt,
+                                  slice_point_size(view, only, whole=2.0), only)
     rows = [(("▶ " if k == only else "") + str(k + 1), f"{sl.heights_m[k]:.2f}" if k < len(sl.heights_m) else "", *c)
             for k, c in enumerate(counts)]
     shown = (f"Shown: {slice_label(only, sl.heights_m)} of {sl.n_slices} (▶ in the table; pick another under *Slice*, "

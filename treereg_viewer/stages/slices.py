@@ -10,6 +10,7 @@ import viser
 from treereg_core.fine.slicing import SliceResult
 
 from ..controller import Snapshot
+from ..draw.before import drawn
 from ..draw.common import Drawing, md_table, metrics_table, target_index, target_pose, title
 from ..draw.fits import fine_scans, slice_label, slice_points, slice_shown
 from ..view_panel import PanelContent
@@ -52,6 +53,7 @@ class SliceControl(StageControls):
         self.show_snapshot(snap, view)  # another pair has other slices
 
     def show_snapshot(self, snap: Snapshot, view: ViewState) -> None:
+        snap = drawn(snap, view)[0]  # the slices of the run the view draws (a stale one's, until its re-run)
         options = self._options(snap, view)
         if tuple(self.dropdown.options) != options:
             self.dropdown.options = options

@@ -398,6 +398,21 @@ def test_bad_upload_shows_a_message_and_changes_nothing(env, case):
         assert len(app.scans._checkboxes) == len(before.scans)
 
 
+def test_the_zip_is_named_after_its_case_and_what_it_holds(tmp_path):
+    """Issue 32 item 7: not treereg_fine_ply.zip: the case's folder (or the reference scan), placed or coarse only."""
+    from types import SimpleNamespace as S
+
+    from treereg_viewer.export import ExportBundle, zip_name
+
+    placed, coarse = ExportBundle("fine", {}, {}), ExportBundle("coarse", {}, {})
+    folder = tmp_path / "plot 17"
+    snap = S(scans=[S(name=f"s{i}.ply", source=folder / f"s{i}.ply") for i in range(3)])
+    assert zip_name(snap, placed, "las") == "plot 17_registered_las.zip"
+    assert zip_name(snap, coarse, "ply") == "plot 17_coarse_only_ply.zip"
+    uploaded = S(scans=[S(name="a/b:ref.ply", source=Path("a/b:ref.ply")), S(name="t.ply", source=folder / "t.ply")])
+    assert zip_name(uploaded, placed, "ply") == "a_b_ref_registered_ply.zip"  # one file name, no folder
+
+
 def test_export_files_match_truth(env, case, tmp_path):
     server, app = env
     snap = app.controller.snapshot
@@ -408,12 +423,12 @@ def test_export_files_match_truth(env, case, tmp_path):
     app.send_file = lambda client, name, data: sent.append((name, data))
     app.files.cloud_format.value = "las"
     app.files.download_all.value = True
-    assert sent[-1][0] == "treereg_fine_las.zip"  # PLY and LAS downloads can be told apart
+    assert sent[-1][0] == "demo_registered_las.zip"  # the case, what it holds; PLY and LAS can be told apart
     with zipfile.ZipFile(io.BytesIO(sent[-1][1])) as z:
         assert "merged.las" in z.namelist() and "merged.ply" not in z.namelist()
     app.files.cloud_format.value = "ply"
     app.files.download_all.value = True  # click: writes every file and sends a zip
-    assert sent[-1][0] == "treereg_fine_ply.zip"
+    assert sent[-1][0] == "demo_registered_ply.zip"
     del app.send_file
     names = {p.name for p in tmp_path.iterdir()}
     stems = [Path(s.name).stem for s in case.scans]
@@ -797,6 +812,21 @@ def test_fits_hide_rejected_ones_and_never_draw_one_larger_than_its_slice(env):
     _idle(app)
 
 
+def test_the_stems_sections_are_named_so_not_branch_1():
+    """Issue 32 item 7: the evaluation takes the stem's sections for branches too; the app calls the
+    thickest at each height, tapering from the lowest, the stem's, and numbers the rest from 1."""
+    from types import SimpleNamespace as B
+
+    from treereg_viewer.draw.common import branch_names
+
+    demo = [B(index=0, height_m=0.2, radius_m=0.113), B(index=1, height_m=1.31, radius_m=0.095),
+            B(index=3, height_m=3.54, radius_m=0.059), B(index=4, height_m=3.54, radius_m=0.013),
+            B(index=8, height_m=4.65, radius_m=0.012), B(index=9, height_m=5.76, radius_m=0.04)]
+    assert branch_names(demo) == {0: "stem at 0.20 m", 1: "stem at 1.31 m", 3: "stem at 3.54 m", 4: "branch 1",
+                                  8: "branch 2", 9: "stem at 5.76 m"}  # the stem not found at 4.65 m: a branch there
+    assert branch_names([]) == {}
+
+
 def test_result_colours_by_residual_and_shows_the_pose_chosen(env, case):
     server, app = env
     app.select_stage("evaluation")
@@ -805,6 +835,9 @@ def test_result_colours_by_residual_and_shows_the_pose_chosen(env, case):
     T = app.controller.snapshot.output("icp").items[0].T_ref_target
     assert np.allclose(app.drawer._scan_frames[1].position, T[:3, 3], atol=1e-6)
     assert any(n.startswith("/evaluation/label") for n in _nodes(server))  # the evaluated branches, named
+    labels = {h.text for n, h in server.scene._handle_from_node_name.items() if n.startswith("/evaluation/label")}
+    assert any(t.startswith("stem at 0.") for t in labels) and any(t.startswith("branch 1: ") for t in labels), labels
+    assert "| ICP | stem | " in app.panel.table and "Branch 1" not in app.panel.table
     app.stages.control("evaluation", ResultControls).colour.value = "Distance to the other scans"
     _idle(app)
     cols = np.asarray(server.scene._handle_from_node_name["/scans/s1/points"].colors).reshape(-1, 3)

@@ -36,7 +36,7 @@ from .controller import Snapshot
 from .derived import Derived, default_height, evaluated_branches, height_range
 from .draw import cross_section
 from .draw.before import comparison_text, drawn
-from .draw.common import item_message, not_ready_text, target_index, title
+from .draw.common import evaluated_branch_names, item_message, not_ready_text, target_index, title
 from .draw.scan_layer import apply_poses, draw_scan_layer, residual_mode, scan_layer_key, scan_poses, scans_shown
 from .stages import STAGE_NAMES, section_available, stage_of
 from .view_panel import PanelContent, ViewPanel
@@ -294,10 +294,11 @@ class Drawer:
                 self._keys["panel"] = panel_key
                 self.section = cs if sectioning else None
             rng = height_range(snap) if sectioning else None
+            names = evaluated_branch_names(snap, view.target)
             self.panel.show_controls(
                 view, section_available(snap, view.stage), rng,
                 view.section_height if view.section_height is not None else default_height(snap, view.target),
-                [f"Branch {b.index + 1} (z = {b.height_m:.2f} m, r = {b.radius_m * 100:.1f} cm)"
+                [branch_choice(names.get(b.index, f"branch {b.index + 1}"), b)
                  for b in evaluated_branches(snap, view.target)])
 
     def _replace(self, layer: str, handles: list[Any]) -> None:
@@ -315,6 +316,13 @@ class Drawer:
             except Exception:  # already removed with its parent
                 pass
         self._handles[layer] = handles
+
+
+def branch_choice(name: str, b: Any) -> str:
+    """A branch as the cross-section's *Section of* list offers it: 'Stem at 1.31 m (r = 9.5 cm)',
+    'Branch 2 (z = 3.54 m, r = 1.3 cm)'."""
+    where = "" if name.startswith("stem") else f"z = {b.height_m:.2f} m, "
+    return f"{name[:1].upper()}{name[1:]} ({where}r = {b.radius_m * 100:.1f} cm)"
 
 
 def pair_reference(snap: Snapshot, view: ViewState) -> int:

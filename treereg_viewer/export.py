@@ -23,6 +23,7 @@ from treereg_core.errors import OutputError
 from treereg_core.io import atomic
 from treereg_core.io.atomic import check_distinct, write_bytes_atomic
 from treereg_core.io.merged import write_merged
+from treereg_core.io.naming import file_safe, file_stem
 from treereg_core.io.transforms import TransformFile, export_paths, registration_file, write_exports
 from treereg_core.verify.report import quality_report
 
@@ -135,3 +136,27 @@ def zip_bundle(bundle: ExportBundle) -> bytes:
             z.writestr(name, data)
     return buf.getvalue()
 
+
+
+#: The longest case name a zip's name takes (a folder's name can be long).
+MAX_CASE_CHARS = 60
+
+
+def case_name(snap: Snapshot) -> str:
+    """What the scans are of, for a file name: the folder all the loaded scan files sit in (the case's
+    folder: `demo`, `plot_17`), else the reference scan's name (`scan1.ply` -> `scan1`); made safe
+    as one file name (`io.naming.file_safe`)."""
+    folders = {s.source.resolve().parent for s in snap.scans if s.source is not None and s.source.is_absolute()}
+    every = all(s.source is not None and s.source.is_absolute() for s in snap.scans)
+    name = next(iter(folders)).name if every and len(folders) == 1 else ""
+    if not name and snap.scans:
+        name = file_stem(snap.scans[0].name)
+    return file_safe(name or "scans")[:MAX_CASE_CHARS]
+
+
+def zip_name(snap: Snapshot, bundle: ExportBundle, cloud_format: str) -> str:
+    """The zip of every export, named after what it holds: the case, the registration (the scans
+    placed, or the coarse poses only when that is all that ran) and the merged cloud's format
+    (`demo_registered_ply.zip`, `demo_coarse_only_las.zip`)."""
+    what = "registered" if bundle.stage == "fine" else "coarse_only"
+    return f"{case_name(snap)}_{what}_{cloud_format}.zip"

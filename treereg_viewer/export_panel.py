@@ -92,8 +92,8 @@ class ExportPanel:
         if only is not None:
             self.app.send_file(client, only, bundle.files[only])
         else:
-            # Named by what is inside: downloads with one name for PLY and LAS could not be told apart.
-            self.app.send_file(client, f"treereg_{bundle.stage}_{self.cloud_format.value}.zip", export.zip_bundle(bundle))
+            # Named by what is inside: the case, the registration, the cloud's format (PLY or LAS).
+            self.app.send_file(client, export.zip_name(snap, bundle, self.cloud_format.value), export.zip_bundle(bundle))
         warned = stage_warnings(snap)
         caution = (" **⚠ These transforms carry warnings (see the message at the top): check them before use.**"
                    if warned else "")

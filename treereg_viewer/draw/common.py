@@ -186,3 +186,49 @@ def target_pose(snap: Snapshot, pose: str | None, k: int) -> np.ndarray | None:
         if item is not None and item.ok and getattr(item, "ran", True):
             return np.asarray(item.T_ref_target, dtype=np.float64)
     return None
+
+
+#: From the lowest evaluated "branch" up, the thickest at each height is the stem's while it is at
+#: least this share of the stem's radius below it (the stem tapers; a crown branch is a fraction of it).
+STEM_TAPER = 0.5
+
+
+def branch_names(branches: Iterable[Any]) -> dict[int, str]:
+    """What the app calls each evaluated branch (`evaluate.branches.BranchError`, by its `index`).
+
+    The evaluation takes every plausible upright cylinder of the reference's slices for a branch, so
+    the stem's sections are among them: from the lowest up, the thickest at each height is the stem's
+    while it keeps at least `STEM_TAPER` of the stem's radius below it ("stem at 1.31 m"); the others
+    are branches, numbered bottom to top ("branch 1"). Give every evaluation's branches of a pair at
+    once (a branch one registration lost still has its name)."""
+    by_index = {int(b.index): b for b in branches}
+    heights: dict[float, list[Any]] = {}
+    for b in by_index.values():
+        heights.setdefault(round(float(b.height_m), 2), []).append(b)
+    stem: set[int] = set()
+    below: float | None = None
+    for h in sorted(heights):
+        thickest = max(heights[h], key=lambda b: float(b.radius_m))
+        if below is None or float(thickest.radius_m) >= STEM_TAPER * below:
+            stem.add(int(thickest.index))
+            below = float(thickest.radius_m)
+    names: dict[int, str] = {}
+    n = 0
+    for i in sorted(by_index, key=lambda i: (float(by_index[i].height_m), i)):
+        if i in stem:
+            names[i] = f"stem at {float(by_index[i].height_m):.2f} m"
+        else:
+            n += 1
+            names[i] = f"branch {n}"
+    return names
+
+
+def evaluated_branch_names(snap: Snapshot, target: int) -> dict[int, str]:
+    """The names of the branches the Result stage evaluated for a target ("stem at 1.31 m", "branch 2":
+    `branch_names` over every registration's evaluation of the pair)."""
+    from treereg_core.evaluate.report import PairReport
+
+    report = snap.pair(target).item("evaluation", PairReport) if 0 <= target < snap.n_pairs else None
+    if report is None or not report.ok:
+        return {}
+    return branch_names(b for ev in report.by_method().values() for b in ev.branches)

@@ -29,7 +29,7 @@ from ..palette import CATEGORICAL, GREY, hex_color, scan_color
 from ..view_panel import PanelContent
 from ..text import html, md, md_sentence
 from ..view_state import ViewState
-from .common import Handles, md_table, plural
+from .common import Handles, evaluated_branch_names, md_table, plural
 from .fits import within
 
 #: A plotly figure's layout, trace or axis as plain JSON-like data (see `_grid`).
@@ -297,8 +297,9 @@ def render(snap: Snapshot, view: ViewState, cs: CrossSection | None, branch: Bra
         where = f"A {cs.thickness_m * 100:.0f} cm slab of every scan, seen from above."
     else:
         layers = list(range(len(cs.heights_m)))
-        head = f"Branch {branch.index + 1}: its {plural(len(layers), 'evaluation layer')}"
-        where = (f"The branch's layers (paper Fig. 12b), each seen along its axis: the points within "
+        name = evaluated_branch_names(snap, view.target).get(branch.index, f"branch {branch.index + 1}")
+        head = f"{name[:1].upper()}{name[1:]}: its {plural(len(layers), 'evaluation layer')}"
+        where = (f"Its layers (paper Fig. 12b), each seen along its axis: the points within "
                  f"{branch.radius_m * 100:.0f} cm plus the margin of the axis.")
     mid = layers[-1] if branch is None else len(layers) // 2
     text = where + " " + verdict(cs, mid)

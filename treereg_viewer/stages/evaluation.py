@@ -23,7 +23,7 @@ from treereg_core.fine.pose import FineResult
 
 from ..checks import TRUTH_DISP_M, TRUTH_ROT_DEG, stage_warnings, truth_rows
 from ..controller import Snapshot
-from ..draw.common import Drawing, Handles, md_table, metrics_table, pair_label, target_index, title
+from ..draw.common import Drawing, Handles, branch_names, md_table, metrics_table, pair_label, target_index, title
 from ..draw.motion import motion_sentence, profile_figure
 from ..palette import HIGHLIGHT, residual_legend, scan_color
 from ..view_panel import PanelContent
@@ -41,8 +41,15 @@ def branch_rows(ev: EvaluationResult) -> list[BranchError]:
     return list(ev.branches)
 
 
+def _where(name: str, b: BranchError) -> str:
+    """'stem at 1.31 m' or 'branch 2 at 3.54 m'."""
+    return name if name.startswith("stem") else f"{name} at {b.height_m:.2f} m"
+
+
 def branch_figure(evs: Mapping[str, EvaluationResult], target: str) -> go.Figure | None:
-    """Grouped bars: mean centre distance per branch, one colour per registration (paper Figs. 13-14)."""
+    """Grouped bars: mean centre distance per branch (the stem's sections first), one colour per
+    registration (paper Figs. 13-14)."""
+    names = branch_names(b for ev in evs.values() for b in ev.branches)
     fig = go.Figure()
     any_rows = False
     for label, ev in evs.items():
@@ -51,24 +58,25 @@ def branch_figure(evs: Mapping[str, EvaluationResult], target: str) -> go.Figure
             continue
         any_rows = True
         fig.add_trace(go.Bar(
-            x=[f"{b.index + 1}" for b in rows], y=[b.mean_m * 1000.0 for b in rows], name=label,
+            x=[names[b.index].replace(" at ", " ") for b in rows], y=[b.mean_m * 1000.0 for b in rows], name=label,
             marker_color=METHOD_COLORS.get(label),
-            hovertext=[f"branch {b.index + 1} at {b.height_m:.2f} m, r = {b.radius_m * 100:.1f} cm" for b in rows],
+            hovertext=[f"{_where(names[b.index], b)}, r = {b.radius_m * 100:.1f} cm" for b in rows],
         ))
     if not any_rows:
         return None
     # Legend under the axis title: above the plot it printed over the title.
     fig.update_layout(barmode="group", margin=dict(l=50, r=10, t=30, b=70),
                       legend=dict(orientation="h", x=0.5, xanchor="center", y=-0.3, yanchor="top"),
-                      title=dict(text=f"{html(target)}: mean centre distance per branch (eq. 8)", font=dict(size=12)),
-                      xaxis_title="branch (bottom to top)", yaxis_title="d̄ (mm)", xaxis_type="category")
+                      title=dict(text=f"{html(target)}: mean centre distance (eq. 8)", font=dict(size=12)),
+                      xaxis_title="stem and branches (bottom to top)", yaxis_title="d̄ (mm)", xaxis_type="category")
     return fig
 
 
-def branch_rings(scene: viser.SceneApi, root: str, ev: EvaluationResult, color: tuple[int, int, int]) -> Handles:
+def branch_rings(scene: viser.SceneApi, root: str, ev: EvaluationResult, color: tuple[int, int, int],
+                 names: Mapping[int, str]) -> Handles:
     """The evaluated branches, visible: a yellow ring around the branch at each evaluated layer, the
     reference's and the target's layer centres, the segments joining them (the d_i of eq. 8, often
-    only millimetres long) and the branch's number."""
+    only millimetres long) and the branch's name (`names`: the stem's sections are named so)."""
     rows = [b for b in branch_rows(ev) if len(b.distances_m)]
     if not rows:
         return []
@@ -95,7 +103,7 @@ def branch_rings(scene: viser.SceneApi, root: str, ev: EvaluationResult, color: 
     ]
     for b in rows:
         x, y, z = (float(v) for v in b.ref_centres_m[-1] + np.array([0.0, 0.0, b.radius_m + 0.08]))
-        handles.append(scene.add_label(f"{root}/label{b.index}", f"branch {b.index + 1}: d̄ {b.mean_m * 1000:.1f} mm",
+        handles.append(scene.add_label(f"{root}/label{b.index}", f"{names[b.index]}: d̄ {b.mean_m * 1000:.1f} mm",
                                        position=(x, y, z)))
     return handles
 
@@ -172,15 +180,16 @@ def render(scene: viser.SceneApi, root: str, snap: Snapshot, view: ViewState) ->
     # One row per metric, one column per registration of the chosen target (the paper's Table 2 layout).
     columns = {label: ev.metrics for label, ev in evs.items()}
     table = metrics_table(columns) if report.ok else ""
-    rows: list[tuple[str, int, str, str, str, str]] = []
+    names = branch_names(b for ev in evs.values() for b in ev.branches)
+    rows: list[tuple[str, str, str, str, str, str]] = []
     for label, ev in evs.items():
         for b in branch_rows(ev):
             d = ", ".join(f"{x * 1000:.1f}" for x in b.distances_m)
-            rows.append((label, b.index + 1, f"{b.height_m:.2f}", f"{b.radius_m * 100:.1f}", d, f"{b.mean_m * 1000:.1f}"))
+            rows.append((label, names[b.index].split(" at ")[0], f"{b.height_m:.2f}", f"{b.radius_m * 100:.1f}", d, f"{b.mean_m * 1000:.1f}"))
     if rows:
         table += "\n\n" + md_table(("regis&shy;tration", "branch", "height (m)", "r (cm)", "d₁…dₙ (mm)", "d̄ (mm)"), rows)
     shown = evs.get(method)
-    handles = branch_rings(scene, root, shown, scan_color(pair.tgt)) if shown is not None else []
+    handles = branch_rings(scene, root, shown, scan_color(pair.tgt), names) if shown is not None else []
     return handles, PanelContent(title("evaluation", snap, t), text=text, images=tuple(images), plots=tuple(plots),
                                  table=table)
 

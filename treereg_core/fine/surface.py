@@ -98,9 +98,19 @@ def scan_surface(scan: object, points: np.ndarray, voxel_m: float, max_points: i
     return found
 
 
+#: A point's neighbours span a surface (not one scan line) when their spread across their longest
+#: direction is at least this share of their spread along it (as variances: the middle eigenvalue of
+#: their covariance over the largest; 0.03 is 17 % as a length). On one scan line the neighbours
+#: lie in the plane of that line's rays, range noise included, so their plane fits them exactly.
+PLANAR_MIN = 0.03
+
+
 def noise_floor(surf: Surface, samples: int = 2000) -> float:
     """The surface's own roughness: median distance of its points to the plane through their
-    neighbours (what a perfect registration's residual cannot go below), metres."""
+    neighbours (what a perfect registration's residual cannot go below), metres; over the points
+    whose neighbours span a surface (`PLANAR_MIN`). Neighbours along one scan line (far ground, a
+    twig, where the lines are dense along and sparse across) lie in one plane with their noise and
+    gave a floor of 0.009 mm (the paper preset keeps the ground). NaN when no point's do."""
     cloud = surf.cloud
     if len(cloud) < NORMAL_K + 1:
         return float("nan")
@@ -108,8 +118,13 @@ def noise_floor(surf: Surface, samples: int = 2000) -> float:
     _, nb = surf.cloud_tree.query(at, k=NORMAL_K)
     q = cloud[nb]
     mean = q.mean(axis=1)
-    n = pca_normals(cloud, surf.cloud_tree, at, NORMAL_K)
-    return float(np.median(np.abs(np.einsum("ij,ij->i", at - mean, n))))
+    c = q - mean[:, None, :]
+    spread = np.linalg.eigvalsh(np.einsum("nki,nkj->nij", c, c))  # ascending, per point
+    planar = spread[:, 1] >= PLANAR_MIN * spread[:, 2]
+    if not planar.any():
+        return float("nan")
+    n = pca_normals(cloud, surf.cloud_tree, at[planar], NORMAL_K)
+    return float(np.median(np.abs(np.einsum("ij,ij->i", at[planar] - mean[planar], n))))
 
 
 def surface_pairs(ref: Surface, tgt: Surface, T: np.ndarray, gate_m: float

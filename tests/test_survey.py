@@ -9,6 +9,7 @@ station of another plot is registered once through the command line, as a user w
 from __future__ import annotations
 
 import json
+import re
 import shutil
 from dataclasses import replace
 from pathlib import Path
@@ -29,6 +30,8 @@ SPEC = SurveySpec(seed=7, grid=(3, 3), spacing_m=8.0, margin_m=4.0, n_trees=(16,
 #: At 0.3 deg a far stem holds few points: measured 0.7-1.8 mm plot-wide (0.17-0.72 mm at 0.17-0.25 deg,
 #: benchmarks/RESULTS.md); the bounds leave room for the machine's arithmetic, not for a wrong pose.
 MAX_DISPLACEMENT_M = 0.003
+#: The station of another plot, under a name that is markup.
+HOSTILE = "zz_<img src=x onerror=alert(1)>.ply"
 MAX_MEDIAN_M = 0.002
 
 
@@ -37,12 +40,13 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> dict:
     root = tmp_path_factory.mktemp("survey")
     write_survey(SPEC, root / "plot")
     write_survey(replace(SPEC, seed=99, grid=(2, 1)), root / "other")
-    foreign = root / "plot" / "zz_other_plot.ply"
+    foreign = root / "plot" / HOSTILE
     shutil.copy(root / "other" / "st01.ply", foreign)
     names = sorted(p.name for p in (root / "plot").glob("st*.ply"))
     out = root / "out" / "transforms.json"
     out.parent.mkdir()
-    argv = ["register", *(str(root / "plot" / n) for n in names), str(foreign), "--out", str(out), "--exports"]
+    argv = ["register", *(str(root / "plot" / n) for n in names), str(foreign), "--out", str(out), "--exports",
+            "--report", str(root / "out" / "report.html")]
     return {"root": root, "names": names, "out": out, "argv": argv}
 
 
@@ -72,10 +76,10 @@ def test_every_station_is_placed_to_the_millimetre_plot_wide(run: dict, result: 
 
 def test_a_station_of_another_plot_is_refused_with_its_reason_and_the_rest_placed(result: dict) -> None:
     assert result["code"] == 1  # one station not verified
-    assert "zz_other_plot.ply" not in result["file"]["transforms"]
-    why = result["file"]["unregistered"]["zz_other_plot.ply"]
+    assert HOSTILE not in result["file"]["transforms"]
+    why = result["file"]["unregistered"][HOSTILE]
     assert "another plot" in why or "fewer than survey.min_stems" in why, why
-    assert "zz_other_plot.ply" in result["stderr"]
+    assert HOSTILE in result["stderr"]
     assert result["file"]["quality"]["mode"] == "survey"
 
 
@@ -126,3 +130,12 @@ def test_an_orchard_of_clones_verifies_no_station_more_than_a_centimetre_and_a_h
             assert mean_displacement(T[scan.name], case.T_ref_scan[k], scan.points) < 0.015, scan.name
         else:
             assert pl.reasons, scan.name
+
+
+def test_the_report_maps_every_station_and_pair_and_escapes_names(run: dict, result: dict) -> None:
+    page = (run["root"] / "out" / "report.html").read_text()
+    assert "<svg" in page and page.count("<line ") >= 8  # the links of a 3 x 3 grid
+    for name in run["names"]:
+        assert f">{name}</text>" in page  # every placed station labelled on the map
+    assert "<img" not in page and "&lt;img src=x onerror=alert(1)&gt;" in page
+    assert re.search(r"\bnan\b", page.lower()) is None  # an unmeasured value says so

@@ -24,6 +24,7 @@ from treereg_core.params import Params
 from treereg_core.pipeline import register
 from treereg_core.survey.mode import is_survey
 from treereg_core.survey.register import register_survey
+from treereg_core.survey.report import survey_report_html
 from treereg_core.survey.summary import survey_quality, survey_table
 from treereg_core.stages import UNTIL
 from treereg_core.verify.report import motion_lines, quality_report, verdict_lines, verdict_text
@@ -69,6 +70,9 @@ def add(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--merged", metavar="FILE",
                    help="also write the merged registered cloud (.ply, .las or .laz), each point tagged with "
                    "its scan's number (PLY property scan_id, LAS point_source_id; 1 = the reference)")
+    p.add_argument("--report", metavar="FILE",
+                   help="a survey's report (HTML): the map of stations and stems with every pair coloured by its verdict, "
+                   "each station's row and the loop closures")
     mode = p.add_mutually_exclusive_group()
     mode.add_argument("--survey", action="store_true",
                       help="a whole-plot survey: every station registered on every stem and the ground it shares with its "
@@ -92,11 +96,15 @@ def run(args: argparse.Namespace) -> int:
     # Where the results go is checked before anything is read or computed: never onto an input, nor
     # two results onto one file.
     outputs = [("--out", out)] + [(what, Path(p)) for what, p in (
-        ("--e57" if args.e57 else "the --exports E57 (named after --out)", e57), ("--merged", args.merged)) if p]
+        ("--e57" if args.e57 else "the --exports E57 (named after --out)", e57), ("--merged", args.merged),
+        ("--report", args.report)) if p]
     inputs = [*args.scans, *([args.config] if args.config else []), *initial_files(args)]
     check_distinct(outputs, inputs)
     check_output_file(out, example="transforms.json")
-    for extra in (e57, args.merged):
+    if args.report and extension(args.report) not in (".html", ".htm"):
+        raise ConfigError(f"{args.report}: --report writes HTML; give it the extension .html, "
+                          f"not {extension(args.report) or '(no extension)'!r}")
+    for extra in (e57, args.merged, args.report):
         if extra is not None:
             check_output_file(extra)
     params = load_params(args)
@@ -123,6 +131,9 @@ def run(args: argparse.Namespace) -> int:
             raise ConfigError(f"--until {args.until}: a survey has no coarse stage of its own (its stem maps place "
                               "every station); leave --until out, or give --one-tree")
         return _run_survey(args, scans, params, out=out, e57=e57, inputs=inputs, workers=workers, read_s=read_s)
+    if args.report:
+        raise ConfigError(f"{args.report}: --report is a survey's report (more than 8 stations, or --survey); "
+                          "for one tree, transforms.json's quality block and the app show each pair")
     t0 = time.perf_counter()
     bar = ProgressBar("register")
     # The command line runs no threads of its own: its GIL-bound stages may fork processes.
@@ -180,7 +191,8 @@ def _run_survey(args: argparse.Namespace, scans: list, params: Params, *, out: P
                            quality=survey_quality(survey), keep_unverified=args.keep_unverified,
                            sources={s.name: str(s.source.resolve()) if s.source.exists() else str(s.source) for s in scans},
                            seconds=seconds, stage_seconds={"read": read_s, **survey.seconds})
-    written, stale = _write_results(args, scans, tf, out=out, e57=e57, inputs=inputs)
+    report = survey_report_html(survey, title=f"treereg survey: {len(scans)} stations") if args.report else None
+    written, stale = _write_results(args, scans, tf, out=out, e57=e57, inputs=inputs, report=report)
     if args.details:
         _print_details(metrics, scans)
     print()
@@ -196,7 +208,7 @@ def _run_survey(args: argparse.Namespace, scans: list, params: Params, *, out: P
 
 
 def _write_results(args: argparse.Namespace, scans: list, tf: TransformFile, *, out: Path, e57: Path | None,
-                   inputs: list) -> tuple[list, list]:
+                   inputs: list, report: str | None = None) -> tuple[list, list]:
     """Write the transform file and what was asked beside it as one batch; (written, stale removed)."""
     # An earlier --exports run's matrices of scans this run refuses go with this one's files.
     stale = stale_exports(out.parent, tf, out.name, inputs) if args.exports else []
@@ -210,6 +222,8 @@ def _write_results(args: argparse.Namespace, scans: list, tf: TransformFile, *, 
             if args.merged:
                 # The same scans as "transforms": unverified guesses only with --keep-unverified.
                 written.append(write_merged(args.merged, scans, tf.transforms))
+            if report is not None:
+                written.append(atomic.write_text_atomic(args.report, report))
     except OSError as e:  # one line naming the file, not a traceback
         raise ScanError(e.filename or str(out), f"cannot write the results ({e.strerror or e}); nothing was written") from None
     return written, stale

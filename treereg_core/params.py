@@ -348,11 +348,12 @@ class SurveyParams:
     loss_scale_m: float = _f(0.003, "m", "robust (soft-L1) scale of the pair fit's residuals", lo=0.0001, hi=0.1)
     max_stem_offset_m: float = _f(0.004, "m", "after the fit a stem whose two views stand farther apart than this is left out (it moved, or is another stem)", lo=0.0005, hi=0.1)
     max_residual_m: float = _f(0.006, "m", "a pair is verified when its stems' robust residual is at most this", lo=0.001, hi=0.05)
+    max_pose_sd_m: float = _f(0.003, "m", "a pair is verified when its pose's uncertainty (one standard deviation) moves a point 20 m from the scanner at most this much (few or thin stems, short sections)", lo=0.0001, hi=0.1)
     ground_voxel_m: float = _f(0.25, "m", "ground points in the pair's fit, one per this cell", lo=0.02, hi=5.0)
     ground_range_m: float = _f(25.0, "m", "ground points used lie within this of both scanners", lo=1.0, hi=500.0)
     cloud_voxel_m: float = _f(0.1, "m", "a station's whole cloud, one point per this cell: the check that the crowns agree too, and the joint placement's samples", lo=0.01, hi=2.0)
     ambiguity: float = _f(0.9, "", "a stem map that also fits shifted (a regular planting): the pair is refused when the second fit's crowns agree at least this share as well as the first's", lo=0.5, hi=1.0)
-    max_loop_m: float = _f(0.005, "m", "loops of pairs close within this (mean displacement of the stations' samples)", lo=0.0005, hi=0.1)
+    max_loop_m: float = _f(0.002, "m", "loops of pairs close within this (mean displacement of the stations' points within 20 m of the scanner; right pairs of a 3 x 3 survey at 0.25 deg: 0.1-0.8 mm)", lo=0.0005, hi=0.1)
 
 
 @dataclass(frozen=True)

@@ -80,7 +80,7 @@ def write_summary(outcomes: list[TreeOutcome], out_dir: Path, pictures: dict[str
     return paths
 
 
-_STYLE = """
+STYLE = """
 body{font-family:system-ui,sans-serif;margin:24px;color:#222}
 table{border-collapse:collapse}td,th{border-bottom:1px solid #ddd;padding:6px 10px;text-align:left;vertical-align:top}
 th{background:#f4f4f4}.ok{color:#1a7f37}.partial,.unverified{color:#b35900}.failed,.error{color:#c62828}
@@ -109,4 +109,4 @@ def report_html(outcomes: list[TreeOutcome], pictures: dict[str, bytes | None], 
     table = ("<table><tr><th>tree</th><th>verified scans (top, side)</th><th>status</th>"
              "<th>scans: verdict, error against truth</th><th>times</th><th>message</th></tr>" + "".join(rows) + "</table>")
     return (f"<!DOCTYPE html><html><head><meta charset=\"utf-8\"><title>{e(title)}</title>"
-            f"<style>{_STYLE}</style></head><body>{head}{table}</body></html>\n")
+            f"<style>{STYLE}</style></head><body>{head}{table}</body></html>\n")

@@ -40,6 +40,10 @@ _ROUNDS = 3
 #: Gauss-Newton steps at most, and the damping of their normal equations (relative to the diagonal).
 _MAX_STEPS = 40
 _DAMPING = 1e-6
+#: The pose has converged when a step turns it less than this (rad; 0.6 micrometre 20 m out) and shifts it less (m).
+_POSE_STEP = 3e-8
+#: The pose's uncertainty is said as the displacement it allows this far from the reference scanner.
+_SD_RANGE_M = 20.0
 #: Crowns agree where a target point has a reference point within this many cloud voxels.
 _AGREE_VOXELS = 1.5
 #: The crowns' check covers points within this of both scanners (a station sees little beyond).
@@ -76,6 +80,9 @@ class PairFit:
     runner_up_shift_m: float = float("nan")
     spread_m: float = float("nan")
     points: int = 0
+    #: The pose's uncertainty: one standard deviation of the displacement it allows 20 m from the
+    #: reference scanner (the joint fit's normal equations; the stems' and ground's residuals).
+    pose_sd_m: float = float("inf")
 
     @property
     def stems_used(self) -> int:
@@ -117,7 +124,7 @@ def _fit(ref: SurveyStation, tgt: SurveyStation, T0: np.ndarray, pairs: np.ndarr
     T = T0
     offsets = np.zeros(len(pairs))
     sections = np.zeros(len(pairs), dtype=int)
-    result: tuple[float, float, int, int] = (float("nan"), float("nan"), 0, 0)
+    result: tuple[float, float, int, int, float] = (float("nan"), float("nan"), 0, 0, float("inf"))
     for _ in range(_ROUNDS):
         problem = _Problem.build(ref, tgt, pairs, use, T, sv)
         if problem is None or problem.n_stems < sv.min_stems:
@@ -136,9 +143,9 @@ def _fit(ref: SurveyStation, tgt: SurveyStation, T0: np.ndarray, pairs: np.ndarr
     used_xy = np.array([t.xy for t in ties if t.used])
     spread = float(np.linalg.svd(used_xy - used_xy.mean(axis=0), compute_uv=False)[-1] / np.sqrt(len(used_xy))) \
         if len(used_xy) >= 2 else 0.0
-    residual, ground_res, n_ground, n_points = result
+    residual, ground_res, n_ground, n_points, sd = result
     return PairFit(ok=True, message="", T_ref_target=T, stems=ties, residual_m=residual, ground_residual_m=ground_res,
-                   ground_points=n_ground, spread_m=spread, points=n_points)
+                   ground_points=n_ground, spread_m=spread, points=n_points, pose_sd_m=sd)
 
 
 @dataclass(eq=False)
@@ -260,7 +267,7 @@ class _Problem:
             cols += [np.full(len(r), c), np.full(len(r), 3 + c)]
             vals += [turn[:, c], g[:, c]]
 
-    def solve(self, sv: SurveyParams) -> tuple[np.ndarray, np.ndarray, tuple[float, float, int, int]]:
+    def solve(self, sv: SurveyParams) -> tuple[np.ndarray, np.ndarray, tuple[float, float, int, int, float]]:
         x = self._gauss_newton(np.concatenate([np.zeros(6), np.zeros(3 * self.n_stems), self.circles.ravel()]),
                                sv.loss_scale_m)
         T, stem, sec = self._unpack(x)
@@ -273,7 +280,23 @@ class _Problem:
         residual = float(1.4826 * np.median(np.abs(r_all)))
         ground = float(1.4826 * np.median(np.abs(np.einsum("ij,ij->i", apply_transform(T, self.G) - self.A, self.N)))) \
             if len(self.G) else float("nan")
-        return T, np.linalg.norm(offsets, axis=1), (residual, ground, len(self.G), len(r_all))
+        return T, np.linalg.norm(offsets, axis=1), (residual, ground, len(self.G), len(r_all), self._pose_sd(x, sv))
+
+    def _pose_sd(self, x: np.ndarray, sv: SurveyParams) -> float:
+        """How far (m, one standard deviation) the pose's uncertainty moves a point `_SD_RANGE_M` from
+        the reference scanner: the pose block of the weighted normal equations' inverse (the circles
+        marginalised), scaled by the residuals' variance."""
+        r = self.residuals(x)
+        J = self.jacobian(x)
+        w = 1.0 / np.sqrt(1.0 + (r / sv.loss_scale_m) ** 2)
+        H = (J.T @ J.multiply(w[:, None]).tocsr()).toarray()
+        H[np.diag_indices_from(H)] += 1e-12
+        dof = max(len(r) - len(x), 1)
+        try:
+            C = np.linalg.inv(H)[:6, :6] * float(np.sum(w * r ** 2)) / dof
+        except np.linalg.LinAlgError:
+            return float("inf")
+        return float(np.sqrt(max(np.trace(C[3:, 3:]) + _SD_RANGE_M ** 2 * np.trace(C[:3, :3]), 0.0)))
 
     def _gauss_newton(self, x: np.ndarray, scale_m: float) -> np.ndarray:
         """Robust Gauss-Newton (IRLS, soft-L1 weights; the scale from ten times `scale_m` down to it, so
@@ -293,7 +316,7 @@ class _Problem:
             step = np.linalg.solve(H, -g)
             self.T0 = make_transform(rotation_from_vector(step[:3]), step[3:6]) @ self._unpack(x)[0]
             x = np.concatenate([np.zeros(6), x[6:] + step[6:]])
-            if it >= 3 and np.abs(step[:6]).max() < 1e-9 and np.abs(step[6:]).max() < 1e-7:
+            if s == scale_m and np.abs(step[:6]).max() < _POSE_STEP:  # the circles may creep on; the pose has stopped
                 break
         return x
 

@@ -82,7 +82,7 @@ class Survey:
                     ("stems used", "", f.stems_used), ("stem residual", "m", f.residual_m),
                     ("ground residual", "m", f.ground_residual_m), ("ground points", "", f.ground_points),
                     ("crowns agree", "", f.agreement), ("shifted stem map: crowns agree", "", f.runner_up_agreement),
-                    ("stems' spread", "m", f.spread_m)]
+                    ("stems' spread", "m", f.spread_m), ("pose uncertainty 20 m out", "m", f.pose_sd_m)]
             out[f"{self.scans[p.j].name} -> {self.scans[p.i].name}"] = [
                 {"stage": "survey", "metric": m, "unit": u, "value": v} for m, u, v in rows]
         return out
@@ -150,6 +150,9 @@ def _judged(i: int, j: int, shared: int, f: PairFit, params: Params) -> SurveyPa
         why.append(f"{f.stems_used} of {len(f.stems)} shared stems agree, fewer than survey.min_stems = {sv.min_stems}")
     if not f.residual_m <= sv.max_residual_m:
         why.append(f"the stems' residual is {f.residual_m * 1000:.1f} mm (survey.max_residual_m = {sv.max_residual_m * 1000:g} mm)")
+    if not f.pose_sd_m <= sv.max_pose_sd_m:
+        why.append(f"its pose is uncertain by {f.pose_sd_m * 1000:.1f} mm 20 m from the scanner (survey.max_pose_sd_m = "
+                   f"{sv.max_pose_sd_m * 1000:g} mm): too few or too thin stems in common")
     if not f.spread_m >= _MIN_SPREAD_M:
         why.append(f"the stems used stand nearly in a line ({f.spread_m:.2f} m across it): the turn about them is open")
     if np.isfinite(f.runner_up_agreement) and f.runner_up_agreement >= sv.ambiguity * f.agreement:
@@ -184,7 +187,8 @@ def _place(stations: Sequence[SurveyStation], pairs: Sequence[SurveyPair], share
 
 
 def _weight(f: PairFit) -> float:
-    """An edge's information: its points over the square of its residual (0.3 mm at least)."""
-    r = f.residual_m if np.isfinite(f.residual_m) else 1e-3
-    return float(max(f.points, 1) / max(r, 3e-4) ** 2)
+    """An edge's information: the inverse square of its pose's uncertainty (0.05 mm at best: no pair
+    is believed beyond the simulator's arithmetic)."""
+    sd = f.pose_sd_m if np.isfinite(f.pose_sd_m) else 1.0
+    return float(1.0 / max(sd, 5e-5) ** 2)
 

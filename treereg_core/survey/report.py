@@ -113,8 +113,8 @@ def _map_svg(survey: Survey) -> str:
                f"residual {_mm(p.fit.residual_m)}, loop {_mm(loop)}" + (f" ({'; '.join(p.reasons)})" if p.reasons else ""))
         parts.append(f'<line x1="{x1:.1f}" y1="{y1:.1f}" x2="{x2:.1f}" y2="{y2:.1f}" stroke="{_LINK[how]}" '
                      f'stroke-width="2.5"{dash}><title>{e(tip)}</title></line>')
-    for k, p in stations.items():
-        x, y = xy(p)
+    for k, at in stations.items():
+        x, y = xy(at)
         pl = survey.placements[k]
         colour = {"verified": "#1a7f37", "unverified": "#b35900"}.get(pl.verdict, "#c62828")
         parts.append(f'<rect x="{x - 6:.1f}" y="{y - 6:.1f}" width="12" height="12" fill="{colour}">'

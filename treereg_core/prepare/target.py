@@ -124,11 +124,6 @@ def _radius_ok(ra: np.ndarray, rb: np.ndarray, tolerance: float) -> np.ndarray:
     return np.abs(ra - rb) <= tolerance * np.maximum(ra, rb) + 0.02
 
 
-#: Stem-map hypotheses scored at most (RANSAC's draw of them): a plot of a few dozen stems gives a few
-#: thousand, a regular planting of fifty hundreds of thousands (112 s for nine stations' pairs).
-_MAX_HYPOTHESES = 20_000
-
-
 def match_stem_maps(ref: Stems, tgt: Stems, tol_m: float = 0.2,
                     target: TargetParams = TargetParams()) -> tuple[np.ndarray | None, np.ndarray]:
     """The 4 x 4 (yaw + horizontal shift) mapping `tgt`'s stems onto `ref`'s, and the matched pairs
@@ -143,10 +138,12 @@ def match_stem_maps(ref: Stems, tgt: Stems, tol_m: float = 0.2,
 
 
 def stem_map_hypotheses(ref: Stems, tgt: Stems, *, tol_m: float = 0.2, target: TargetParams = TargetParams(),
-                        n: int = 1, distinct_m: float = 1.0) -> list[tuple[np.ndarray, np.ndarray]]:
+                        n: int = 1, distinct_m: float = 1.0, max_hypotheses: int = 20_000) -> list[tuple[np.ndarray, np.ndarray]]:
     """Up to `n` distinct stem-map transforms, best first (see `match_stem_maps`), each with its
     matched pairs; a later one moves the target's stems at least `distinct_m` from every earlier
-    one's (a regular planting fits its stem map shifted by a row as well)."""
+    one's (a regular planting fits its stem map shifted by a row as well). At most `max_hypotheses`
+    are scored, a fixed random draw of them (RANSAC's): a plot of a few dozen stems gives a few
+    thousand, a regular planting of fifty hundreds of thousands (112 s for nine stations' pairs)."""
     gate, tolerance = target.match_gate_m, target.match_radius_tolerance
     if len(ref) < 2 or len(tgt) < 2:
         return []
@@ -173,8 +170,8 @@ def stem_map_hypotheses(ref: Stems, tgt: Stems, *, tol_m: float = 0.2, target: T
     A0, A1, B0, B1 = A0[keep], A1[keep], B0[keep], B1[keep]
     if len(A0) == 0:
         return []
-    if len(A0) > _MAX_HYPOTHESES:  # a planting in rows repeats its distances: a fixed random share suffices
-        pick = np.sort(np.random.default_rng(0).choice(len(A0), _MAX_HYPOTHESES, replace=False))
+    if len(A0) > max_hypotheses:  # a planting in rows repeats its distances: a fixed random share suffices
+        pick = np.sort(np.random.default_rng(0).choice(len(A0), max_hypotheses, replace=False))
         A0, A1, B0, B1 = A0[pick], A1[pick], B0[pick], B1[pick]
     va = ref.xy[A1] - ref.xy[A0]
     vb = tgt.xy[B1] - tgt.xy[B0]

@@ -139,14 +139,17 @@ def case_folder(s: Survey, cache: Path, say) -> tuple[Path, float]:
     return folder, seconds
 
 
-def _register_flags() -> list[str]:
-    """register's survey flag, when it has a bare `--survey` (a mode of its own, not the default)."""
+def _register_flags(one_tree: bool) -> list[str]:
+    """register's survey flag when it has one (`--survey`, alone or beside `--one-tree`), or with
+    `one_tree` its `--one-tree` (the one-tree mode: the registration before plot-wide surveys)."""
     try:
         text = subprocess.run([sys.executable, "-m", "treereg_cli", "register", "--help"], capture_output=True,
                               text=True, timeout=120, cwd=REPO, env=_env()).stdout
     except (OSError, subprocess.SubprocessError):
         return []
-    return ["--survey"] if re.search(r"\[--survey\]", text) else []
+    if one_tree:
+        return ["--one-tree"] if re.search(r"\[(--survey \| )?--one-tree", text) else []
+    return ["--survey"] if re.search(r"\[--survey(\]| \|)", text) else []
 
 
 def _env() -> dict[str, str]:
@@ -270,6 +273,8 @@ def main() -> int:
     ap.add_argument("--small", action="store_true", help="the small surveys (a quick look)")
     ap.add_argument("--plot", action="store_true", help="a 3-station plot instead of the surveys")
     ap.add_argument("--cache", type=Path, default=CACHE, help=f"simulated surveys kept here (default {CACHE})")
+    ap.add_argument("--one-tree", action="store_true",
+                    help="register in the one-tree mode (register --one-tree), as before plot-wide registration")
     ap.add_argument("--timeout", type=float, default=None, help="seconds allowed to each tool on a survey")
     ap.add_argument("--list", action="store_true", help="list the surveys' labels and stop")
     ap.add_argument("--out", type=Path, help="also write the report to this file")
@@ -287,7 +292,7 @@ def main() -> int:
             return 2
     rep = Report()
     have_sylva = sylva_available()
-    flags = _register_flags()
+    flags = _register_flags(args.one_tree)
     rep.say(f"Surveys: {source}. treereg at {_git_head()}; "
             + (f"{sylva_version()} (its own venv, defaults)." if have_sylva else NOT_INSTALLED + "."))
     rep.say()

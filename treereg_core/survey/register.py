@@ -38,9 +38,9 @@ from .stations import SurveyStation, survey_station
 #: A pair's stems must spread at least this far (m, the smaller principal spread) to hold its turn.
 _MIN_SPREAD_M = 0.5
 #: Stem-map hypotheses drawn to screen every two stations, and to match a chosen pair (4x4 survey: the
-#: same stems matched from 150 as from 20 000, 0.008 against 0.31 s a pair).
+#: same stems matched from 150 as from 20 000, 0.008 against 0.31 s a pair; 6x6: the same from 1500 as from 4000).
 _SCREEN_HYPOTHESES = 300
-_PAIR_HYPOTHESES = 4000
+_PAIR_HYPOTHESES = 1500
 #: The joint placement measures an edge on a station's thinned points within this of its scanner.
 _SAMPLE_RANGE_M = 20.0
 

@@ -163,3 +163,44 @@ def drawn(page, name: str) -> bool:
     """Whether the scene node `name` is in the 3-D scene now (the client keeps a removed node's
     name, detached from the scene)."""
     return bool(page.evaluate("(n) => !!window.__viserMutable.nodeRefFromName[n]?.parent", name))
+
+
+#: What a plot in the docked panel must never show (issue 32 item 4, at 1280 x 720 and 1920 x 1080):
+#: its title, subplot titles, axis titles or legend cut by the plot's edges (3 px allowed: a legend's
+#: border), or two of them over each other (a legend's entries among themselves excepted). Plotly's
+#: own text elements, measured by their bounding boxes.
+PLOT_PROBLEMS = """() => {
+  const R = e => e.getBoundingClientRect();
+  const seen = r => r.width > 0.5 && r.height > 0.5;
+  const inter = (a, b) => Math.max(0, Math.min(a.right, b.right) - Math.max(a.left, b.left)) *
+                          Math.max(0, Math.min(a.bottom, b.bottom) - Math.max(a.top, b.top));
+  const out = [];
+  for (const plot of document.querySelectorAll('.js-plotly-plot')) {
+    if (plot.offsetParent === null || !seen(R(plot))) continue;
+    const box = R(plot);
+    const name = (plot.querySelector('.gtitle')?.textContent || plot.querySelector('.annotation-text')?.textContent
+                  || 'a plot').slice(0, 40);
+    const texts = [...plot.querySelectorAll('text')].filter(
+      e => /^(gtitle|x\\d*title|y\\d*title|annotation-text|legendtext)$/.test(e.getAttribute('class') || ''));
+    const items = [...texts, ...plot.querySelectorAll('.legend .bg')].map(e => {
+      const cls = e.getAttribute('class') || '';
+      return [cls === 'bg' ? 'legend' : cls === 'legendtext' ? 'legend text' : cls, (e.textContent || '').slice(0, 30), R(e)];
+    }).filter(([, , r]) => seen(r));
+    for (const [kind, text, r] of items) {
+      if (kind !== 'legend text' && (r.left < box.left - 3 || r.right > box.right + 3 || r.top < box.top - 3 ||
+                                     r.bottom > box.bottom + 3))
+        out.push(`${name}: ${kind} '${text}' cut by the plot's edge`);
+    }
+    for (let i = 0; i < items.length; i++) for (let j = i + 1; j < items.length; j++) {
+      const [ka, ta, a] = items[i], [kb, tb, b] = items[j];
+      if (!(ka.startsWith('legend') && kb.startsWith('legend')) && inter(a, b) > 4)
+        out.push(`${name}: ${ka} '${ta}' over ${kb} '${tb}'`);
+    }
+  }
+  return out;
+}"""
+
+
+def layout_problems(page) -> list[str]:
+    """`reading_problems` and every plot's `PLOT_PROBLEMS`."""
+    return reading_problems(page) + page.evaluate(PLOT_PROBLEMS)

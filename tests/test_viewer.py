@@ -596,6 +596,12 @@ def test_no_line_or_arc_has_a_scan_colour():
         assert distinct_from_scans(rgb), (name, rgb, SCAN_COLORS)
         assert max(abs(a - b) for a, b in zip(rgb, GREY)) >= MIN_CHANNEL_GAP, (name, "reads as grey")
     assert not distinct_from_scans(SCAN_COLORS[1])  # the test can fail
+    # The Result chart's bars: fine and ICP were scan 1's green and scan 3's blue (issue 32 item 4).
+    from treereg_viewer.stages.evaluation import METHOD_COLORS
+
+    for name, hex_ in METHOD_COLORS.items():
+        rgb = tuple(int(hex_[k:k + 2], 16) for k in (1, 3, 5))
+        assert distinct_from_scans(rgb), (name, rgb, SCAN_COLORS)
 
 
 def test_a_final_transform_far_from_truth_is_flagged(env, case):

@@ -28,6 +28,9 @@ from .view_state import ViewState
 
 C = TypeVar("C", bound=StageControls)
 
+#: The Run button under each stage folder's parameters.
+RUN_BELOW = "Run with these parameters"
+
 _STATUS_ICON = {"done": "✓", "failed": "✗", "stale": "○", "running": "…"}
 
 
@@ -91,6 +94,7 @@ class StagePanel:
         self.sections: dict[str, SectionWidgets] = {}
         # Each stage's view controls (`treereg_viewer/stages/<name>.py` makes them), in its folder's order.
         self.controls: dict[str, tuple[StageControls, ...]] = {}
+        self.run_below: list[Any] = []  # the Run buttons under each folder's parameters
 
     def build_folders(self, gui: viser.GuiApi) -> None:
         """One folder per stage: explanation, view controls, then its parameter sections."""
@@ -103,11 +107,17 @@ class StagePanel:
                 stage = stage_of(name)
                 gui.add_markdown(stage.view.explanation or core_stage(name).summary)
                 self.controls[name] = tuple(make(gui, self, name) for make in stage.controls)
-                for section in core_stage(name).sections:
-                    if section in self.sections:  # a section read by several stages is edited where it belongs
-                        continue
+                own = [s for s in core_stage(name).sections if s not in self.sections]
+                for section in own:  # a section read by several stages is edited where it belongs
                     with gui.add_folder(f"Parameters: {section}", expand_by_default=True):
                         self.sections[section] = SectionWidgets(gui, section, params, app.on_param_change)
+                if own:
+                    # Under the parameters too: the Run at the top scrolls out of view while one far
+                    # down is edited (a 720 px high window).
+                    button = gui.add_button(RUN_BELOW, icon=viser.Icon.PLAYER_PLAY, color="green",
+                                            hint="Run this stage and the ones after it with the parameters above.")
+                    button.on_click(lambda _: app.run_current())
+                    self.run_below.append(button)
 
     @property
     def quiet(self) -> bool:
@@ -170,6 +180,8 @@ class StagePanel:
         warned = stage_warnings(snap) if not snap.busy else {}
         self.status_md.content = status_line(snap, view.stage, warned) + verdict_line(snap)
         self.run_button.disabled = snap.busy
+        for button in self.run_below:
+            button.disabled = snap.busy
         lines = []
         if snap.message:
             lines.append(f"**⚠ {md(snap.message)}**" if snap.error else md(snap.message))

@@ -13,6 +13,7 @@ under the switch).
 
 from __future__ import annotations
 
+import re
 import threading
 
 from dataclasses import dataclass
@@ -52,6 +53,102 @@ def plot_aspect(width_over_height: float) -> float:
     is scrolled out of the panel.
     """
     return 1.0 / max(float(width_over_height), 1e-3)
+
+
+#: Plot text widths, estimated: a character is about this share of its font size wide (plotly's
+#: default sans serif); a line is this many times its font size tall.
+CHAR_EM = 0.58
+LINE_EM = 1.3
+#: The plot is this much narrower than its panel (the panel's padding and scrollbar).
+PLOT_INSET_PX = 20
+#: plotly's default margins, where a figure sets none.
+DEFAULT_MARGIN = {"l": 80, "r": 80, "t": 100, "b": 80}
+
+
+def _chars(text: str) -> int:
+    """Characters a piece of plotly text shows (its tags dropped, an entity one character)."""
+    return len(re.sub(r"&#?\w+;", "x", re.sub(r"<[^>]+>", "", text)))
+
+
+def wrapped(text: str, width_px: float, font_px: float) -> list[str]:
+    """`text` in lines of at most `width_px` (estimated), broken between words; lines it already has kept."""
+    per = max(6, int(width_px / (CHAR_EM * font_px)))
+    lines: list[str] = []
+    for part in re.split(r"<br\s*/?>", text):
+        line = ""
+        for word in part.split(" "):
+            if line and _chars(f"{line} {word}") > per:
+                lines.append(line)
+                line = word
+            else:
+                line = f"{line} {word}" if line else word
+        lines.append(line)
+    return lines
+
+
+#: A plot keeps at least this much height for its axes, whatever its margins (titles, legend) take.
+MIN_AREA_PX = 150
+
+
+def fit_figure(fig: Any, width_px: float, width_over_height: float) -> float:
+    """Fit a figure's words to the size it is shown at (in place): its title, its subplots' titles
+    and its axis titles broken into lines that fit (at 1280 x 720 a plot is 310 px wide: titles ran
+    past its edges and into each other), the top and left margins grown for the lines added; returns
+    the width / height to show it at, taller than asked where its margins left its axes less than
+    `MIN_AREA_PX`."""
+    layout = fig.layout
+    base = float(layout.font.size or 12)
+    margin = {k: float(getattr(layout.margin, k) if getattr(layout.margin, k) is not None else v)
+              for k, v in DEFAULT_MARGIN.items()}
+    height_px = width_px / max(width_over_height, 1e-3)
+    top = 0.0  # extra lines over the plot area, in px
+    title = layout.title.text
+    title_lines, size = 0, base
+    if title:
+        size = float(layout.title.font.size or round(base * 1.4))
+        lines = wrapped(title, width_px - 10, size)
+        title_lines = len(lines)
+        if title_lines > 1:
+            layout.title.text = "<br>".join(lines)
+            top = max(top, title_lines * size * LINE_EM + 16 - margin["t"])
+    area = max(width_px - margin["l"] - margin["r"], 1.0)
+    paper = [a for a in layout.annotations if a.xref == "paper" and a.yref == "paper" and a.text and a.yanchor == "bottom"]
+    for a in paper:  # subplot titles: as wide as the gap to the next one on their row
+        others = [abs(float(b.x) - float(a.x)) for b in paper if b is not a and abs(float(b.y) - float(a.y)) < 1e-6]
+        room = (min(others) if others else 1.0) * area - 6
+        size = float(a.font.size or base)
+        lines = wrapped(a.text, room, size)
+        if len(lines) > 1:
+            a.text = "<br>".join(lines)
+            if float(a.y) >= 0.99:
+                top = max(top, (len(lines) - 1) * size * LINE_EM)
+    left = 0.0
+    height_px = max(height_px, margin["t"] + top + margin["b"] + MIN_AREA_PX)
+    if title and title_lines > 1:
+        # plotly places a title of several lines by its first: that line's foot a line below the top,
+        # the others under it, in the top margin that holds them.
+        layout.title.update(yref="container", y=1.0 - (size + 6) / height_px, yanchor="bottom")
+    plot_h = height_px - margin["t"] - top - margin["b"]
+    for name in [k for k in layout if k.startswith("yaxis")]:
+        axis = layout[name]
+        text = axis.title.text
+        if not text:
+            continue
+        lo, hi = axis.domain if axis.domain else (0.0, 1.0)
+        size = float(axis.title.font.size or base)
+        lines = wrapped(text, (hi - lo) * plot_h, size)
+        if len(lines) > 1:
+            axis.title.text = "<br>".join(lines)
+            left = max(left, (len(lines) - 1) * size * LINE_EM)
+    for name in [k for k in layout if k.startswith("xaxis")]:
+        axis = layout[name]
+        text = axis.title.text
+        if text:
+            lo, hi = axis.domain if axis.domain else (0.0, 1.0)
+            axis.title.text = "<br>".join(wrapped(text, (hi - lo) * (area - left), float(axis.title.font.size or base)))
+    if top or left:
+        layout.margin.update(t=margin["t"] + top, l=margin["l"] + left)
+    return width_px / height_px
 
 
 @dataclass(frozen=True)
@@ -191,8 +288,12 @@ class ViewPanel:
         for k, plot in enumerate(self._plots):
             if k < len(content.plots):
                 fig, aspect = content.plots[k]
+                fitted_at = getattr(fig, "_treereg_fitted", None)  # a figure shown again is fitted already
+                if fitted_at is None or fitted_at[0] != self.width:
+                    fitted_at = (self.width, fit_figure(fig, self.width - PLOT_INSET_PX, aspect))
+                    fig._treereg_fitted = fitted_at
                 plot.figure = fig
-                plot.aspect = plot_aspect(aspect)
+                plot.aspect = plot_aspect(fitted_at[1])
                 plot.visible = True
             else:
                 plot.visible = False

@@ -163,8 +163,10 @@ def top_view_figure(cs: CrossSection, snap: Snapshot, layers: list[int], show_re
                       scaleanchor=xa, scaleratio=1, title=dict(text=f"y ({unit})") if c == 0 else None)
             if (xa, ya) != ("x", "y"):
                 ax["matches"], ay["matches"] = "x", "y"
-    layout.update(margin=dict(l=45, r=8, t=28, b=78), plot_bgcolor="white", font=dict(size=11),
-                  legend=dict(orientation="h", y=-0.2 if rows == 1 else -0.08, yanchor="top", x=0.5, xanchor="center",
+    # The legend at the figure's foot, under the axis titles (placed a share of the plot's height under
+    # the axes, it lay over the x axis' title in a 310 px panel).
+    layout.update(margin=dict(l=45, r=8, t=28, b=100), plot_bgcolor="white", font=dict(size=11),
+                  legend=dict(orientation="h", x=0.5, xanchor="center", yref="container", y=0.0, yanchor="bottom",
                               font=dict(size=11)))
     return _figure(traces, layout)
 
@@ -320,9 +322,14 @@ def render(snap: Snapshot, view: ViewState, cs: CrossSection | None, branch: Bra
     if branch is None:
         notes += (f" The table checks each scan's main section against the part "
                   f"{abs(cs.heights_m[1] - cs.heights_m[0]) * 100:.0f} cm below (paper 4.2: no wider than it).")
-    table = md_table(("registration", "scan", "arcs", "radius (cm)", "RMS (mm)", "4.2 check", "offset (mm)"),
-                     check_rows(cs, mid))
-    return PanelContent(head, text=text, plots=tuple(plots), table=notes + "\n\n" + table)
+    # One table per registration, named above it: a column of the registration's name made the table
+    # wider than a 310 px panel (1280 x 720).
+    rows = check_rows(cs, mid)
+    tables = []
+    for pose in dict.fromkeys(r[0] for r in rows):
+        tables.append(f"**{pose}**\n\n" + md_table(("scan", "arcs", "radius (cm)", "RMS (mm)", "4.2 check", "offset (mm)"),
+                                                     [r[1:] for r in rows if r[0] == pose]))
+    return PanelContent(head, text=text, plots=tuple(plots), table=notes + "\n\n" + "\n\n".join(tables))
 
 
 def draw_marker(scene: viser.SceneApi, root: str, cs: CrossSection | None, branch: BranchError | None = None) -> Handles:

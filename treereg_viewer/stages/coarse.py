@@ -46,10 +46,12 @@ def residual_figure(c: CoarseResult) -> go.Figure:
     fig.add_trace(go.Histogram(x=shown[fin & ~inl], name="outliers", marker_color=hex_color(REJECTED), xbins=bins))
     fig.add_vline(x=threshold_m, line_dash="dash", annotation_text=f"inlier distance {threshold_m:g} m")
     far = f"; the last bar holds {n_far} beyond {end:g} m" if n_far else ""
-    fig.update_layout(barmode="stack", margin=dict(l=50, r=10, t=30, b=40),
+    # The legend at the figure's foot: in the plot's corner it lay over the inlier distance's words.
+    fig.update_layout(barmode="stack", margin=dict(l=50, r=10, t=30, b=72),
                       title=dict(text=f"Tie-point residuals after the coarse transform{far}", font=dict(size=12)),
                       xaxis_title="residual |T·p_target − p_ref| (m)", yaxis_title="tie points",
-                      xaxis_range=[0, end], legend=dict(x=0.7, y=0.95))
+                      xaxis_range=[0, end], legend=dict(orientation="h", x=0.5, xanchor="center", yref="container",
+                                                        y=0.0, yanchor="bottom"))
     return fig
 
 

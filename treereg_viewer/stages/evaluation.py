@@ -33,7 +33,9 @@ from .base import AppStage, ControlHost, StageControls, StageView, TargetControl
 
 
 #: Colours of the three registrations in plots (coarse, fine, ICP).
-METHOD_COLORS = {"coarse": "#9e9e9e", "fine": "#1e8c3c", "ICP": "#3050c8"}
+#: The registrations' bar colours: grey, near black and light blue, none close to a scan's colour (fine
+#: and ICP were scan 1's green and scan 3's blue: `palette.distinct_from_scans`).
+METHOD_COLORS = {"coarse": "#9e9e9e", "fine": "#282828", "ICP": "#96c8ff"}
 
 
 def branch_rows(ev: EvaluationResult) -> list[BranchError]:
@@ -64,9 +66,10 @@ def branch_figure(evs: Mapping[str, EvaluationResult], target: str) -> go.Figure
         ))
     if not any_rows:
         return None
-    # Legend under the axis title: above the plot it printed over the title.
-    fig.update_layout(barmode="group", margin=dict(l=50, r=10, t=30, b=70),
-                      legend=dict(orientation="h", x=0.5, xanchor="center", y=-0.3, yanchor="top"),
+    # Legend at the figure's foot, under the axis title (above the plot it printed over the title; a
+    # share of the plot's height under the axes, over the axis title in a 310 px panel).
+    fig.update_layout(barmode="group", margin=dict(l=50, r=10, t=30, b=120),
+                      legend=dict(orientation="h", x=0.5, xanchor="center", yref="container", y=0.0, yanchor="bottom"),
                       title=dict(text=f"{html(target)}: mean centre distance (eq. 8)", font=dict(size=12)),
                       xaxis_title="stem and branches (bottom to top)", yaxis_title="d̄ (mm)", xaxis_type="category")
     return fig

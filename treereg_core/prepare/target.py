@@ -138,11 +138,11 @@ def match_stem_maps(ref: Stems, tgt: Stems, tol_m: float = 0.2,
 
 
 def stem_map_hypotheses(ref: Stems, tgt: Stems, *, tol_m: float = 0.2, target: TargetParams = TargetParams(),
-                        n: int = 1, distinct_m: float = 1.0, max_hypotheses: int = 20_000) -> list[tuple[np.ndarray, np.ndarray]]:
+                        n: int = 1, distinct_m: float = 1.0, max_hypotheses: int | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
     """Up to `n` distinct stem-map transforms, best first (see `match_stem_maps`), each with its
     matched pairs; a later one moves the target's stems at least `distinct_m` from every earlier
     one's (a regular planting fits its stem map shifted by a row as well). At most `max_hypotheses`
-    are scored, a fixed random draw of them (RANSAC's): a plot of a few dozen stems gives a few
+    (None: all, as the prepare stage scores them) are scored, a fixed random draw of them (RANSAC's): a plot of a few dozen stems gives a few
     thousand, a regular planting of fifty hundreds of thousands (112 s for nine stations' pairs)."""
     gate, tolerance = target.match_gate_m, target.match_radius_tolerance
     if len(ref) < 2 or len(tgt) < 2:
@@ -170,7 +170,7 @@ def stem_map_hypotheses(ref: Stems, tgt: Stems, *, tol_m: float = 0.2, target: T
     A0, A1, B0, B1 = A0[keep], A1[keep], B0[keep], B1[keep]
     if len(A0) == 0:
         return []
-    if len(A0) > max_hypotheses:  # a planting in rows repeats its distances: a fixed random share suffices
+    if max_hypotheses is not None and len(A0) > max_hypotheses:  # a planting's rows repeat their distances
         pick = np.sort(np.random.default_rng(0).choice(len(A0), max_hypotheses, replace=False))
         A0, A1, B0, B1 = A0[pick], A1[pick], B0[pick], B1[pick]
     va = ref.xy[A1] - ref.xy[A0]
@@ -214,7 +214,7 @@ def stem_map_hypotheses(ref: Stems, tgt: Stems, *, tol_m: float = 0.2, target: T
         nearest, which = (a[0] for a in nearest_ref(np.array([h])))
         inl = np.flatnonzero(nearest < gate)
         if len(inl) < target.min_matched:
-            continue
+            break  # the hypotheses after it score no more matches
         pairs = np.column_stack([which[inl], inl])
         # Refit yaw + shift on the matched stems (as 3-D points at z = 0).
         src = np.column_stack([tgt.xy[pairs[:, 1]], np.zeros(len(pairs))])

@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 
 from ..verify.evidence import quantity_text
+from ..verify.report import json_number
 from .register import Survey
 
 _LOOP = "largest edge residual in the joint solve"
@@ -42,7 +43,7 @@ def survey_quality(survey: Survey) -> dict[str, Any]:
     for k, (scan, pl, st) in enumerate(zip(survey.scans, survey.placements, survey.stations)):
         scans[scan.name] = {"verdict": pl.verdict, "reasons": list(pl.reasons), "hint": pl.hint,
                             "placed_through": [survey.scans[v].name for v in pl.via], "stems": len(st.stems)}
-        scans[scan.name].update({m.description: _num(m.value) for m in pl.metrics
+        scans[scan.name].update({m.description: json_number(m.value) for m in pl.metrics
                                  if m.description not in ("verdict", "placed through scans")})
     edges = []
     loop = {(e.i, e.j): e for e in (survey.placements[0].edges if survey.placements else ())}
@@ -50,16 +51,8 @@ def survey_quality(survey: Survey) -> dict[str, Any]:
         e = loop.get((p.i, p.j))
         edges.append({"reference": survey.scans[p.i].name, "target": survey.scans[p.j].name, "verdict": p.verdict,
                       "reasons": list(p.reasons), "shared_stems": p.shared_stems, "stems_used": p.fit.stems_used,
-                      "stem_residual_m": _num(p.fit.residual_m), "ground_residual_m": _num(p.fit.ground_residual_m),
-                      "crowns_agree": _num(p.fit.agreement), "used": bool(e.used) if e is not None else False,
-                      "loop_residual_m": _num(e.loop_error_m) if e is not None else None})
+                      "stem_residual_m": json_number(p.fit.residual_m), "ground_residual_m": json_number(p.fit.ground_residual_m),
+                      "crowns_agree": json_number(p.fit.agreement), "used": bool(e.used) if e is not None else False,
+                      "loop_residual_m": json_number(e.loop_error_m) if e is not None else None})
     return {"mode": "survey", "scans": scans, "edges": edges}
 
-
-def _num(v: object) -> object:
-    """A JSON-safe value: NaN and infinities as None."""
-    if isinstance(v, (float, np.floating)):
-        return float(v) if np.isfinite(v) else None
-    if isinstance(v, np.integer):
-        return int(v)
-    return v

@@ -14,7 +14,8 @@ from ..stage import Pair, StageOutput
 from .evidence import FAILED, UNVERIFIED, VERIFIED, Check
 
 
-def _num(v: Any) -> Any:
+def json_number(v: Any) -> Any:
+    """A value JSON can hold: NaN and infinities as None, numpy numbers as Python ones."""
     if isinstance(v, (float, np.floating)):
         return float(v) if np.isfinite(v) else None
     if isinstance(v, np.integer):
@@ -40,7 +41,7 @@ def quality_report(scans: Sequence[Scan], pairs: Sequence[Pair], outputs: Mappin
             continue
         entry = {"verdict": pl.verdict, "reasons": list(pl.reasons), "hint": pl.hint,
                  "placed_through": [scans[v].name for v in pl.via]}
-        entry.update({m.description: _num(m.value) for m in pl.metrics
+        entry.update({m.description: json_number(m.value) for m in pl.metrics
                       if m.description not in ("verdict", "placed through scans")})
         motion = crown_motion(scans, pairs, outputs, i)
         if motion is not None:
@@ -55,7 +56,7 @@ def quality_report(scans: Sequence[Scan], pairs: Sequence[Pair], outputs: Mappin
         it = verify.items[k] if verify is not None and k < len(verify.items) else None
         if it is not None and hasattr(it, "evidence"):
             row["verdict"] = it.verdict
-            row.update({key: _num(v) for key, v in it.evidence.as_dict().items()})
+            row.update({key: json_number(v) for key, v in it.evidence.as_dict().items()})
             row["reasons"] = list(it.reasons)
             row["checks"] = [check_row(c) for c in getattr(it, "checks", ())]
         else:
@@ -63,7 +64,7 @@ def quality_report(scans: Sequence[Scan], pairs: Sequence[Pair], outputs: Mappin
             row["reasons"] = [getattr(it, "message", "") or "not verified"] if it is not None else ["not verified"]
         for e in graph_edges:
             if (e.i, e.j) == (p.ref, p.tgt):
-                row["loop_error_m"] = _num(e.loop_error_m)
+                row["loop_error_m"] = json_number(e.loop_error_m)
                 row["used_in_placement"] = e.used
         edges.append(row)
     return {"scans": per_scan, "edges": edges}
@@ -72,7 +73,7 @@ def quality_report(scans: Sequence[Scan], pairs: Sequence[Pair], outputs: Mappin
 def check_row(c: Check) -> dict[str, Any]:
     """One check of a pair as transforms.json holds it: what, value, unit, relation, limit, the
     parameter that sets it, and passed (null: not judged)."""
-    return {"what": c.what, "value": _num(c.value), "unit": c.unit, "relation": c.relation, "limit": _num(c.limit),
+    return {"what": c.what, "value": json_number(c.value), "unit": c.unit, "relation": c.relation, "limit": json_number(c.limit),
             "parameter": c.parameter, "passed": c.passed}
 
 
@@ -101,10 +102,10 @@ def crown_motion(scans: Sequence[Scan], pairs: Sequence[Pair], outputs: Mapping[
     e = outputs["verify"].items[k].evidence
     if not e.sway_m > 0:
         return None
-    return {"relative_to": scans[pairs[k].ref].name, "top_sway_m": _num(e.sway_m),
-            "direction_deg": _num(e.sway_direction_deg), "sway_std_m": _num(e.sway_std_m),
-            "stems_agree_up_to_m": _num(e.stable_height_m), "branches_moved_m": _num(e.motion_needed_m),
-            "branches_allowed_m": _num(e.motion_m), "consistency_no_motion": _num(e.consistency_still),
+    return {"relative_to": scans[pairs[k].ref].name, "top_sway_m": json_number(e.sway_m),
+            "direction_deg": json_number(e.sway_direction_deg), "sway_std_m": json_number(e.sway_std_m),
+            "stems_agree_up_to_m": json_number(e.stable_height_m), "branches_moved_m": json_number(e.motion_needed_m),
+            "branches_allowed_m": json_number(e.motion_m), "consistency_no_motion": json_number(e.consistency_still),
             "crown": bool(e.crown)}
 
 

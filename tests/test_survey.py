@@ -139,3 +139,13 @@ def test_the_report_maps_every_station_and_pair_and_escapes_names(run: dict, res
         assert f">{name}</text>" in page  # every placed station labelled on the map
     assert "<img" not in page and "&lt;img src=x onerror=alert(1)&gt;" in page
     assert re.search(r"\bnan\b", page.lower()) is None  # an unmeasured value says so
+
+
+def test_a_report_is_refused_in_one_line_for_one_tree_or_a_name_that_is_not_html(run: dict, capsys: pytest.CaptureFixture[str]) -> None:
+    two = [str(run["root"] / "plot" / n) for n in run["names"][:2]]
+    out = run["root"] / "c.json"
+    assert main(["register", *two, "--out", str(out), "--report", str(run["root"] / "r.html")]) == 2  # one tree
+    assert main(["register", *two, "--survey", "--out", str(out), "--report", str(run["root"] / "r.txt")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and "survey's report" in err[0] and ".html" in err[1], err
+    assert not out.exists() and not (run["root"] / "r.html").exists() and not (run["root"] / "r.txt").exists()

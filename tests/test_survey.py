@@ -149,3 +149,13 @@ def test_a_report_is_refused_in_one_line_for_one_tree_or_a_name_that_is_not_html
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 2 and "survey's report" in err[0] and ".html" in err[1], err
     assert not out.exists() and not (run["root"] / "r.html").exists() and not (run["root"] / "r.txt").exists()
+
+
+def test_a_reference_of_another_plot_is_named_as_the_reason_no_station_is_placed(run: dict, capsys: pytest.CaptureFixture[str]) -> None:
+    plot = [str(run["root"] / "plot" / n) for n in run["names"][:3]]
+    out = run["root"] / "d.json"
+    code = main(["register", str(run["root"] / "other" / "st01.ply"), *plot, "--survey", "--out", str(out)])
+    err = capsys.readouterr().err
+    # two files named st01.ply: each is named by its folder
+    assert code == 1 and "the reference other/st01.ply has no verified pair" in err, err
+    assert set(json.loads(out.read_text())["transforms"]) == {"other/st01.ply"}  # the reference alone

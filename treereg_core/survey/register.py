@@ -192,6 +192,15 @@ def _place(stations: Sequence[SurveyStation], pairs: Sequence[SurveyPair], share
             pl = replace(pl, reasons=(why,), message=why,
                          hint="check that it belongs to this survey; a station needs stems in common with a neighbour")
         out.append(pl)
+    if not any(0 in (p.i, p.j) and p.verdict == VERIFIED for p in pairs) and len(stations) > 1:
+        # Every placement is onto the first station: without a verified pair of its own, none is
+        # placed, and the reason to give is the reference's, not each station's pairs'.
+        own = next((r for p in pairs if 0 in (p.i, p.j) for r in p.reasons),
+                   stations[0].reason or "its stems match no other station's stem map")
+        first = f"the reference {stations[0].name} has no verified pair ({own})"
+        hint = "give a station of this survey first (the reference), one that shares stems with its neighbours"
+        out = [out[0]] + [replace(pl, reasons=(first,) + pl.reasons, message="; ".join((first,) + pl.reasons), hint=hint)
+                          if pl.verdict != VERIFIED else pl for pl in out[1:]]
     return tuple(out)
 
 

@@ -249,9 +249,12 @@ def measure(s: Survey, args, rep: Report, flags: list[str], have_sylva: bool) ->
     rep.say(md_table(["station", "treereg verdict", "treereg rot (deg)", "treereg disp (mm)",
                       "Sylva", "Sylva rot (deg)", "Sylva disp (mm)"], rows))
     rep.say()
-    cost = [["treereg", "1.00", f"{tr.peak_mb:.0f}"]]
+    def mb(v: float) -> str:
+        return "—" if not np.isfinite(v) else f"{v:.0f}"
+
+    cost = [["treereg", "1.00", mb(tr.peak_mb)]]
     if sy is not None:
-        cost.append(["Sylva", f"{sy.seconds / tr.seconds:.2f}" if tr.seconds > 0 else "—", f"{sy.peak_mb:.0f}"])
+        cost.append(["Sylva", f"{sy.seconds / tr.seconds:.2f}" if tr.seconds > 0 else "—", mb(sy.peak_mb)])
     rep.say(md_table(["tool", "wall time (× treereg's)", "peak memory (MB)"], cost))
     rep.say()
     secs = f"treereg {tr.seconds:.1f} s" + (f", Sylva {sy.seconds:.1f} s" if sy is not None else "")

@@ -27,7 +27,8 @@ folder, so a benchmark is best written as float32 PLY in the first place (both t
 same files).
 
 `run_measured` (also used for `treereg register` by bench_survey) runs a command and reports its
-wall time and the peak resident memory of that one child and its descendants (`os.wait4`).
+wall time and the peak resident memory of that one child and its descendants (`os.wait4` in a
+small wrapper interpreter, so the benchmark's own memory is never counted).
 """
 
 from __future__ import annotations
@@ -124,32 +125,50 @@ def sylva_available() -> bool:
     return sylva_version() is not None
 
 
+# Started by a fresh, small interpreter: Linux counts in a child's ru_maxrss the resident set of the
+# process it was forked from (exec records the old memory's high-water mark), so a child started
+# straight from a benchmark that has just simulated a survey would report the benchmark's peak.
+_WRAPPER = (
+    "import os, subprocess, sys\n"
+    "p = subprocess.Popen(sys.argv[2:])\n"
+    "_, status, usage = os.wait4(p.pid, 0)\n"
+    "p.returncode = code = os.waitstatus_to_exitcode(status)\n"
+    "open(sys.argv[1], 'w').write(str(usage.ru_maxrss))\n"
+    "sys.exit(code if code >= 0 else 128 - code)\n"
+)
+
+
 def run_measured(cmd: list[str], log_path: Path, cwd: Path | None = None, timeout_s: float | None = None,
                  env: dict[str, str] | None = None) -> Measured:
     """Run `cmd` with its stdout and stderr into `log_path`; wall time and the child's peak RSS.
 
-    The peak is `ru_maxrss` of `os.wait4` on that child: the largest resident set of the child or
-    of any descendant it waited for, so several runs in one benchmark do not mix.
+    The peak is `ru_maxrss` of `os.wait4` on that child, taken by a small wrapper interpreter that
+    starts it (see `_WRAPPER`): the largest resident set of the child or of any descendant it
+    waited for, so several runs in one benchmark do not mix. On a timeout the whole process group
+    is killed.
     """
     log_path.parent.mkdir(parents=True, exist_ok=True)
+    rss_file = log_path.with_name(log_path.name + ".maxrss")
+    if rss_file.exists():
+        rss_file.unlink()
     timed_out = False
     with open(log_path, "wb") as log:
         t0 = time.perf_counter()
-        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=cwd, env=env)
-        while True:
-            pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
-            if pid == proc.pid:
-                break
-            if timeout_s is not None and time.perf_counter() - t0 > timeout_s:
-                proc.kill()
-                timed_out = True
-                pid, status, usage = os.wait4(proc.pid, 0)
-                break
-            time.sleep(0.05)
+        proc = subprocess.Popen([sys.executable, "-c", _WRAPPER, str(rss_file), *cmd], stdout=log,
+                                stderr=subprocess.STDOUT, cwd=cwd, env=env, start_new_session=True)
+        try:
+            proc.wait(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            timed_out = True
+            os.killpg(proc.pid, 9)
+            proc.wait()
         seconds = time.perf_counter() - t0
-    proc.returncode = os.waitstatus_to_exitcode(status)  # so Popen does not wait on it again
+    try:
+        peak_mb = int(rss_file.read_text()) / 1024.0
+    except (OSError, ValueError):
+        peak_mb = float("nan")  # killed before its child ended
     text = log_path.read_text(errors="replace")
-    return Measured(proc.returncode, seconds, usage.ru_maxrss / 1024.0, text, timed_out)
+    return Measured(proc.returncode, seconds, peak_mb, text, timed_out)
 
 
 def _ply_is_double(path: Path) -> bool:

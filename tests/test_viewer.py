@@ -586,6 +586,21 @@ def test_paper_preset_runs_and_its_failure_is_explained(small_app, case):
             assert not any("verdict" in n for n in nodes)
 
 
+def test_plot_titles_are_broken_between_words_to_fit():
+    """Issue 32 item 4: a title too long for a 310 px plot is broken into lines; a unit stays with its number."""
+    import plotly.graph_objects as go
+
+    from treereg_viewer.view_panel import fit_figure, wrapped
+
+    assert wrapped("Coarse · z = -0.92 m", 100, 12) == ["Coarse · z =", "-0.92 m"]
+    assert wrapped("short", 300, 12) == ["short"]
+    fig = go.Figure(layout=dict(title=dict(text="Similarity (chamfer) of the two sequences; circles: chosen pairs",
+                                           font=dict(size=12)), margin=dict(l=50, r=10, t=30, b=40)))
+    aspect = fit_figure(fig, 310, 1.6)
+    assert fig.layout.title.text.count("<br>") == 1 and fig.layout.margin.t > 30
+    assert 310 / aspect >= fig.layout.margin.t + 40 + 150 - 1e-6  # the axes keep their height
+
+
 def test_no_line_or_arc_has_a_scan_colour():
     """Match lines, tie lines, offsets, highlights and arc colours never read as a scan's points."""
     from treereg_viewer.palette import CATEGORICAL, GREY, HIGHLIGHT, KEPT, MIN_CHANNEL_GAP, MOVED, OFFSET, SCAN_COLORS, \

@@ -76,7 +76,13 @@ def wrapped(text: str, width_px: float, font_px: float) -> list[str]:
     lines: list[str] = []
     for part in re.split(r"<br\s*/?>", text):
         line = ""
-        for word in part.split(" "):
+        words: list[str] = []
+        for word in part.split(" "):  # a word of one or two characters stays with the one before ("0.92 m", "z =")
+            if words and _chars(word) <= 2:
+                words[-1] += f" {word}"
+            else:
+                words.append(word)
+        for word in words:
             if line and _chars(f"{line} {word}") > per:
                 lines.append(line)
                 line = word

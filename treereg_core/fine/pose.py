@@ -869,7 +869,9 @@ def _anchor(run: _Run, T: np.ndarray, bend: Bend | None, grounds: Grounds,
             if prof0.model is not None else (float("nan"), float("nan"))
         new = Bend(base, max(hi - base, 1e-3), (float(top[0]), float(top[1])), std)
         keep = bend is not None or new.significant(wind.min_sway_m, wind.significance)
-        return U @ ground, new if keep else None, depth if keep else 0.0, "ground"
+        if not keep:  # no bend: the stem's shift would be fitted to noise; the ground's tilt and height stand
+            return ground, None, 0.0, "ground"
+        return U @ ground, new, depth, "ground"
     if not leaning:
         return None
     straight = correction(prof0.model, prof0.base_xy_m) @ T

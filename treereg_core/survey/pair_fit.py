@@ -42,6 +42,8 @@ _MAX_STEPS = 40
 _DAMPING = 1e-6
 #: The pose has converged when a step turns it less than this (rad; 0.6 micrometre 20 m out) and shifts it less (m).
 _POSE_STEP = 3e-8
+#: A rival stem map is fitted too when it matches at least this share of the best one's stems.
+_RIVAL_SHARE = 0.6
 #: The pose's uncertainty is said as the displacement it allows this far from the reference scanner.
 _SD_RANGE_M = 20.0
 #: Crowns agree where a target point has a reference point within this many cloud voxels.
@@ -94,7 +96,10 @@ def register_pair(ref: SurveyStation, tgt: SurveyStation, starts: list[tuple[np.
     """Register `tgt` onto `ref` from the stem-map starts (best first, see the module doc)."""
     if not starts:
         return PairFit(ok=False, message="their stem maps do not match", T_ref_target=None)
-    fits = [_fit(ref, tgt, _start(ref, tgt, T2, pairs), pairs, sv) for T2, pairs in starts[:2]]
+    # The next distinct stem map is fitted only when it matches nearly as many stems (a planting's
+    # shifted rows do; a chance alignment of a few stems in a natural stand does not).
+    rivals = [h for h in starts[1:2] if len(h[1]) >= _RIVAL_SHARE * len(starts[0][1])]
+    fits = [_fit(ref, tgt, _start(ref, tgt, T2, pairs), pairs, sv) for T2, pairs in starts[:1] + rivals]
     fits = [f for f in fits if f.T_ref_target is not None]
     if not fits:
         return PairFit(ok=False, message=f"fewer than survey.min_stems = {sv.min_stems} shared stems could be fitted",

@@ -39,8 +39,8 @@ from .stations import SurveyStation, survey_station
 _MIN_SPREAD_M = 0.5
 #: Stem-map hypotheses drawn to screen every two stations, and to match a chosen pair (4x4 survey: the
 #: same stems matched from 150 as from 20 000, 0.008 against 0.31 s a pair; 6x6: the same from 1500 as from 4000).
-_SCREEN_HYPOTHESES = 300
-_PAIR_HYPOTHESES = 1500
+_SCREEN_HYPOTHESES = 150
+_PAIR_HYPOTHESES = 1000
 #: The joint placement measures an edge on a station's thinned points within this of its scanner.
 _SAMPLE_RANGE_M = 20.0
 

@@ -178,13 +178,15 @@ class Viewer:
 
     def select_stage(self, name: str) -> None:
         before = self.view.stage
+        # The stage's folder first: whatever redraws after it, the selector and the folder shown agree
+        # (a full suite once showed 3 Matching selected over the Scans stage's folder).
+        self.stages.show_stage(name)
         self.set_view(stage=name)
         if registered(before) != registered(name) or (name in camera.SLICE_STAGES) != (before in camera.SLICE_STAGES):
             # Between the scattered scans (own frames) and the registered tree the content moves, and
             # the Arcs, Fits and Fine stages show one slice close up: follow it. Within a group the
             # camera stays where the user put it.
             self.frame_view()
-        self.stages.show_stage(name)
         snap = self.controller.snapshot
         self.stages.show_snapshot(snap, self.view)
         if self.stages.auto_run.value and snap.status(name) == "stale" and len(snap.scans) >= 2 \

@@ -11,9 +11,9 @@ fitted jointly with the pose:
 * the target's ground points on the reference's ground (point to plane): the height and the tilt
   over the whole plot.
 
-The unknowns are the pose and the circles; `scipy.optimize.least_squares` with the Jacobian's sparsity
-given (a stem's unknowns touch only its own points), soft-L1 against a branch or a leaf left in a
-section. A stem whose two views still disagree after the fit (it moved, or the stem map paired two
+The unknowns are the pose and the circles, solved by robust Gauss-Newton (soft-L1 weights against a
+branch or a leaf left in a section) on the analytic, sparse Jacobian (a stem's unknowns touch only its
+own points). A stem whose two views still disagree after the fit (it moved, or the stem map paired two
 different stems) is left out and the fit repeated.
 
 A start comes from the stem maps (`prepare.target.stem_map_hypotheses`: yaw and shift) and the ground
@@ -28,9 +28,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.sparse import csr_matrix
-from scipy.spatial import cKDTree
 
-from ..geometry.normals import pca_normals
 from ..geometry.rigid import apply_transform, make_transform, rotation_from_vector
 from ..params import SurveyParams
 from .stations import SurveyStation
@@ -279,8 +277,8 @@ class _Problem:
         Qm = apply_transform(T, self.Q)
         rp = self._stem_residuals(self.P, self.p_sec, self.p_stem, stem, sec)
         rq = self._stem_residuals(Qm, self.q_sec, self.q_stem, stem, sec)
-        offsets = np.array([self._offset(Qm, rq, sec, stem, k) - self._offset(self.P, rp, sec, stem, k)
-                            for k in range(self.n_stems)])
+        offsets = np.array([self._offset(Qm, rq, self.q_sec, self.q_stem, sec, stem, k)
+                            - self._offset(self.P, rp, self.p_sec, self.p_stem, sec, stem, k) for k in range(self.n_stems)])
         r_all = np.concatenate([rp, rq])
         residual = float(1.4826 * np.median(np.abs(r_all)))
         ground = float(1.4826 * np.median(np.abs(np.einsum("ij,ij->i", apply_transform(T, self.G) - self.A, self.N)))) \
@@ -291,17 +289,24 @@ class _Problem:
         """How far (m, one standard deviation) the pose's uncertainty moves a point `_SD_RANGE_M` from
         the reference scanner: the pose block of the weighted normal equations' inverse (the circles
         marginalised), scaled by the residuals' variance."""
-        r = self.residuals(x)
-        J = self.jacobian(x)
-        w = 1.0 / np.sqrt(1.0 + (r / sv.loss_scale_m) ** 2)
-        H = (J.T @ J.multiply(w[:, None]).tocsr()).toarray()
-        H[np.diag_indices_from(H)] += 1e-12
+        r, w, H, _ = self._normal_equations(x, sv.loss_scale_m)
         dof = max(len(r) - len(x), 1)
         try:
             C = np.linalg.inv(H)[:6, :6] * float(np.sum(w * r ** 2)) / dof
         except np.linalg.LinAlgError:
             return float("inf")
         return float(np.sqrt(max(np.trace(C[3:, 3:]) + _SD_RANGE_M ** 2 * np.trace(C[:3, :3]), 0.0)))
+
+    def _normal_equations(self, x: np.ndarray, scale_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """At `x`: the residuals, their soft-L1 weights at `scale_m`, and the weighted normal equations
+        J^T W J (dense: the unknowns are few; a hair added to the diagonal) and J^T W r."""
+        r = self.residuals(x)
+        J = self.jacobian(x)
+        w = 1.0 / np.sqrt(1.0 + (r / scale_m) ** 2)
+        JW = J.multiply(w[:, None]).tocsr()
+        H = (J.T @ JW).toarray()
+        H[np.diag_indices_from(H)] += 1e-12
+        return r, w, H, JW.T @ r
 
     def _gauss_newton(self, x: np.ndarray, scale_m: float) -> np.ndarray:
         """Robust Gauss-Newton (IRLS, soft-L1 weights; the scale from ten times `scale_m` down to it, so
@@ -310,14 +315,8 @@ class _Problem:
         solved directly. The pose update is applied to `T0` each step (its Jacobian is exact at zero)."""
         for it in range(_MAX_STEPS):
             s = scale_m * max(1.0, 10.0 / (1 + it))
-            r = self.residuals(x)
-            J = self.jacobian(x)
-            w = 1.0 / np.sqrt(1.0 + (r / s) ** 2)
-            JW = J.multiply(w[:, None]).tocsr()
-            H = (J.T @ JW).toarray()
-            g = JW.T @ r
+            _, _, H, g = self._normal_equations(x, s)
             H[np.diag_indices_from(H)] *= 1.0 + _DAMPING
-            H[np.diag_indices_from(H)] += 1e-12
             step = np.linalg.solve(H, -g)
             self.T0 = make_transform(rotation_from_vector(step[:3]), step[3:6]) @ self._unpack(x)[0]
             x = np.concatenate([np.zeros(6), x[6:] + step[6:]])
@@ -325,11 +324,10 @@ class _Problem:
                 break
         return x
 
-    def _offset(self, pts: np.ndarray, r: np.ndarray, sec: np.ndarray, stem: np.ndarray, k: int) -> np.ndarray:
-        """The horizontal shift that best explains one stem's residuals from one station (its view
-        of the stem stands off the joint circle by this much)."""
-        stem_i = self.q_stem if pts is not self.P else self.p_stem
-        sec_i = self.q_sec if pts is not self.P else self.p_sec
+    def _offset(self, pts: np.ndarray, r: np.ndarray, sec_i: np.ndarray, stem_i: np.ndarray, sec: np.ndarray,
+                stem: np.ndarray, k: int) -> np.ndarray:
+        """The horizontal shift that best explains stem `k`'s residuals `r` from one station's points
+        `pts` (their sections `sec_i` and stems `stem_i`): its view stands off the joint circle by this much."""
         m = stem_i == k
         dz = pts[m, 2] - self.z_sec[sec_i[m]]
         c = sec[sec_i[m], :2] + dz[:, None] * stem[k, :2]
@@ -354,14 +352,9 @@ def _ground_pairs(ref: SurveyStation, tgt: SurveyStation, T: np.ndarray, sv: Sur
     near = (np.hypot(*g[:, :2].T) < sv.ground_range_m) & (np.hypot(*(g[:, :2] - origin_t[:2]).T) < sv.ground_range_m)
     if near.sum() < 20:
         return empty
-    tree = cKDTree(ref.ground)
-    d, nb = tree.query(g[near], distance_upper_bound=2 * sv.ground_voxel_m)
+    d, nb = ref.ground_tree.query(g[near], distance_upper_bound=2 * sv.ground_voxel_m)
     ok = np.isfinite(d)
-    idx = np.flatnonzero(near)[ok]
-    a = ref.ground[nb[ok]]
-    n = pca_normals(ref.ground, tree, a, k=8)
-    n *= np.sign(n[:, 2:3] + 1e-12)
-    return tgt.ground[idx], a, n
+    return tgt.ground[np.flatnonzero(near)[ok]], ref.ground[nb[ok]], ref.ground_normals[nb[ok]]
 
 
 def _with_agreement(ref: SurveyStation, tgt: SurveyStation, f: PairFit, sv: SurveyParams) -> PairFit:
@@ -372,5 +365,5 @@ def _with_agreement(ref: SurveyStation, tgt: SurveyStation, f: PairFit, sv: Surv
     near = (np.linalg.norm(c, axis=1) < _AGREE_RANGE_M) & (np.linalg.norm(c - o, axis=1) < _AGREE_RANGE_M)
     if near.sum() < 100:
         return replace(f, agreement=0.0)
-    d, _ = cKDTree(ref.cloud).query(c[near], distance_upper_bound=_AGREE_VOXELS * sv.cloud_voxel_m)
+    d, _ = ref.cloud_tree.query(c[near], distance_upper_bound=_AGREE_VOXELS * sv.cloud_voxel_m)
     return replace(f, agreement=float(np.isfinite(d).mean()))

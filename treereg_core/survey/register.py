@@ -68,6 +68,10 @@ class Survey:
     placements: tuple[Placement, ...]
     seconds: dict[str, float]
 
+    def placed_edges(self) -> dict[tuple[int, int], Edge]:
+        """Every pair as the joint placement left it (its loop residual, whether it was used), by (i, j)."""
+        return {(e.i, e.j): e for e in (self.placements[0].edges if self.placements else ())}
+
     def transforms(self) -> dict[str, np.ndarray]:
         """Each placed station's transform onto the first, as their files give the scans."""
         L0 = self.stations[0].T_level

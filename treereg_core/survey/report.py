@@ -52,7 +52,7 @@ def survey_report_html(survey: Survey, title: str = "treereg survey") -> str:
 
 def _edge_state(survey: Survey) -> dict[tuple[int, int], tuple[str, float]]:
     """Per pair: how it is drawn, and its residual in the joint placement (NaN when not in it)."""
-    edges = {(ed.i, ed.j): ed for ed in (survey.placements[0].edges if survey.placements else ())}
+    edges = survey.placed_edges()
     out = {}
     for p in survey.pairs:
         ed = edges.get((p.i, p.j))

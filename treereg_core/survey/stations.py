@@ -17,12 +17,13 @@ crown, an occluded stretch).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from ..fine.fitting import fit_circle_taubin
-from ..geometry.normals import voxel_downsample
+from ..geometry.normals import pca_normals, voxel_downsample
 from ..params import Params, SurveyParams
 from ..prepare.ground import find_ground
 from ..scan import MIN_POINTS
@@ -82,6 +83,21 @@ class SurveyStation:
     cloud: np.ndarray
     reason: str = ""
     notes: tuple[str, ...] = field(default=())
+
+    # Indexes a station's pairs all ask for: made once, on first use (each pair reads its reference's).
+    @cached_property
+    def ground_tree(self) -> cKDTree:
+        return cKDTree(self.ground)
+
+    @cached_property
+    def ground_normals(self) -> np.ndarray:
+        """Each ground point's normal from its 8 nearest ground points, pointing up."""
+        n = pca_normals(self.ground, self.ground_tree, self.ground, k=8)
+        return n * np.sign(n[:, 2:3] + 1e-12)
+
+    @cached_property
+    def cloud_tree(self) -> cKDTree:
+        return cKDTree(self.cloud)
 
     def ground_z(self, xy: np.ndarray) -> np.ndarray:
         """The ground's height under the points `xy` (K x 2): on its plane, else the lowest points'."""

@@ -46,7 +46,7 @@ def survey_quality(survey: Survey) -> dict[str, Any]:
         scans[scan.name].update({m.description: json_number(m.value) for m in pl.metrics
                                  if m.description not in ("verdict", "placed through scans")})
     edges = []
-    loop = {(e.i, e.j): e for e in (survey.placements[0].edges if survey.placements else ())}
+    loop = survey.placed_edges()
     for p in survey.pairs:
         e = loop.get((p.i, p.j))
         edges.append({"reference": survey.scans[p.i].name, "target": survey.scans[p.j].name, "verdict": p.verdict,

@@ -159,3 +159,38 @@ def test_a_reference_of_another_plot_is_named_as_the_reason_no_station_is_placed
     # two files named st01.ply: each is named by its folder
     assert code == 1 and "the reference other/st01.ply has no verified pair" in err, err
     assert set(json.loads(out.read_text())["transforms"]) == {"other/st01.ply"}  # the reference alone
+
+
+def test_stations_are_read_one_at_a_time_and_their_points_let_go(run: dict) -> None:
+    """A survey holds its stations' summaries, not their points: each station given as a reader is
+    read once, and the one before it is gone by then (60 stations: 0.75 GB peak, not 2.3 GB)."""
+    import gc
+    import weakref
+
+    alive: list[weakref.ref] = []
+    live_at_read: list[int] = []
+
+    def reader(path: Path):
+        def read():
+            gc.collect()
+            live_at_read.append(sum(r() is not None for r in alive))
+            scan = read_scan(path)
+            alive.append(weakref.ref(scan))
+            return scan
+        return read
+
+    files = [run["root"] / "plot" / n for n in run["names"][:3]]
+    sv = register_survey([reader(f) for f in files], Params().with_value("survey", "mode", "survey"), workers=1)
+    assert live_at_read == [0, 0, 0] and len(alive) == 3
+    assert [s.name for s in sv.scans] == [f.name for f in files]
+    assert all(not hasattr(s, "points") and s.n_points > 10_000 for s in sv.scans)
+    assert sv.placements[1].verdict != "failed"
+
+
+def test_a_missing_station_is_said_before_any_station_is_read(run: dict, capsys: pytest.CaptureFixture[str]) -> None:
+    files = [str(run["root"] / "plot" / n) for n in run["names"]] + [str(run["root"] / "plot" / "st99.ply")]
+    out = run["root"] / "missing.json"
+    assert main(["register", *files, "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "st99.ply" in err[0] and "Traceback" not in err[0], err
+    assert not out.exists()

@@ -19,7 +19,7 @@ from __future__ import annotations
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 from scipy.sparse.csgraph import minimum_spanning_tree
@@ -29,7 +29,7 @@ from ..parallel import one_blas_thread
 from ..prepare.level import as_given
 from ..prepare.target import stem_map_hypotheses
 from ..results import Progress
-from ..scan import Scan
+from ..scan import Scan, ScanHeader
 from ..verify.evidence import FAILED, UNVERIFIED, VERIFIED
 from ..verify.graph import Edge, Placement, place_scans
 from .pair_fit import PairFit, register_pair
@@ -59,9 +59,12 @@ class SurveyPair:
 
 @dataclass(frozen=True, kw_only=True, eq=False)
 class Survey:
-    """A registered survey: its stations, the pairs registered, each station's placement."""
+    """A registered survey: its stations, the pairs registered, each station's placement.
 
-    scans: tuple[Scan, ...]
+    scans : each station's scan without its points (its name, file, steps and pose), in order.
+    """
+
+    scans: tuple[ScanHeader, ...]
     stations: tuple[SurveyStation, ...]
     shared: np.ndarray  # n x n: stems the stem maps of two stations share
     pairs: tuple[SurveyPair, ...]
@@ -96,16 +99,24 @@ class Survey:
         return out
 
 
-def register_survey(scans: Sequence[Scan], params: Params, *, workers: int = 1,
+def register_survey(scans: Sequence[Scan | Callable[[], Scan]], params: Params, *, workers: int = 1,
                     progress: Progress | None = None) -> Survey:
-    """Register a survey's stations onto the first (see the module doc)."""
+    """Register a survey's stations onto the first (see the module doc).
+
+    `scans` are the stations, each a Scan or a function that reads it: a station read that way is
+    reduced to its summary and its points let go before the next is read, so a survey's memory holds
+    `workers` stations' points at a time, not every station's.
+    """
     say = progress or (lambda f, t: None)
     sv = params.survey
     seconds: dict[str, float] = {}
     with one_blas_thread(), ThreadPoolExecutor(max(1, workers)) as pool:
         t0 = time.perf_counter()
         say(0.0, "stations: ground and stems")
-        stations = tuple(pool.map(lambda s: survey_station(s, params), scans))
+        reduced = list(pool.map(lambda s: _reduced(s, params), scans))
+        headers = tuple(h for h, _ in reduced)
+        stations = tuple(st for _, st in reduced)
+        del reduced
         seconds["stations"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         say(0.4, "stem maps")
@@ -135,8 +146,14 @@ def register_survey(scans: Sequence[Scan], params: Params, *, workers: int = 1,
     placements = _place(stations, pairs, shared, params)
     seconds["placement"] = time.perf_counter() - t0
     say(1.0, "done")
-    return Survey(scans=tuple(scans), stations=stations, shared=shared, pairs=pairs, placements=placements,
+    return Survey(scans=headers, stations=stations, shared=shared, pairs=pairs, placements=placements,
                   seconds=seconds)
+
+
+def _reduced(item: Scan | Callable[[], Scan], params: Params) -> tuple[ScanHeader, SurveyStation]:
+    """A station read (when given as a reader) and reduced; its points are not kept."""
+    scan = item if isinstance(item, Scan) else item()
+    return scan.header(), survey_station(scan, params)
 
 
 def survey_pairs(shared: np.ndarray, neighbours: int, min_stems: int) -> list[tuple[int, int]]:

@@ -18,6 +18,7 @@ from treereg_core.io import atomic
 from treereg_core.io.atomic import check_distinct, check_output_file
 from treereg_core.io.e57 import write_registered_e57
 from treereg_core.io.merged import write_merged
+from treereg_core.batch.runner import dask_client
 from treereg_core.io.scans import WRITE_EXTENSIONS, extension
 from treereg_core.io.transforms import (TransformFile, export_paths, registered_e57_name, registration_file, stale_exports,
                                         write_exports, write_transforms)
@@ -82,6 +83,9 @@ def add(sub: argparse._SubParsersAction) -> None:
     mode.add_argument("--one-tree", action="store_true",
                       help="register the one tree the stations surround, even with more than 8 stations (survey.mode; "
                       "--tree-at keeps it too)")
+    p.add_argument("--dask", metavar="SCHEDULER_ADDRESS",
+                   help="a survey's stations and pairs on this Dask cluster (tcp://host:8786; its workers must reach "
+                   "the scan files; needs treereg[dask]): a large survey as a cluster job")
     p.set_defaults(func=run)
 
 
@@ -132,6 +136,9 @@ def run(args: argparse.Namespace) -> int:
     if is_survey(len(scans), params):
         _check_survey(args, starts)
         return _run_survey(args, scans, params, out=out, e57=e57, inputs=inputs, workers=workers, read_s=read_s)
+    if args.dask:
+        raise ConfigError(f"--dask {args.dask}: a cluster runs a survey's stations and pairs (more than 8 stations, or "
+                          "--survey); for many trees, `treereg batch --dask` runs each tree on the cluster")
     if args.report:
         raise ConfigError(f"{args.report}: --report is a survey's report (more than 8 stations, or --survey); "
                           "for one tree, transforms.json's quality block and the app show each pair")
@@ -202,9 +209,14 @@ def _run_survey(args: argparse.Namespace, scans: list, params: Params, *, out: P
     """`register` of a whole-plot survey (treereg_core/survey): the same files, one row per station.
     `scans` are Scans, or functions that read them one at a time (`read_s` None: reading is part of
     the stations' time)."""
+    client = dask_client(args.dask) if args.dask else None  # an unreachable cluster is said before any work
     t0 = time.perf_counter()
     bar = ProgressBar("survey")
-    survey = register_survey(scans, params, workers=workers or os.cpu_count() or 1, progress=bar)
+    try:
+        survey = register_survey(scans, params, workers=workers or os.cpu_count() or 1, progress=bar, client=client)
+    finally:
+        if client is not None:
+            client.close()
     bar.finish()
     seconds = time.perf_counter() - t0
     verdicts = survey.verdicts()

@@ -19,7 +19,7 @@ from __future__ import annotations
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
-from typing import Callable, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 from scipy.sparse.csgraph import minimum_spanning_tree
@@ -100,12 +100,16 @@ class Survey:
 
 
 def register_survey(scans: Sequence[Scan | Callable[[], Scan]], params: Params, *, workers: int = 1,
-                    progress: Progress | None = None) -> Survey:
+                    progress: Progress | None = None, client: Any = None) -> Survey:
     """Register a survey's stations onto the first (see the module doc).
 
     `scans` are the stations, each a Scan or a function that reads it: a station read that way is
     reduced to its summary and its points let go before the next is read, so a survey's memory holds
     `workers` stations' points at a time, not every station's.
+
+    `client`: a Dask client (`batch.runner.dask_client`); the stations are then read and reduced,
+    and the pairs registered, on its workers (which must reach the files), each station's summary
+    sent to the cluster once. The same transforms as in one process.
     """
     say = progress or (lambda f, t: None)
     sv = params.survey
@@ -113,7 +117,8 @@ def register_survey(scans: Sequence[Scan | Callable[[], Scan]], params: Params, 
     with one_blas_thread(), ThreadPoolExecutor(max(1, workers)) as pool:
         t0 = time.perf_counter()
         say(0.0, "stations: ground and stems")
-        reduced = list(pool.map(lambda s: _reduced(s, params), scans))
+        reduced = (list(pool.map(lambda s: _reduced(s, params), scans)) if client is None else
+                   client.gather(client.map(_reduced, list(scans), params=params, pure=False)))
         headers = tuple(h for h, _ in reduced)
         stations = tuple(st for _, st in reduced)
         del reduced
@@ -138,7 +143,12 @@ def register_survey(scans: Sequence[Scan | Callable[[], Scan]], params: Params, 
         seconds["stem maps"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         say(0.5, f"{len(chosen)} pairs on their shared stems")
-        fits = list(pool.map(lambda ij: register_pair(stations[ij[0]], stations[ij[1]], hyps[ij], sv), chosen))
+        if client is None:
+            fits = list(pool.map(lambda ij: register_pair(stations[ij[0]], stations[ij[1]], hyps[ij], sv), chosen))
+        else:  # each station's summary sent once, not once a pair
+            on = client.scatter(list(stations))
+            fits = client.gather([client.submit(register_pair, on[i], on[j], hyps[(i, j)], sv, pure=False)
+                                  for i, j in chosen])
         seconds["pairs"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     say(0.9, "placing every station")

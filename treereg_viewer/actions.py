@@ -24,6 +24,7 @@ class AppActions(Protocol):
     uploads: UploadReceiver
     max_upload_bytes: int
     max_upload_points: int
+    read_only: bool  # following the presenter: the parameters and runs are the presenter's
 
     @property
     def view(self) -> ViewState: ...
@@ -66,7 +67,13 @@ class AppHost(Protocol):
     server: Any
     presenter: Any
 
-    def set_presenter(self, viewer: Any, on: bool) -> None: ...
+    projector: bool
+
+    def set_presenter(self, viewer: Any, on: bool) -> bool: ...
+
+    def hand_over(self, viewer: Any, to: str) -> bool: ...
+
+    def params_changed(self, by: Any, what: str, undo: Any) -> None: ...
 
     def broadcast(self, presenter: Any) -> None: ...
 

@@ -55,7 +55,7 @@ class ScanPanel:
 
     def _remove(self) -> None:
         name = self.remove_choice.value
-        if name in self._names[1:]:
+        if name in self._names[1:] and not self.app.read_only:  # a follower's scans are the presenter's
             self.app.controller.remove_scan(name)
 
     def show_snapshot(self, snap: Snapshot) -> None:

@@ -133,7 +133,7 @@ class HypothesisControl(StageControls):
 
     def _choose(self) -> None:
         snap = self.app.controller.snapshot
-        if _shown_pair_item(snap, self.app.view) is None:
+        if _shown_pair_item(snap, self.app.view) is None or self.app.read_only:  # following: the presenter's
             return
         pair = snap.pair(target_index(snap, "hypotheses", self.app.view)).key
         wanted = None if self.dropdown.value == "automatic" else self.dropdown.value

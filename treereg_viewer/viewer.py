@@ -16,6 +16,7 @@ every tab then sees that one viewer.
 from __future__ import annotations
 
 import logging
+import math
 import threading
 from contextlib import AbstractContextManager
 from dataclasses import fields, replace
@@ -67,9 +68,11 @@ FOLLOWED = tuple(f.name for f in fields(ViewState) if f.name not in ("point_size
 #: Projector mode: text, 3-D labels, lines and points this many times their size (issue 32: at least 1.6).
 PROJECTOR_SCALE = 1.6
 #: Projector mode's text: viser sizes its GUI in rem of the page's font size, 92.5 % of the browser's
-#: (its App.css.ts): 1.6 times that. Our own constant markup (no text from outside), shown as the
-#: tables' CSS is (`view_panel.TABLE_CSS`); the element hidden, the style goes with it.
-PROJECTOR_CSS = f"<style>html {{font-size: {92.5 * PROJECTOR_SCALE:.1f}% !important;}}</style>"
+#: (its App.css.ts): at least 1.6 times that (149 %). Our own constant markup (no text from outside),
+#: shown as the tables' CSS is (`view_panel.TABLE_CSS`); the element hidden, the style goes with it.
+#: A table's words may break anywhere: at this size a column of long words would not fit its panel.
+PROJECTOR_CSS = (f"<style>html {{font-size: {math.ceil(92.5 * PROJECTOR_SCALE)}% !important;}} "
+                 ".treereg-tables td, .treereg-tables th {overflow-wrap: anywhere !important;}</style>")
 
 
 class Viewer:
@@ -103,6 +106,8 @@ class Viewer:
         self._closed = False
         self.following = False
         self._window_px: int | None = None
+        self._view_aspect: float | None = None  # the 3-D view's width / height, as the tab's camera reports it
+        self._fov_y: float | None = None
         self._tour_nodes: list[Any] = []
 
         self.panel = ViewPanel(gui, self.set_view, width=PANEL_WIDTH_PX)
@@ -376,7 +381,8 @@ class Viewer:
 
     def frame_view(self) -> None:
         """Point this tab's camera at what the current stage draws (the "Frame the view" button)."""
-        self._look(camera.frame(self.controller.snapshot, self.view.stage, self.view))
+        self._look(camera.frame(self.controller.snapshot, self.view.stage, self.view, aspect=self._view_aspect,
+                                fov_y_rad=self._fov_y or camera.FOV_Y_RAD))
 
     def _on_camera(self, cam: Any) -> None:
         # The tab's reports say how wide its 3-D view is: a narrow window (a 1280 x 720 laptop screen)
@@ -385,6 +391,10 @@ class Viewer:
         # less both panels); either reading of a narrow window narrows, and the panels then stay so.
         width = int(getattr(cam, "image_width", 0) or 0)
         height = int(getattr(cam, "image_height", 0) or 0)
+        if width and height:
+            self._view_aspect = width / height
+            fov = float(getattr(cam, "fov", 0.0) or 0.0)
+            self._fov_y = fov if 0.1 < fov < 3.0 else None
         if width and self._window_px is None:
             docked = width + self.panel.width + CONTROL_WIDTH_PX
             whole = width if height and width > 1.2 * height else None

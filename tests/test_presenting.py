@@ -33,7 +33,7 @@ def two_tabs():
     other.stop()
 
 
-def test_a_follower_cannot_change_parameters_run_or_take_the_lead(two_tabs, monkeypatch):
+def test_a_follower_cannot_change_parameters_run_or_take_the_lead(two_tabs, monkeypatch, tmp_path):
     app, teacher, pupil = two_tabs
     teacher.present_box.value = True  # "Others follow me"
     assert app.presenter is teacher and pupil.following and pupil.read_only
@@ -53,6 +53,11 @@ def test_a_follower_cannot_change_parameters_run_or_take_the_lead(two_tabs, monk
     assert not app.hand_over(pupil, "this tab") and app.presenter is teacher
     pupil.key_step(1)
     assert pupil.view.stage == teacher.view.stage  # a follower's keys do not step it
+    assert pupil.scans.upload.disabled and pupil.align.locked
+    sent = tmp_path / "scan4.ply"
+    sent.write_bytes(b"ply")
+    pupil.scans._add_file("scan4.ply", sent)  # a scan file sent anyway: dropped, not added
+    assert not sent.exists() and len(app.controller.snapshot.scans) == 3
 
 
 def test_a_change_in_another_tab_is_named_and_undone(two_tabs):

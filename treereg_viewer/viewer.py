@@ -511,11 +511,14 @@ class Viewer:
         self.hand_button.disabled = not names
 
     def _set_read_only(self, on: bool) -> None:
-        """Following: the parameters, Run, presets and loaded parameters are the presenter's."""
+        """Following: the parameters, Run, presets, loaded parameters, added scans and start poses are
+        the presenter's (greyed out here; refused by the handlers too)."""
         self.read_only = on
+        self.align.locked = on
         self.stages.set_read_only(on, self.controller.snapshot.busy)
-        for h in (self.files.apply_preset, self.files.load_params):
-            h.disabled = on
+        for h in (self.files.apply_preset, self.files.load_params, self.scans.upload, self.align.load_starts):
+            if h.disabled != on:
+                h.disabled = on
         self.undo_button.visible = self.changed_md.visible and self._undo_fn is not None and not on
 
     def _set_following(self, on: bool) -> None:

@@ -58,8 +58,9 @@ def served():
 def first(served, browser):
     """The first tab, shared by the module's tests (a page takes seconds to open while the demo runs):
     projector mode's, then the presenter's."""
-    context, page, blocked = open_page(browser, served, width=W, height=H)
-    close_toast(page)
+    context, page, blocked = open_page(browser, served, scene=False, width=W, height=H)
+    if SHOTS is not None:
+        close_toast(page)
     yield page
     assert not blocked, blocked
     context.close()

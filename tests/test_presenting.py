@@ -104,3 +104,17 @@ def test_projector_mode_scales_labels_lines_points_and_binds_the_arrows(two_tabs
     assert teacher.projector_css.visible and not teacher.keys.commands["arrowright"].disabled
     teacher.key_step(1)
     assert teacher.view.stage == "projection"
+
+
+def test_a_hypothesis_picked_in_another_tab_is_named_and_undone(two_tabs, monkeypatch):
+    app, teacher, pupil = two_tabs
+    picked = []
+    monkeypatch.setattr(app.controller, "choose", lambda pair, candidate: picked.append((pair, candidate)))
+    pupil.choose_hypothesis("scan2 -> scan1", "half turn")
+    assert picked == [("scan2 -> scan1", "half turn")]
+    assert "Changed by tab 2: the hypothesis of scan2 -> scan1 automatic → half turn." in read(teacher.changed_md.content)
+    teacher.undo_button.value = True
+    assert picked[-1] == ("scan2 -> scan1", None)  # automatic again
+    teacher.present_box.value = True  # a follower cannot pick one
+    pupil.choose_hypothesis("scan2 -> scan1", "half turn")
+    assert len(picked) == 2

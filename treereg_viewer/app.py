@@ -209,9 +209,9 @@ class TreeregApp:
         except Exception:
             log.exception("could not list the tabs for the presenter")
 
-    def params_changed(self, by: Viewer, what: str, undo: Any) -> None:
-        """Tab `by` changed the parameters every tab shares: every other tab is told what changed,
-        and offered `undo` (a function of the tab that undoes it)."""
+    def changed_by(self, by: Viewer, what: str, undo: Any) -> None:
+        """Tab `by` changed what every tab shares (the parameters, a hypothesis picked by hand): every
+        other tab is told what changed, and offered `undo` (a function of the tab that undoes it)."""
         for v in self.viewers:
             if v is not by:
                 try:

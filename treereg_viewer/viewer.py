@@ -315,6 +315,22 @@ class Viewer:
         if params != before:
             self._report(before, params, f"the parameters from {source}")
 
+    def choose_hypothesis(self, pair: str, candidate: str | None) -> None:
+        """A hypothesis picked by hand for `pair` (None: automatic again); the other tabs are told, and
+        can undo it. Not while the tab follows the presenter."""
+        if self.read_only:
+            return
+        before = self.controller.snapshot.choices.get(pair)
+        self.controller.choose(pair, candidate)
+        what = f"the hypothesis of {pair} {before or 'automatic'} → {candidate or 'automatic'}"
+        by = self.name
+
+        def undo(v: Viewer) -> None:
+            v.choose_hypothesis(pair, before)
+            v.controller.note(f"Undone: {what} (by {by}).")
+
+        self.host.changed_by(self, what, undo)
+
     # ---- changes of the shared parameters, told to the other tabs --------------------------------
     def _report(self, before: Params, after: Params, what: str) -> None:
         """This tab changed the parameters from `before` to `after`: the other tabs are told, and
@@ -330,7 +346,7 @@ class Viewer:
             v.controller.note(f"Undone: {what} (by {by}).")
             v._report(after, before, f"undid {by}'s change ({what})")
 
-        self.host.params_changed(self, what, undo)
+        self.host.changed_by(self, what, undo)
 
     def show_changed_elsewhere(self, by: str, what: str, undo: Callable[[Viewer], None]) -> None:
         """Another tab changed the parameters: say which and what, and offer the undo (not to a tab

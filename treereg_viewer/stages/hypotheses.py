@@ -138,7 +138,7 @@ class HypothesisControl(StageControls):
         pair = snap.pair(target_index(snap, "hypotheses", self.app.view)).key
         wanted = None if self.dropdown.value == "automatic" else self.dropdown.value
         if snap.choices.get(pair) != wanted:
-            self.app.controller.choose(pair, wanted)
+            self.app.choose_hypothesis(pair, wanted)  # the other tabs are told, and can undo it
 
     def show_snapshot(self, snap: Snapshot, view: ViewState) -> None:
         """The hypothesis list of the pair in view, and the choice in force for it."""

@@ -17,11 +17,15 @@ from treereg_viewer.controller import Controller
 from treereg_viewer.viewer import PROJECTOR_SCALE, Viewer
 
 
+@pytest.fixture(scope="module")
+def demo():
+    return demo_case()
+
+
 @pytest.fixture()
-def two_tabs():
+def two_tabs(demo):
     """An app that runs nothing by itself, with a second viewer ("tab 2") beside its own (its GUI and
     scene those of a second server: a tab's own)."""
-    demo = demo_case()
     server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
     other = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
     app = TreeregApp(server, Controller(list(demo.scans), truth=demo.truth), autorun=False)

@@ -294,7 +294,9 @@ class Viewer:
         try:
             after = self.controller.set_param(section, name, value)
         except ConfigError as e:
-            self.controller.note(str(e), error=True)
+            # Told this tab at once: the worker's message line waits for the stage it is running
+            # (seconds to minutes), and nothing changed for the other tabs.
+            self._tell_tab(str(e), error=True)
             self.stages.sections[section].sync(self.controller.params)  # show what is in force
             return str(e)
         self.stages.sections[section].show_in_force(name, self.controller.params)
@@ -363,13 +365,15 @@ class Viewer:
         if fn is not None and not self.read_only:
             fn(self)
 
-    def _tell_tab(self, text: str) -> None:
-        """A word for this tab only (a notification), or the app's message line without a browser."""
+    def _tell_tab(self, text: str, error: bool = False) -> None:
+        """A word for this tab only (a notification; viser shows its body as text, not markup), or the
+        app's message line without a browser."""
         if self.client is None:
-            self.controller.note(text)
+            self.controller.note(text, error=error)
             return
         try:
-            self.client.add_notification("treereg", text, auto_close_seconds=6.0)
+            self.client.add_notification("treereg", text, auto_close_seconds=10.0 if error else 6.0,
+                                         color="red" if error else None)
         except Exception:
             log.debug("could not notify tab %s", self.name)
 

@@ -121,6 +121,10 @@ class SurveyDrawer(Drawer):
                            draw_stem(self.scene, stem, m) if stem is not None and m is not None else [])
                 self._replace("inspect", handles)
                 self._keys["inspect"] = key
+            # Inspecting, the sections are what to see: the stations' points (5 cm dots) would hide them.
+            for hd in self._handles.get("map", []):
+                if getattr(hd, "name", "") == "/survey/map/points":
+                    hd.visible = view.pair is None and view.stem is None
             panel_key = (id(m), view.pair, view.stem, latest.busy, latest.message)
             if self._keys.get("panel") != panel_key:
                 content = (pair_content(survey, pair) if pair is not None and survey is not None else
@@ -169,10 +173,10 @@ def draw_map(scene: viser.SceneApi, m: SurveyMap, point_size: float) -> list[Any
         if links:
             segs = np.stack([ln.ends for ln in links]).astype(np.float32)
             h.append(scene.add_line_segments(f"{root}/links_{state}", segs, LINK_COLORS[state],
-                                             thickness=5.0 if state == "used" else 3.0))
+                                             thickness=5.0 if state == "used" else 3.0, thickness_units="screen"))
     if m.stems:
         rings = np.concatenate([_ring(s.xyz, max(s.radius_m, 0.05) + 0.08) for s in m.stems]).astype(np.float32)
-        h.append(scene.add_line_segments(f"{root}/stems", rings, HIGHLIGHT, thickness=3.0))
+        h.append(scene.add_line_segments(f"{root}/stems", rings, HIGHLIGHT, thickness=3.0, thickness_units="screen"))
     return h
 
 
@@ -183,11 +187,12 @@ def draw_pair(scene: viser.SceneApi, m: SurveyMap, p: PairInspection) -> list[An
     h: list[Any] = [scene.add_frame(root, show_axes=False)]
     ln = m.links[p.index]
     if np.all(np.isfinite(ln.ends)):
-        h.append(scene.add_line_segments(f"{root}/link", ln.ends[None].astype(np.float32), HIGHLIGHT, thickness=9.0))
+        h.append(scene.add_line_segments(f"{root}/link", ln.ends[None].astype(np.float32), HIGHLIGHT, thickness=9.0,
+                                         thickness_units="screen"))
     if len(p.points):
         colors = _colors(p.station_of)
         colors[~p.used] = GREY
-        h.append(scene.add_point_cloud(f"{root}/sections", p.points.astype(np.float32), colors, point_size=0.012,
+        h.append(scene.add_point_cloud(f"{root}/sections", p.points.astype(np.float32), colors, point_size=0.03,
                                        precision="float32"))
     for k, (at, used) in enumerate(zip(p.stems_xyz, p.stems_used)):
         h.append(scene.add_label(f"{root}/stem{k}", "used" if used else "left out", position=tuple(at + [0, 0, 2.2]),
@@ -203,11 +208,11 @@ def draw_stem(scene: viser.SceneApi, s: StemInspection, m: SurveyMap) -> list[An
         if len(v.points):
             h.append(scene.add_point_cloud(f"{root}/s{v.station}/points", v.points.astype(np.float32),
                                            np.tile(np.array(station_color(v.station), np.uint8), (len(v.points), 1)),
-                                           point_size=0.008, precision="float32"))
+                                           point_size=0.01, precision="float32"))
         rings = [_ring(c[:3], c[3]) for c in v.circles if np.all(np.isfinite(c))]
         if rings:
             h.append(scene.add_line_segments(f"{root}/s{v.station}/circles", np.concatenate(rings).astype(np.float32),
-                                             station_color(v.station), thickness=2.0))
+                                             station_color(v.station), thickness=2.0, thickness_units="screen"))
     h.append(scene.add_label(f"{root}/name", f"stem {s.index + 1}", position=tuple(s.xyz + [0, 0, 2.5]),
                              anchor="bottom-center"))
     return h
@@ -218,6 +223,11 @@ def _table(head: list[str], rows: list[list[str]]) -> str:
     """A markdown table; every cell is escaped by the caller."""
     return "\n".join(["| " + " | ".join(head) + " |", "|" + "---|" * len(head),
                       *("| " + " | ".join(r) + " |" for r in rows)])
+
+
+def _nowrap(cell: str) -> str:
+    """A table cell kept on one line ("✓ verified": the survey's tables break names anywhere)."""
+    return f'<span style="white-space: nowrap">{cell}</span>'
 
 
 def legend() -> str:
@@ -238,15 +248,16 @@ def overview_content(snap: Snapshot, m: SurveyMap | None) -> PanelContent:
     text = (f"{n} stations, {len(survey.pairs)} pairs registered on the stems they share, "
             f"{len(m.stems)} stems. Drawn: {drawn:,} points of the stations' {m.cloud_points:,} voxel-thinned "
             f"points ({m.input_points:,} read), coloured by station.\n\n{legend()}\n\n"
-            "Choose a pair or a stem on the right, or click a link's middle or a stem's ring.")
-    rows = [[md(r[0]), md(f"{mark(r[1])} {r[1]}"), md(r[2]), md(r[3] or "–"), md(r[4] or "–"), md(r[5])]
+            "Choose a pair or a stem on the right, or click a link's middle or a stem's ring: the stations' "
+            "points are hidden while one is inspected.")
+    rows = [[md(r[0]), _nowrap(md(f"{mark(r[1])} {r[1]}")), md(r[2]), md(r[3] or "–"), md(r[4] or "–"), md(r[5])]
             for r in station_rows(survey)]
     stations = _table(["station", "verdict", "pairs verified", "loop residual", "placed through", "stems"], rows)
     prow = []
     for ln in m.links:
         p = survey.pairs[ln.index]
         prow.append([str(ln.index + 1), md(f"{survey.scans[p.j].name} → {survey.scans[p.i].name}"),
-                     md(verdict_badge(p.verdict)), md(f"{p.fit.stems_used} of {len(p.fit.stems)}"),
+                     _nowrap(md(verdict_badge(p.verdict))), md(f"{p.fit.stems_used} of {len(p.fit.stems)}"),
                      md(_mm(p.fit.residual_m)), md(LINK_MEANING[ln.state])])
     pairs = _table(["#", "pair", "verdict", "stems used", "stem residual", "on the map"], prow)
     return PanelContent(f"Survey of {n} stations", text=text, table=f"**Stations**\n\n{stations}\n\n**Pairs**\n\n{pairs}")
@@ -346,6 +357,9 @@ class SurveyViewer:
         self._window_px: int | None = None
 
         self.panel = ViewPanel(gui, lambda **_: None, width=PANEL_WIDTH_PX)
+        # A station's name is one long word ("placed through" lists several): the survey's tables break
+        # it anywhere rather than grow wider than the panel.
+        gui.add_markdown("<style>.treereg-tables td {overflow-wrap: anywhere !important;}</style>")
         gui.main_panel.dock_right()
         gui.main_panel.set_width(CONTROL_WIDTH_PX)
         n = len(self.controller.snapshot.scans)
@@ -445,7 +459,7 @@ class SurveyViewer:
                 lo, hi = at.min(axis=0), at.max(axis=0)
                 centre = (lo + hi) / 2
                 span = float(max(hi[0] - lo[0], hi[1] - lo[1], 10.0))
-                self._camera(centre + np.array([0.0, -1.1 * span, 1.0 * span]), centre)
+                self._camera(centre + np.array([0.0, -0.85 * span, 0.75 * span]), centre)
 
     def _look(self) -> None:
         """The camera turns to the pair or stem chosen (from where it stands, nearer)."""

@@ -4,8 +4,8 @@ plot seen from every station that sees it. Geometry only (numpy); the app draws 
 Everything is in the reference station's levelled frame, where the placements put the stations
 (`Placement.T_ref_scan` maps a station's levelled points there):
 
-* `survey_map`: every placed station's voxel-thinned cloud placed and decimated to a total point
-  budget (shared in proportion to the clouds), each station's scanner, each registered pair as a link
+* `survey_map`: every placed station's voxel-thinned cloud (within `MAP_REACH_M` of its scanner)
+  placed and decimated to a total point budget (shared in proportion to the clouds), each station's scanner, each registered pair as a link
   between the two scanners (its verdict, and whether the placement used it), and the plot's stems —
   the stations' stems at breast height placed and grouped across stations (`PlotStem.views`).
 * `inspect_pair`: a pair's verdict, the checks it rests on (each number beside its threshold) and
@@ -29,6 +29,9 @@ from .register import _MIN_SPREAD_M, Survey, SurveyPair
 SAME_STEM_M = 0.3
 #: Points the map draws at most by default (all stations together): fluid in Chromium on a laptop.
 DEFAULT_MAP_POINTS = 300_000
+#: The map draws each station's points within this of its scanner, across the ground (m): beyond, a
+#: station's points are thin rings of ground and far crowns its neighbours see better.
+MAP_REACH_M = 15.0
 #: The breast height (m above the ground) a stem's section is shown at, and its label.
 BREAST_HEIGHT_M = 1.3
 #: How a link is drawn: used by the placement, verified but dropped by a loop, unverified, failed.
@@ -70,7 +73,8 @@ class PlotStem:
 @dataclass(frozen=True, kw_only=True, eq=False)
 class SurveyMap:
     """What the map draws (see the module doc). `points` (float32) are placed; `station_of` says
-    whose each is. `input_points` is what the stations' files held, `cloud_points` their thinned clouds."""
+    whose each is. `input_points` is what the stations' files held, `cloud_points` their thinned clouds
+    within reach of their scanners (what the budget is shared from)."""
 
     names: tuple[str, ...]
     verdicts: tuple[str, ...]
@@ -124,19 +128,21 @@ def placements(survey: Survey) -> dict[int, np.ndarray]:
     return {k: np.asarray(pl.T_ref_scan, float) for k, pl in enumerate(survey.placements) if pl.T_ref_scan is not None}
 
 
-def survey_map(survey: Survey, max_points: int = DEFAULT_MAP_POINTS) -> SurveyMap:
-    """The station map of `survey`, its clouds decimated to `max_points` in all (see the module doc)."""
+def survey_map(survey: Survey, max_points: int = DEFAULT_MAP_POINTS, reach_m: float = MAP_REACH_M) -> SurveyMap:
+    """The station map of `survey`: each station's cloud within `reach_m` of its scanner (across the
+    ground), decimated so that all together hold at most `max_points` (see the module doc)."""
     placed = placements(survey)
     n = len(survey.stations)
     scanners = np.full((n, 3), np.nan)
     for k, T in placed.items():
         scanners[k] = T[:3, 3]
-    sizes = {k: len(survey.stations[k].cloud) for k in placed}
-    total = sum(sizes.values())
+    near = {k: np.flatnonzero(np.hypot(survey.stations[k].cloud[:, 0], survey.stations[k].cloud[:, 1]) <= reach_m)
+            for k in placed}
+    total = sum(len(v) for v in near.values())
     rng = np.random.default_rng(0)
     pts, who = [], []
     for k, T in placed.items():
-        c = survey.stations[k].cloud
+        c = survey.stations[k].cloud[near[k]]
         take = len(c) if total <= max_points else int(max_points * len(c) / max(total, 1))
         idx = np.sort(rng.choice(len(c), take, replace=False)) if take < len(c) else np.arange(len(c))
         pts.append(apply_transform(T, c[idx].astype(float)).astype(np.float32))

@@ -226,8 +226,8 @@ def _table(head: list[str], rows: list[list[str]]) -> str:
 
 
 def _nowrap(cell: str) -> str:
-    """A table cell kept on one line ("✓ verified": the survey's tables break names anywhere)."""
-    return f'<span style="white-space: nowrap">{cell}</span>'
+    """A table cell whose words stay whole ("verified": the survey's tables break names anywhere)."""
+    return f'<span style="overflow-wrap: normal">{cell}</span>'
 
 
 def legend() -> str:

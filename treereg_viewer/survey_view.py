@@ -271,7 +271,7 @@ def pair_content(survey: Survey, p: PairInspection) -> PanelContent:
     """A pair inspected: its verdict and reasons, its checks beside their thresholds, its numbers."""
     ref, tgt = survey.scans[p.i].name, survey.scans[p.j].name
     why = "\n".join(f"- {md(r)}" for r in p.reasons)
-    text = (f"**{md(verdict_badge(p.verdict))}**" + (f": why\n\n{why}" if why else ": every check passes.") +
+    text = (f"**{md(verdict_badge(p.verdict))}**" + (f", because\n\n{why}" if why else ": every check passes.") +
             f"\n\n{md(tgt)} (target) onto {md(ref)} (reference). In 3-D: the shared stems' sections, "
             f"{md(ref)} where the placement puts it and {md(tgt)} under this pair's own fit, coloured by station "
             "(stems the fit left out grey).")
@@ -459,7 +459,7 @@ class SurveyViewer:
                 lo, hi = at.min(axis=0), at.max(axis=0)
                 centre = (lo + hi) / 2
                 span = float(max(hi[0] - lo[0], hi[1] - lo[1], 10.0))
-                self._camera(centre + np.array([0.0, -0.85 * span, 0.75 * span]), centre)
+                self._camera(centre + np.array([0.0, -1.0 * span, 0.9 * span]), centre)
 
     def _look(self) -> None:
         """The camera turns to the pair or stem chosen (from where it stands, nearer)."""
@@ -471,7 +471,7 @@ class SurveyViewer:
             ln = m.links[v.pair]
             if np.all(np.isfinite(ln.ends)):
                 d = float(np.linalg.norm(ln.ends[1] - ln.ends[0]))
-                self._camera(ln.mid + np.array([0.0, -0.9 * d - 4, 0.7 * d + 5]), ln.mid)
+                self._camera(ln.mid + np.array([0.0, -0.55 * d - 2, 0.45 * d + 3]), ln.mid)
         elif v.stem is not None and v.stem < len(m.stems):
             at = m.stems[v.stem].xyz + np.array([0.0, 0.0, 1.0])
             self._camera(at + np.array([0.0, -3.5, 2.5]), at)

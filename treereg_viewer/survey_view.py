@@ -115,12 +115,12 @@ class SurveyDrawer(Drawer):
             if self._keys.get("map") != key:
                 self._replace("map", draw_map(self.scene, m, view.point_size) if m is not None else [])
                 self._keys["map"] = key
-            key = (id(m), view.pair, view.stem)
-            if self._keys.get("inspect") != key:
+            inspected = (id(m), view.pair, view.stem)
+            if self._keys.get("inspect") != inspected:
                 handles = (draw_pair(self.scene, m, pair) if pair is not None and m is not None else
                            draw_stem(self.scene, stem, m) if stem is not None and m is not None else [])
                 self._replace("inspect", handles)
-                self._keys["inspect"] = key
+                self._keys["inspect"] = inspected
             # Inspecting, the sections are what to see: the stations' points (5 cm dots) would hide them.
             for hd in self._handles.get("map", []):
                 if getattr(hd, "name", "") == "/survey/map/points":
@@ -145,7 +145,7 @@ def _colors(station_of: np.ndarray) -> np.ndarray:
     lut = np.zeros((int(ks.max()) + 1 if len(ks) else 1, 3), np.uint8)
     for k in ks:
         lut[k] = station_color(int(k))
-    return lut[station_of]
+    return np.asarray(lut[station_of], dtype=np.uint8)
 
 
 def _ring(centre: np.ndarray, radius: float, n: int = 32) -> np.ndarray:
@@ -431,10 +431,10 @@ class SurveyViewer:
             v = self.view
             want = self._pairs[v.pair] if v.pair is not None and v.pair < len(self._pairs) else NONE
             if self.pair.value != want:
-                self.pair.value = want
+                self.pair.value = want  # type: ignore[misc]
             want = self._stems[v.stem] if v.stem is not None and v.stem < len(self._stems) else NONE
             if self.stem.value != want:
-                self.stem.value = want
+                self.stem.value = want  # type: ignore[misc]
         finally:
             self._quiet = False
 
@@ -523,7 +523,7 @@ class SurveyViewer:
         self.status.content = (f"**{md(snap.message)}**" if snap.error else md(snap.message)) if snap.message else ""
         self.run.disabled = snap.busy
         if not snap.busy:
-            self.progress.value = 100.0 if snap.survey is not None else 0.0
+            self.progress.value = 100.0 if snap.survey is not None else 0.0  # type: ignore[misc]
             self.progress_text.content = ""
 
     def on_progress(self, fraction: float, text: str) -> None:
@@ -533,7 +533,7 @@ class SurveyViewer:
         self._last_progress = now
 
         def show() -> None:
-            self.progress.value = float(min(max(fraction, 0.0), 1.0) * 100.0)
+            self.progress.value = float(min(max(fraction, 0.0), 1.0) * 100.0)  # type: ignore[misc]
             self.progress_text.content = f"*{md(text)}*" if text else ""
 
         self.drawer.post("progress", show)

@@ -52,7 +52,7 @@ class MapLink:
 
     @property
     def mid(self) -> np.ndarray:
-        return self.ends.mean(axis=0)
+        return np.asarray(self.ends.mean(axis=0), dtype=float)
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -88,7 +88,7 @@ class SurveyMap:
 
     @property
     def placed(self) -> np.ndarray:
-        return np.isfinite(self.scanners).all(axis=1)
+        return np.asarray(np.isfinite(self.scanners).all(axis=1), dtype=bool)
 
     def pick(self, origin: np.ndarray, direction: np.ndarray, max_angle_deg: float = 1.5) -> tuple[str, int] | None:
         """What a click along the ray meant: ("link", pair index) for a link's mid-point, ("stem", stem

@@ -11,7 +11,9 @@ One survey and one page are shared by the module's tests, in order (the suite is
 
 from __future__ import annotations
 
+import os
 import re
+from pathlib import Path
 
 import pytest
 
@@ -51,7 +53,8 @@ def served(tmp_path_factory):
     (root / "st09.ply").rename(root / HOSTILE)
     names = [f"st0{k}.ply" for k in range(1, 9)] + [HOSTILE]
     output: list[str] = []
-    for url, _, _ in view(names, cwd=root, output=output):
+    # Both cores for the registration (it runs before the page opens; the browser waits for it).
+    for url, _, _ in view([*names, "--workers", "2"], cwd=root, output=output):
         yield url, names, output
 
 
@@ -178,3 +181,31 @@ def test_choosing_a_stem_shows_its_sections_from_every_station_that_sees_it(serv
         assert page.evaluate("(n) => !!window.__viserMutable.nodeRefFromName[n]?.parent", f"/survey/stem/s{k}/points")
     assert not reading_problems(page), reading_problems(page)
     assert page.evaluate(INJECTED) == {"alerted": None, "images": 0}
+
+
+@pytest.mark.skipif(not os.environ.get("TREEREG_SHOTS"), reason="TREEREG_SHOTS=DIR saves the screenshots")
+def test_screenshots(served, browser):
+    """The survey view's screenshots (assets/): the map at 1920 x 1080 and 1280 x 720, a pair inspected
+    (the first not verified) and a stem, at 1920 x 1080."""
+    url, _, _ = served
+    out = Path(os.environ["TREEREG_SHOTS"])
+    for width, height, tag in ((1920, 1080, ""), (1280, 720, "_1280x720")):
+        context = browser.new_context(viewport={"width": width, "height": height})
+        pg = context.new_page()
+        pg.set_default_timeout(120_000)
+        pg.goto(url)
+        pg.wait_for_function("() => !!window.__viserMutable?.nodeRefFromName['/survey/map/stems']", timeout=120_000)
+        close_toast(pg)
+        pg.wait_for_timeout(2500)
+        pg.screenshot(path=str(out / f"survey_view{tag}.png"))
+        if not tag:
+            pg.get_by_label("Pair", exact=True).click()
+            options = pg.get_by_role("option").all_inner_texts()
+            pg.keyboard.press("Escape")
+            choose(pg, "Pair", next((o for o in options if o.endswith("⚠")), options[1]))
+            pg.wait_for_timeout(3000)
+            pg.screenshot(path=str(out / "survey_pair.png"))
+            choose(pg, "Stem", _option(pg, "Stem", 1))
+            pg.wait_for_timeout(4000)
+            pg.screenshot(path=str(out / "survey_stem.png"))
+        context.close()

@@ -220,6 +220,10 @@ def test_the_apps_survey_view_draws_the_map_pairs_and_stems_with_names_as_text(r
         v.set_view(pair=None, stem=0)
         assert v.drawer.wait_idle(60)
         assert read(v.panel.title).strip() == "Stem 1" and "heights above ground" in v.panel.table
+        # Every station its own colour: twelve kept apart as the scan colours are.
+        from treereg_viewer.palette import MIN_CHANNEL_GAP, station_color
+        colours = np.array([station_color(k) for k in range(12)])
+        assert all(np.abs(colours[i] - colours[j]).max() >= MIN_CHANNEL_GAP for i in range(12) for j in range(i))
     finally:
         app.close()
         server.stop()

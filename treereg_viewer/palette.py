@@ -47,17 +47,22 @@ def distinct_from_scans(rgb: tuple[int, int, int] | np.ndarray) -> bool:
     return all(int(np.abs(c - np.asarray(s)).max()) >= MIN_CHANNEL_GAP for s in SCAN_COLORS)
 
 
-#: A survey's stations: the scan colours, then more, far apart in hue (a 6 x 6 grid has 36 stations).
+#: A survey's stations after the scan colours: six more, each apart from the others and from every scan
+#: colour (`MIN_CHANNEL_GAP`), none yellow (a stem's ring) or grey (left out); then hues by the golden angle.
+MORE_STATION_COLORS: tuple[tuple[int, int, int], ...] = (
+    (140, 86, 75), (230, 110, 190), (150, 150, 20), (20, 30, 110), (0, 110, 100), (120, 0, 40),
+)
 _GOLDEN = 0.618033988749895
 
 
 def station_color(index: int) -> tuple[int, int, int]:
-    """The colour of survey station `index`: the scan colours for the first six, then hues spread by
-    the golden angle (no two neighbours in the list alike)."""
-    if index < len(SCAN_COLORS):
-        return SCAN_COLORS[index]
+    """The colour of survey station `index`: the scan colours, then `MORE_STATION_COLORS`, then hues
+    spread by the golden angle (a 6 x 6 grid has 36 stations; neighbours in the list stay apart)."""
+    fixed = SCAN_COLORS + MORE_STATION_COLORS
+    if index < len(fixed):
+        return fixed[index]
     h = (0.11 + index * _GOLDEN) % 1.0
-    r, g, b = colorsys.hsv_to_rgb(h, 0.75, 0.85 if index % 2 else 0.65)
+    r, g, b = colorsys.hsv_to_rgb(h, 0.75, 0.85 if index % 2 else 0.6)
     return int(r * 255), int(g * 255), int(b * 255)
 
 

@@ -473,8 +473,8 @@ class SurveyViewer:
                 d = float(np.linalg.norm(ln.ends[1] - ln.ends[0]))
                 self._camera(ln.mid + np.array([0.0, -0.55 * d - 2, 0.45 * d + 3]), ln.mid)
         elif v.stem is not None and v.stem < len(m.stems):
-            at = m.stems[v.stem].xyz + np.array([0.0, 0.0, 1.0])
-            self._camera(at + np.array([0.0, -3.5, 2.5]), at)
+            at = m.stems[v.stem].xyz + np.array([0.0, 0.0, 0.7])
+            self._camera(at + np.array([1.2, -2.4, 1.0]), at)
 
     def _camera(self, position: np.ndarray, look_at: np.ndarray) -> None:
         if self.client is None:

@@ -213,7 +213,7 @@ def draw_stem(scene: viser.SceneApi, s: StemInspection, m: SurveyMap) -> list[An
         if rings:
             h.append(scene.add_line_segments(f"{root}/s{v.station}/circles", np.concatenate(rings).astype(np.float32),
                                              station_color(v.station), thickness=2.0, thickness_units="screen"))
-    h.append(scene.add_label(f"{root}/name", f"stem {s.index + 1}", position=tuple(s.xyz + [0, 0, 2.5]),
+    h.append(scene.add_label(f"{root}/name", f"stem {s.index + 1}", position=(*s.xyz[:2], s.heights[1] + 0.3),
                              anchor="bottom-center"))
     return h
 
@@ -473,8 +473,10 @@ class SurveyViewer:
                 d = float(np.linalg.norm(ln.ends[1] - ln.ends[0]))
                 self._camera(ln.mid + np.array([0.0, -0.55 * d - 2, 0.45 * d + 3]), ln.mid)
         elif v.stem is not None and v.stem < len(m.stems):
-            at = m.stems[v.stem].xyz + np.array([0.0, 0.0, 0.7])
-            self._camera(at + np.array([1.2, -2.4, 1.0]), at)
+            lo, hi = inspect_stem(snap.survey, m.stems[v.stem]).heights
+            at = np.array([*m.stems[v.stem].xyz[:2], (lo + hi) / 2])
+            d = max(hi - lo, 1.5) * 0.9 + 1.0  # the whole column in view
+            self._camera(at + np.array([0.45 * d, -0.9 * d, 0.25 * d]), at)
 
     def _camera(self, position: np.ndarray, look_at: np.ndarray) -> None:
         if self.client is None:

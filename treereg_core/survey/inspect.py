@@ -331,6 +331,14 @@ class StemInspection:
     radius_m: float
     views: tuple[StemView, ...]
 
+    @property
+    def heights(self) -> tuple[float, float]:
+        """The lowest and highest section centre any station placed (m, the reference frame's z);
+        breast height alone when none was traced."""
+        z = np.concatenate([v.circles[:, 2] for v in self.views]) if self.views else np.zeros(0)
+        z = z[np.isfinite(z)]
+        return (float(z.min()), float(z.max())) if len(z) else (float(self.xyz[2]), float(self.xyz[2]))
+
 
 def inspect_stem(survey: Survey, stem: PlotStem) -> StemInspection:
     """A plot stem's sections from every station that sees it, placed (see `StemView`)."""

@@ -540,7 +540,7 @@ class Controller:
         def progress(fraction: float, text: str) -> None:
             self._pause_for_tabs()
             for fn in self._progress_listeners:
-                fn(fraction, f"Survey: {text}")
+                fn(fraction, f"Survey: {text.replace(' -> ', ' → ')}")
 
         t0 = time.perf_counter()
         try:

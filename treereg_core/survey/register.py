@@ -17,9 +17,9 @@ the scans (`prepare.level.as_given`), as transforms.json wants them.
 from __future__ import annotations
 
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass, replace
-from typing import Sequence
+from typing import Callable, Sequence, TypeVar
 
 import numpy as np
 from scipy.sparse.csgraph import minimum_spanning_tree
@@ -34,6 +34,9 @@ from ..verify.evidence import FAILED, UNVERIFIED, VERIFIED
 from ..verify.graph import Edge, Placement, place_scans
 from .pair_fit import PairFit, register_pair
 from .stations import SurveyStation, survey_station
+
+T = TypeVar("T")
+R = TypeVar("R")
 
 #: A pair's stems must spread at least this far (m, the smaller principal spread) to hold its turn.
 _MIN_SPREAD_M = 0.5
@@ -105,7 +108,8 @@ def register_survey(scans: Sequence[Scan], params: Params, *, workers: int = 1,
     with one_blas_thread(), ThreadPoolExecutor(max(1, workers)) as pool:
         t0 = time.perf_counter()
         say(0.0, "stations: ground and stems")
-        stations = tuple(pool.map(lambda s: survey_station(s, params), scans))
+        stations = tuple(_each(pool, lambda s: survey_station(s, params), scans, say, 0.0, 0.4,
+                               lambda k, s: f"{k} of {len(scans)} stations reduced ({s.name})"))
         seconds["stations"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         say(0.4, "stem maps")
@@ -127,7 +131,8 @@ def register_survey(scans: Sequence[Scan], params: Params, *, workers: int = 1,
         seconds["stem maps"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         say(0.5, f"{len(chosen)} pairs on their shared stems")
-        fits = list(pool.map(lambda ij: register_pair(stations[ij[0]], stations[ij[1]], hyps[ij], sv), chosen))
+        fits = _each(pool, lambda ij: register_pair(stations[ij[0]], stations[ij[1]], hyps[ij], sv), chosen, say, 0.5, 0.9,
+                     lambda k, ij: f"{k} of {len(chosen)} pairs fitted ({stations[ij[1]].name} -> {stations[ij[0]].name})")
         seconds["pairs"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     say(0.9, "placing every station")
@@ -137,6 +142,16 @@ def register_survey(scans: Sequence[Scan], params: Params, *, workers: int = 1,
     say(1.0, "done")
     return Survey(scans=tuple(scans), stations=stations, shared=shared, pairs=pairs, placements=placements,
                   seconds=seconds)
+
+
+def _each(pool: ThreadPoolExecutor, fn: Callable[[T], R], items: Sequence[T], say: Progress, start: float, end: float,
+          text: Callable[[int, T], str]) -> list[R]:
+    """`fn` over `items` on the pool, in their order, the progress told (on the calling thread) as each
+    finishes, from `start` to `end` of the whole."""
+    futures = {pool.submit(fn, it): k for k, it in enumerate(items)}
+    for done, f in enumerate(as_completed(futures), 1):
+        say(start + (end - start) * done / max(len(items), 1), text(done, items[futures[f]]))
+    return [f.result() for f in futures]
 
 
 def survey_pairs(shared: np.ndarray, neighbours: int, min_stems: int) -> list[tuple[int, int]]:

@@ -94,14 +94,16 @@ class SurveyDrawer(Drawer):
                  on_error: Callable[[str], None], give_way: Callable[[float], None] | None,
                  on_map: Callable[[Survey, SurveyMap], None]) -> None:
         self._maps: dict[tuple[int, int], SurveyMap] = {}
+        self._maps_lock = threading.Lock()  # a click (viser's threads) asks for the map too
         self._on_map = on_map
         super().__init__(scene, atomic, panel, get_snapshot, get_view, derived, on_error=on_error, give_way=give_way)
 
     def survey_map(self, survey: Survey, max_points: int) -> SurveyMap:
         key = (id(survey), max_points)
-        if key not in self._maps:
-            self._maps = {key: survey_map(survey, max_points)}  # the latest survey's only
-        return self._maps[key]
+        with self._maps_lock:
+            if key not in self._maps:
+                self._maps = {key: survey_map(survey, max_points)}  # the latest survey's only
+            return self._maps[key]
 
     def draw(self, latest: Snapshot, view: Any) -> None:  # the one-tree Drawer's `draw`, for a survey
         survey = latest.survey

@@ -199,7 +199,8 @@ def errors_of(run: ToolRun, name: str, T_true: np.ndarray, pts: np.ndarray) -> t
     return rotation_error_deg(T, T_true), mean_displacement(T, T_true, pts) * 1000.0
 
 
-def measure(s: Survey, args, rep: Report, flags: list[str], have_sylva: bool) -> None:
+def measure(s: Survey, args, rep: Report, flags: list[str], have_sylva: bool) -> dict[str, Any]:
+    """One survey's tables (above); returns treereg's row of the scaling table."""
     full = _label(s.spec)
     rep.say(f"### {s.label}" + (f" ({full})" if full != s.label else ""))
     rep.say()
@@ -262,9 +263,34 @@ def measure(s: Survey, args, rep: Report, flags: list[str], have_sylva: bool) ->
     for run in (tr, sy):
         if run is not None and run.error:
             rep.say(f"- {run.error}")
-    if sy is None:
+    if sy is None and not args.no_sylva:
         rep.say(f"- {NOT_INSTALLED}")
     rep.say()
+    tr_disp = [e[1] for e in errs["tr"] if e[1] is not None]
+    stages = {}
+    if (work / "treereg" / "transforms.json").is_file():
+        stages = json.loads((work / "treereg" / "transforms.json").read_text()).get("stage_seconds", {})
+    return {"label": s.label, "stations": len(names), "points": n_points, "seconds": tr.seconds, "peak_mb": tr.peak_mb,
+            "verified": n_verified, "median": float(np.median(tr_disp)) if tr_disp else None,
+            "worst": max(tr_disp) if tr_disp else None, "stages": stages}
+
+
+#: The scaling table's surveys: 9, 16, 36 and 60 stations.
+SCALING = ("3x3 leaf-off", "4x4", "6x6", "10x6")
+
+
+def scaling_table(rows: list[dict[str, Any]]) -> str:
+    """treereg's time and memory against the station count (times as ratios to the first (smallest) survey's)."""
+    base = rows[0]["seconds"] or float("nan")
+    out = []
+    for r in rows:
+        st = r["stages"]
+        stage_text = ", ".join(f"{k} {v:.1f}" for k, v in st.items() if k != "read") or "—"
+        out.append([r["label"], str(r["stations"]), f"{r['points'] / 1e6:.1f}", f"{r['seconds']:.1f}",
+                    f"{r['seconds'] / base:.2f}", f"{r['seconds'] / r['stations']:.2f}", f"{r['peak_mb']:.0f}",
+                    stage_text, f"{r['verified']} of {r['stations'] - 1}", _fmt(r["median"], 2), _fmt(r["worst"], 2)])
+    return md_table(["survey", "stations", "M points", "wall (s)", "wall (× the first row's)", "s a station",
+                     "peak RSS (MB)", "stages (s)", "verified", "median (mm)", "worst (mm)"], out)
 
 
 def main() -> int:
@@ -281,8 +307,14 @@ def main() -> int:
     ap.add_argument("--timeout", type=float, default=None, help="seconds allowed to each tool on a survey")
     ap.add_argument("--list", action="store_true", help="list the surveys' labels and stop")
     ap.add_argument("--out", type=Path, help="also write the report to this file")
+    ap.add_argument("--no-sylva", action="store_true", help="treereg alone")
+    ap.add_argument("--scaling", action="store_true",
+                    help=f"treereg alone on the surveys of 9, 16, 36 and 60 stations ({', '.join(SCALING)}), then one "
+                    "table of its time and peak memory against the station count")
     args = ap.parse_args()
     todo, source = surveys(args.small, args.plot)
+    if args.scaling:
+        args.only, args.no_sylva = list(SCALING), True
     if args.list:
         for s in todo:
             print(s.label)
@@ -294,13 +326,18 @@ def main() -> int:
             print(f"no survey matches {args.only}; --list lists them")
             return 2
     rep = Report()
-    have_sylva = sylva_available()
+    have_sylva = None if args.no_sylva else sylva_available()
     flags = _register_flags(args.one_tree)
     rep.say(f"Surveys: {source}. treereg at {_git_head()}; "
-            + (f"{sylva_version()} (its own venv, defaults)." if have_sylva else NOT_INSTALLED + "."))
+            + ("Sylva not run (--no-sylva)." if have_sylva is None else
+               f"{sylva_version()} (its own venv, defaults)." if have_sylva else NOT_INSTALLED + "."))
     rep.say()
-    for s in todo:
-        measure(s, args, rep, flags, have_sylva)
+    rows = [measure(s, args, rep, flags, bool(have_sylva)) for s in todo]
+    if args.scaling:
+        rep.say("### Scaling")
+        rep.say()
+        rep.say(scaling_table(rows))
+        rep.say()
     rep.save(args.out)
     return 0
 

@@ -58,20 +58,16 @@ def pytest_collection_modifyitems(config, items):
     """Browser and soak tests are slow too: `pytest -m "not slow"` leaves them out (the inner loop).
 
     Under pytest-xdist with `--dist loadgroup` (README's command: two workers, one per core) a test
-    module stays on one worker (its module fixtures are made once) and every browser test on the same
-    one: one Chromium at a time. (xdist starts the groups with the most tests first, so the browser
-    group, a few long tests, starts after a while; started first it took longer: 669 s against 612 s,
-    the other worker's registrations slowing the pages.) Tests that bound a time (`timed`) run in a
-    pass of their own before, on a machine doing nothing else."""
+    module stays on one worker (its module fixtures — a registration, an app, a Chromium — are made
+    once). Browser modules are groups like the rest: held on one worker they were its long pole (8 of
+    the suite's 10 minutes, the other worker idle for the last 2.5); spread over both, two Chromiums
+    may run side by side. Tests that bound a time (`timed`) run in a pass of their own before, on a
+    machine doing nothing else."""
     for item in items:
         if item.get_closest_marker("browser") or item.get_closest_marker("soak"):
             item.add_marker(pytest.mark.slow)
     if not (getattr(config.option, "loadgroup", False) or getattr(config.option, "dist", "no") == "loadgroup"):
         return  # (xdist's workers are told by `loadgroup`, the controller by `dist`)
 
-    def chromium(item) -> bool:
-        return item.get_closest_marker("browser") is not None or "browser" in getattr(item, "fixturenames", ())
-
     for item in items:
-        item.add_marker(pytest.mark.xdist_group("browser" if chromium(item) else item.nodeid.split("::")[0]))
-    items.sort(key=lambda item: not chromium(item))  # (stable) the browser group first among groups of its size
+        item.add_marker(pytest.mark.xdist_group(item.nodeid.split("::")[0]))

@@ -6,14 +6,14 @@ import argparse
 import json
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 from treereg_core import params as P
 from treereg_core.coarse.start import StartPose
 from treereg_core.errors import ConfigError
 from treereg_core.io.naming import scan_names
 from treereg_core.io.start import read_start
-from treereg_core.io.scans import ScanRecord, read_records, record_to_scan
+from treereg_core.io.scans import MULTI_SCAN_EXTENSIONS, READ_EXTENSIONS, ScanRecord, extension, read_records, record_to_scan
 from treereg_core.parallel import default_workers
 from treereg_core.params import Params
 from treereg_core.scan import Scan
@@ -172,3 +172,28 @@ def read_scans(files: list[str], params: Params, scanner_positions: list[list[fl
                            params.prepare.angular_step_deg, params.prepare.returns, positions[k] if positions else None)
             for k, ((f, r, n), name) in enumerate(zip(records, names))]
 
+
+def scan_readers(files: list[str], params: Params,
+                 scanner_positions: list[list[float]] | None = None) -> list[tuple[str, Callable[[], Scan]]] | None:
+    """Each file's scan as (its name, a function that reads it), named as `read_scans` names them,
+    nothing read yet: a survey reads its stations one at a time. None when a file may hold several
+    scans (E57, PTX): their names and count are known only once read (`read_scans` then)."""
+    if any(extension(f) in MULTI_SCAN_EXTENSIONS for f in files):
+        return None
+    for f in files:  # a missing file or unknown format is said now, not after the stations before it
+        if not Path(f).is_file() or extension(f) not in READ_EXTENSIONS:
+            read_records(f)  # raises the one-line ScanError naming it
+    positions = [tuple(p) for p in (scanner_positions or [])]
+    if positions and len(positions) != len(files):
+        raise ConfigError(f"--scanner-position was given {len(positions)} time(s) for {len(files)} scans; "
+                          "give it once per scan, in order")
+    names = scan_names([(f, Path(f).name) for f in files])  # a single-scan file's record is named by its file
+
+    def reader(k: int, f: str, name: str) -> Callable[[], Scan]:
+        def read() -> Scan:
+            (r,) = read_records(f)
+            return record_to_scan(replace(r, name=name), Path(f), params.prepare.angular_step_deg,
+                                  params.prepare.returns, positions[k] if positions else None)
+        return read
+
+    return [(name, reader(k, f, name)) for k, (f, name) in enumerate(zip(files, names))]

@@ -11,16 +11,19 @@ import os
 import sys
 import time
 from pathlib import Path
+from typing import Callable
 
 from treereg_core.errors import ConfigError, ScanError
 from treereg_core.io import atomic
 from treereg_core.io.atomic import check_distinct, check_output_file
 from treereg_core.io.e57 import write_registered_e57
 from treereg_core.io.merged import write_merged
+from treereg_core.batch.runner import dask_client
 from treereg_core.io.scans import WRITE_EXTENSIONS, extension
 from treereg_core.io.transforms import (TransformFile, export_paths, registered_e57_name, registration_file, stale_exports,
                                         write_exports, write_transforms)
 from treereg_core.params import Params
+from treereg_core.scan import Scan
 from treereg_core.pipeline import register
 from treereg_core.survey.mode import is_survey
 from treereg_core.survey.register import register_survey
@@ -33,7 +36,7 @@ from treereg_core.verify.summary import scan_summaries, summary_table
 from treereg_core.text import shown
 
 from .common import (add_initial_arg, add_param_args, add_workers_arg, initial_files, load_params, read_initial,
-                     read_scans, workers_of)
+                     read_scans, scan_readers, workers_of)
 from .progress import ProgressBar
 
 #: `--until` choice -> the last stage run ("fine" includes the verification and the joint placement).
@@ -80,6 +83,9 @@ def add(sub: argparse._SubParsersAction) -> None:
     mode.add_argument("--one-tree", action="store_true",
                       help="register the one tree the stations surround, even with more than 8 stations (survey.mode; "
                       "--tree-at keeps it too)")
+    p.add_argument("--dask", metavar="SCHEDULER_ADDRESS",
+                   help="a survey's stations and pairs on this Dask cluster (tcp://host:8786; its workers must reach "
+                   "the scan files; needs treereg[dask]): a large survey as a cluster job")
     p.set_defaults(func=run)
 
 
@@ -112,25 +118,27 @@ def run(args: argparse.Namespace) -> int:
         params = params.with_value("survey", "mode", "survey" if args.survey else "one_tree")
     starts = read_initial(args.initial)  # a bad start file is said before the scans are read
     workers = workers_of(args)
+    # A survey's stations are read one at a time, each reduced to its summary before the next
+    # (60 stations: 1 GB of points not held); files that may hold several scans are read first.
+    readers = scan_readers(args.scans, params, args.scanner_position)
+    if readers is not None and len(readers) >= 2 and is_survey(len(readers), params):
+        _check_matrices(args, [name for name, _ in readers], outputs, inputs, out)
+        _check_survey(args, starts)
+        return _run_survey(args, [read for _, read in readers], params, out=out, e57=e57, inputs=inputs,
+                           workers=workers, read_s=None)
     t_read = time.perf_counter()
     scans = read_scans(args.scans, params, args.scanner_position)
     read_s = time.perf_counter() - t_read
     if len(scans) < 2:
         raise ConfigError("register needs at least two scans (the first is the reference); "
                           f"{', '.join(args.scans)} hold(s) {len(scans)}")
-    if args.exports:  # the matrix files are named after the scans (an E57 names its own)
-        matrices = export_paths(out.parent, [s.name for s in scans], out.name)[1:]
-        check_distinct(outputs + [("an --exports matrix file (named after --out)", p) for p in matrices], inputs)
-        for path in matrices:
-            check_output_file(path)
+    _check_matrices(args, [s.name for s in scans], outputs, inputs, out)
     if is_survey(len(scans), params):
-        if starts:
-            raise ConfigError("--initial: start poses are for the one-tree registration; a survey places its stations "
-                              "from their stem maps (give --one-tree to register one tree from a start)")
-        if args.until != "fine":
-            raise ConfigError(f"--until {args.until}: a survey has no coarse stage of its own (its stem maps place "
-                              "every station); leave --until out, or give --one-tree")
+        _check_survey(args, starts)
         return _run_survey(args, scans, params, out=out, e57=e57, inputs=inputs, workers=workers, read_s=read_s)
+    if args.dask:
+        raise ConfigError(f"--dask {args.dask}: a cluster runs a survey's stations and pairs (more than 8 stations, or "
+                          "--survey); for many trees, `treereg batch --dask` runs each tree on the cluster")
     if args.report:
         raise ConfigError(f"{args.report}: --report is a survey's report (more than 8 stations, or --survey); "
                           "for one tree, transforms.json's quality block and the app show each pair")
@@ -177,24 +185,53 @@ def run(args: argparse.Namespace) -> int:
     return 1 if lines else 0
 
 
+def _check_matrices(args: argparse.Namespace, names: list[str], outputs: list, inputs: list, out: Path) -> None:
+    """--exports' matrix files (named after the scans; an E57 names its own) checked writable and distinct."""
+    if args.exports:
+        matrices = export_paths(out.parent, names, out.name)[1:]
+        check_distinct(outputs + [("an --exports matrix file (named after --out)", p) for p in matrices], inputs)
+        for path in matrices:
+            check_output_file(path)
+
+
+def _check_survey(args: argparse.Namespace, starts: dict) -> None:
+    """What a survey refuses, said before a station is read or registered."""
+    if starts:
+        raise ConfigError("--initial: start poses are for the one-tree registration; a survey places its stations "
+                          "from their stem maps (give --one-tree to register one tree from a start)")
+    if args.until != "fine":
+        raise ConfigError(f"--until {args.until}: a survey has no coarse stage of its own (its stem maps place "
+                          "every station); leave --until out, or give --one-tree")
+
+
 def _run_survey(args: argparse.Namespace, scans: list, params: Params, *, out: Path, e57: Path | None,
-                inputs: list, workers: int | None, read_s: float) -> int:
-    """`register` of a whole-plot survey (treereg_core/survey): the same files, one row per station."""
+                inputs: list, workers: int | None, read_s: float | None) -> int:
+    """`register` of a whole-plot survey (treereg_core/survey): the same files, one row per station.
+    `scans` are Scans, or functions that read them one at a time (`read_s` None: reading is part of
+    the stations' time)."""
+    client = dask_client(args.dask) if args.dask else None  # an unreachable cluster is said before any work
     t0 = time.perf_counter()
     bar = ProgressBar("survey")
-    survey = register_survey(scans, params, workers=workers or os.cpu_count() or 1, progress=bar)
+    try:
+        survey = register_survey(scans, params, workers=workers or os.cpu_count() or 1, progress=bar, client=client)
+    finally:
+        if client is not None:
+            client.close()
     bar.finish()
     seconds = time.perf_counter() - t0
     verdicts = survey.verdicts()
     metrics = survey.pair_metrics()
-    tf = registration_file(scans, survey.transforms(), params, stage="survey", metrics=metrics, verdicts=verdicts,
+    headers = list(survey.scans)
+    tf = registration_file(headers, survey.transforms(), params, stage="survey", metrics=metrics, verdicts=verdicts,
                            quality=survey_quality(survey), keep_unverified=args.keep_unverified,
-                           sources={s.name: str(s.source.resolve()) if s.source.exists() else str(s.source) for s in scans},
-                           seconds=seconds, stage_seconds={"read": read_s, **survey.seconds})
-    report = survey_report_html(survey, title=f"treereg survey: {len(scans)} stations") if args.report else None
-    written, stale = _write_results(args, scans, tf, out=out, e57=e57, inputs=inputs, report=report)
+                           sources={s.name: str(s.source.resolve()) if s.source.exists() else str(s.source) for s in headers},
+                           seconds=seconds, stage_seconds={**({"read": read_s} if read_s is not None else {}), **survey.seconds})
+    report = survey_report_html(survey, title=f"treereg survey: {len(headers)} stations") if args.report else None
+    # The E57 and the merged cloud hold every point: the stations are read again for them.
+    points = (lambda: [s if isinstance(s, Scan) else s() for s in scans])
+    written, stale = _write_results(args, headers, tf, out=out, e57=e57, inputs=inputs, report=report, points=points)
     if args.details:
-        _print_details(metrics, scans)
+        _print_details(metrics, headers)
     print()
     for line in survey_table(survey):
         print(f"  {line}")
@@ -208,8 +245,10 @@ def _run_survey(args: argparse.Namespace, scans: list, params: Params, *, out: P
 
 
 def _write_results(args: argparse.Namespace, scans: list, tf: TransformFile, *, out: Path, e57: Path | None,
-                   inputs: list, report: str | None = None) -> tuple[list, list]:
-    """Write the transform file and what was asked beside it as one batch; (written, stale removed)."""
+                   inputs: list, report: str | None = None,
+                   points: Callable[[], list[Scan]] | None = None) -> tuple[list, list]:
+    """Write the transform file and what was asked beside it as one batch; (written, stale removed).
+    `points` gives the scans with their points where `scans` are headers (a survey's)."""
     # An earlier --exports run's matrices of scans this run refuses go with this one's files.
     stale = stale_exports(out.parent, tf, out.name, inputs) if args.exports else []
     # One batch: the transform file, its matrices, the E57 and the merged cloud all land, or none.
@@ -217,11 +256,12 @@ def _write_results(args: argparse.Namespace, scans: list, tf: TransformFile, *, 
         with atomic.batch():
             written = (write_exports(out.parent, tf, name=out.name, inputs=inputs) if args.exports
                        else [write_transforms(out, tf)])
+            full = (points() if points is not None else scans) if e57 is not None or args.merged else []
             if e57 is not None:
-                written.append(write_registered_e57(e57, scans, tf))
+                written.append(write_registered_e57(e57, full, tf))
             if args.merged:
                 # The same scans as "transforms": unverified guesses only with --keep-unverified.
-                written.append(write_merged(args.merged, scans, tf.transforms))
+                written.append(write_merged(args.merged, full, tf.transforms))
             if report is not None:
                 written.append(atomic.write_text_atomic(args.report, report))
     except OSError as e:  # one line naming the file, not a traceback

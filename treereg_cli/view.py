@@ -46,6 +46,9 @@ def add(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--host", default="127.0.0.1",
                    help="address to bind (default 127.0.0.1: this machine only; anything else lets other "
                    "machines upload files and write exports, without a login)")
+    p.add_argument("--projector", action="store_true",
+                   help="open every tab in projector mode: text, 3-D labels, lines and points 1.6 times larger "
+                   "for a room, and the arrow keys and Space step too (each tab can switch it in its Teach tab)")
     p.add_argument("--max-upload-mb", type=float, default=DEFAULT_MAX_UPLOAD_MB, metavar="MB",
                    help=f"largest scan file the browser may upload (default {DEFAULT_MAX_UPLOAD_MB:g} MB)")
     p.add_argument("--max-upload-points", type=int, default=MAX_UPLOAD_POINTS, metavar="N",
@@ -111,7 +114,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"treereg view: {len(scans)} stations: the survey view (--one-tree steps through one tree's stages)",
               flush=True)
     serve(Controller(scans, params, truth, workers=workers, survey=survey), host=args.host, port=args.port, out_dir=out_dir,
-          max_upload_bytes=int(args.max_upload_mb * 1e6), max_upload_points=args.max_upload_points)
+          max_upload_bytes=int(args.max_upload_mb * 1e6), max_upload_points=args.max_upload_points,
+          projector=args.projector)
     return 0
 
 

@@ -6,6 +6,9 @@ Pure computation, no UI. One import for scripts::
     reg = register([read_scan("scan1.ply"), read_scan("scan2.ply")], Params())
     reg.transforms["scan2.ply"]          # 4x4 T_ref_scan
 
+A whole-plot survey (a grid of stations, not one tree they surround) is `register_survey`: each
+station given as a Scan or a function that reads it, `Survey.transforms()` its result.
+
 The stages (`STAGES`, in `treereg_core.stages`) run in a `Pipeline` that caches each one. The
 names below are loaded on first use, so importing a submodule (or `treereg --help`) stays quick.
 """
@@ -30,6 +33,7 @@ _API: dict[str, str] = {
     "PreparedScan": "prepare.ground", "MatchResult": "coarse.matching", "CoarseResult": "coarse.estimate",
     "SliceResult": "fine.slicing", "SliceArcs": "fine.arcs", "SectionsResult": "fine.sections",
     "FineResult": "fine.pose", "IcpResult": "evaluate.icp", "PairReport": "evaluate.report",
+    "register_survey": "survey.register", "Survey": "survey.register",
 }
 
 __all__ = ["__version__", *_API]

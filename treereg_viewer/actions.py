@@ -24,6 +24,7 @@ class AppActions(Protocol):
     uploads: UploadReceiver
     max_upload_bytes: int
     max_upload_points: int
+    read_only: bool  # following the presenter: the parameters and runs are the presenter's
 
     @property
     def view(self) -> ViewState: ...
@@ -50,6 +51,8 @@ class AppActions(Protocol):
 
     def load_params(self, params: Params, source: str, note: str = "") -> None: ...
 
+    def choose_hypothesis(self, pair: str, candidate: str | None) -> None: ...
+
     def send_file(self, client: Any, filename: str, data: bytes) -> None: ...
 
 
@@ -66,7 +69,13 @@ class AppHost(Protocol):
     server: Any
     presenter: Any
 
-    def set_presenter(self, viewer: Any, on: bool) -> None: ...
+    projector: bool
+
+    def set_presenter(self, viewer: Any, on: bool) -> bool: ...
+
+    def hand_over(self, viewer: Any, to: str) -> bool: ...
+
+    def changed_by(self, by: Any, what: str, undo: Any) -> None: ...
 
     def broadcast(self, presenter: Any) -> None: ...
 

@@ -141,6 +141,8 @@ class AlignPanel:
             "(the stem low and high, a branch to each side). *Refine from here* then runs the stages from "
             "*4 Coarse* on from your alignment; the verdict judges it as any pose (a wrong one is refused).")
         self.scan_choice = gui.add_dropdown("Scan", (NONE,), hint="A scan whose verdict is ✗ failed or ⚠ unverified.")
+        #: Set while the tab follows the presenter: no start pose given, nothing run from here.
+        self.locked = False
         self.start_button = gui.add_button("Align this scan by hand", icon=viser.Icon.HAND_CLICK, disabled=True)
         self.stop_button = gui.add_button("Stop aligning", icon=viser.Icon.X, color="gray", visible=False)
         self.status_md = gui.add_markdown("")
@@ -208,6 +210,9 @@ class AlignPanel:
         """A start pose file received from the browser (`io.start`, as `register --initial` reads it):
         a transforms.json's entries for every loaded target scan it names, or a matrix for the scan
         chosen above; each given to the pipeline, which runs from there. A bad file: one message."""
+        if self.locked:  # the tab follows the presenter: start poses and runs are the presenter's
+            discard(path)
+            return
         snap = self.controller.snapshot
         names = [s.name for s in snap.scans]
         name = Path(filename).name or "upload"
@@ -466,7 +471,7 @@ class AlignPanel:
         """Refine from here: the fit becomes the scan's start pose and the stages from coarse on run."""
         name = self.state.scan
         pose = self.start_pose()
-        if name is None or pose is None:
+        if name is None or pose is None or self.locked:
             return
         self.controller.start(name, pose)
         self.end()
@@ -475,7 +480,7 @@ class AlignPanel:
 
     def forget(self) -> None:
         name = str(self.scan_choice.value)
-        if name in self.controller.snapshot.starts:
+        if name in self.controller.snapshot.starts and not self.locked:
             self.controller.start(name, None)
 
     # ---- drawing and text ----------------------------------------------------------------------------

@@ -5,6 +5,12 @@ results it publishes), the `Derived` cache (cross-sections and residuals compute
 exports folder and who presents. Per tab, a `viewer.Viewer`: its own stage, pair, sliders,
 cross-section and camera, GUI and scene, and drawing thread.
 
+Presenting (issue 32 item 2): one tab at most presents ("Others follow me"); the others follow it and,
+while they follow, cannot change the parameters or run (their inputs are greyed out). Only the
+presenter hands the lead over (to a tab it names) or gives it up; a tab cannot take it while another
+presents. A change of the parameters made in one tab is shown in every other, naming the tab and the
+change, with an Undo.
+
 Layout of a tab: on the right the control panel (stage selector, Previous/Next, Run, progress,
 messages; tabs "Stage" with one folder per stage, "Scans", "Files", "Teach"); on the left a wide
 docked panel with the current stage's images, plots and tables, or the cross-section; the 3-D
@@ -72,12 +78,18 @@ class TreeregApp:
         Largest scan file a browser may upload (uploads stream to a temporary file).
     max_upload_points
         Most points an uploaded scan file may announce (checked before any is read).
+    projector
+        Open every tab in projector mode (large text, labels, lines and points).
     """
 
     def __init__(self, server: viser.ViserServer, controller: Controller, out_dir: Path | None = None,
                  autorun: bool = True, tabs: Literal["each", "shared"] = "shared",
-                 max_upload_bytes: int = MAX_UPLOAD_BYTES, max_upload_points: int = MAX_UPLOAD_POINTS) -> None:
+                 max_upload_bytes: int = MAX_UPLOAD_BYTES, max_upload_points: int = MAX_UPLOAD_POINTS,
+                 projector: bool = False) -> None:
         self.server = server
+        #: Tabs open in projector mode (`treereg view --projector`); each tab has its own switch.
+        self.projector = bool(projector)
+        self._tab_count = 0
         self.controller = controller
         self.out_dir = Path(out_dir) if out_dir is not None else None
         self.derived = Derived()
@@ -100,7 +112,7 @@ class TreeregApp:
         controller.subscribe(self._on_snapshot)
         controller.subscribe_progress(self._on_progress)
         if tabs == "shared":
-            self._viewers[None] = self._make_viewer(self, server.gui, server.scene, None, server.atomic)
+            self._viewers[None] = self._make_viewer(self, server.gui, server.scene, None, server.atomic, name="this tab")
         else:
             server.on_client_connect(self._connect)
             server.on_client_disconnect(self._disconnect)
@@ -112,12 +124,16 @@ class TreeregApp:
         # A tab opening while the pipeline computes: its GUI is built, its first view drawn and shown
         # while the worker gives way (the tab's drawer extends the pause once it has drawn).
         self.controller.give_way(CONNECT_GIVE_WAY_S)
-        v = self._make_viewer(self, client.gui, client.scene, client, client.atomic)
+        with self._lock:
+            self._tab_count += 1
+            name = f"tab {self._tab_count}"
+        v = self._make_viewer(self, client.gui, client.scene, client, client.atomic, name=name)
         with self._lock:
             self._viewers[client.client_id] = v
             presenter = self.presenter
         if presenter is not None:  # a tab joining a class follows the presenter from the start
             v.show_presenter(presenter)
+            self._offer_tabs(presenter)
 
     def _disconnect(self, client: viser.ClientHandle) -> None:
         with self._lock:
@@ -127,8 +143,11 @@ class TreeregApp:
             others = list(self._viewers.values())
         if v is not None:
             v.close()
-            if self.presenter is None:
+            presenter = self.presenter
+            if presenter is None:
                 self._tell(others, None)
+            else:
+                self._offer_tabs(presenter)
 
     @staticmethod
     def _tell(viewers: list[Viewer], presenter: Viewer | None) -> None:
@@ -149,19 +168,59 @@ class TreeregApp:
             return self._viewers.get(client_id)
 
     # ---- presenting -------------------------------------------------------------------------------
-    def set_presenter(self, viewer: Viewer, on: bool) -> None:
+    def set_presenter(self, viewer: Viewer, on: bool) -> bool:
         """`viewer` starts (or stops) presenting: every other tab follows it until it unticks
-        "Follow the presenter"."""
+        "Follow the presenter". Refused (False) while another tab presents: only the presenter hands
+        the lead over (`hand_over`)."""
         with self._lock:
+            if on and self.presenter is viewer:
+                return True
+            if on and self.presenter is not None:
+                return False
             if on:
                 self.presenter = viewer
             elif self.presenter is viewer:
                 self.presenter = None
             else:
-                return
+                return True
             presenter = self.presenter
             others = [v for v in self._viewers.values() if v is not viewer]
         self._tell([*others, viewer], presenter)
+        if presenter is not None:
+            self._offer_tabs(presenter)
+        return True
+
+    def hand_over(self, viewer: Viewer, to: str) -> bool:
+        """The presenter `viewer` hands the lead to the tab named `to`, which then presents while
+        `viewer` follows it. Only the presenter can (False otherwise, or when no tab has that name)."""
+        with self._lock:
+            target = next((v for v in self._viewers.values() if v.name == to and v is not viewer), None)
+            if self.presenter is not viewer or target is None:
+                return False
+            self.presenter = target
+            everyone = list(self._viewers.values())
+        self._tell([target, *[v for v in everyone if v is not target]], target)
+        self._offer_tabs(target)
+        return True
+
+    def _offer_tabs(self, presenter: Viewer) -> None:
+        """The presenter's list of tabs it can hand the lead to."""
+        with self._lock:
+            names = [v.name for v in self._viewers.values() if v is not presenter]
+        try:
+            presenter.offer_tabs(names)
+        except Exception:
+            log.exception("could not list the tabs for the presenter")
+
+    def changed_by(self, by: Viewer, what: str, undo: Any) -> None:
+        """Tab `by` changed what every tab shares (the parameters, a hypothesis picked by hand): every
+        other tab is told what changed, and offered `undo` (a function of the tab that undoes it)."""
+        for v in self.viewers:
+            if v is not by:
+                try:
+                    v.show_changed_elsewhere(by.name, what, undo)
+                except Exception:
+                    log.exception("could not tell a tab of a change")
 
     def broadcast(self, presenter: Viewer) -> None:
         """The presenter's view changed: its followers take it over."""
@@ -292,7 +351,8 @@ def exposure_warning(host: str, port: int, out_dir: Path | None, max_upload_byte
 
 
 def serve(controller: Controller, host: str = "127.0.0.1", port: int = 8080, out_dir: Path | None = None,
-          max_upload_bytes: int = MAX_UPLOAD_BYTES, max_upload_points: int = MAX_UPLOAD_POINTS) -> None:
+          max_upload_bytes: int = MAX_UPLOAD_BYTES, max_upload_points: int = MAX_UPLOAD_POINTS,
+          projector: bool = False) -> None:
     """Start the server and the app, print the URL (tests read it), block until Ctrl-C (or SIGTERM,
     which `treereg` raises as a KeyboardInterrupt named "SIGTERM"); then close the app (its upload
     folder removed).
@@ -308,7 +368,7 @@ def serve(controller: Controller, host: str = "127.0.0.1", port: int = 8080, out
         raise ConfigError(f"--port {port}: the port is in use (another treereg view?); choose another port, "
                           "or --port 0 for any free one")
     app = TreeregApp(server, controller, out_dir=out_dir, tabs="each", max_upload_bytes=max_upload_bytes,
-                     max_upload_points=max_upload_points)
+                     max_upload_points=max_upload_points, projector=projector)
     warning = exposure_warning(host, server.get_port(), out_dir, max_upload_bytes)
     if warning:
         print(warning, file=sys.stderr, flush=True)

@@ -82,15 +82,21 @@ def _slice_points(snap: Snapshot, view: ViewState) -> np.ndarray | None:
     return apply_transform(scan_poses(snap, view)[pair.ref], pts)
 
 
-def frame(snap: Snapshot, stage: str, view: ViewState | None = None) -> CameraPose | None:
+#: A slice fills its view to this share of the half-width and half-height (the larger of the two).
+SLICE_FILL = 0.9
+
+
+def frame(snap: Snapshot, stage: str, view: ViewState | None = None,
+          aspect: float | None = None, fov_y_rad: float = FOV_Y_RAD) -> CameraPose | None:
     """A camera pose showing what stage `stage` draws (None when there are no scans): on the Arcs,
-    Fits and Fine stages the one slice the view shows, from a little more above."""
+    Fits and Fine stages the one slice the view shows, from a little more above, filling the view
+    (`aspect`: the tab's 3-D view's width / height, as its camera reports it; `SCENE_ASPECT` unknown)."""
     if not snap.scans:
         return None
     one = _slice_points(snap, view) if view is not None and stage in SLICE_STAGES else None
     if one is not None:
-        return _frame_points(snap, one[display_subset(len(one), 5000, seed=7)], elevation_deg=3 * ELEVATION_DEG,
-                             percentile=0.0)
+        return _fill(snap, one[display_subset(len(one), 5000, seed=7)], 3 * ELEVATION_DEG,
+                     aspect or SCENE_ASPECT, fov_y_rad)
     parts = [p[display_subset(len(p), 5000, seed=7)] for p in _points_to_frame(snap, stage)]
     return _frame_points(snap, np.concatenate(parts))
 
@@ -118,6 +124,30 @@ def _frame_points(snap: Snapshot, pts: np.ndarray, elevation_deg: float = ELEVAT
             break
         dist *= 1.1
     return CameraPose(tuple(float(v) for v in pos), tuple(float(v) for v in look))
+
+
+def _fill(snap: Snapshot, pts: np.ndarray, elevation_deg: float, aspect: float, fov_y_rad: float) -> CameraPose:
+    """Points seen from the reference scanner's side, `elevation_deg` above, as close as lets every one
+    of them fall within `SLICE_FILL` of the view's half-width and half-height: the nearest distance
+    along the viewing direction at which each point's sideways and upward offsets fit the
+    field of view's tangents (the slice fills the view, instead of a box's corners around it)."""
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    look = (lo + hi) / 2.0
+    tree = snap.scans[0].points.mean(axis=0)
+    d = tree[:2] / (np.linalg.norm(tree[:2]) or 1.0)
+    e = np.radians(elevation_deg)
+    back = np.array([-d[0] * np.cos(e), -d[1] * np.cos(e), np.sin(e)])  # from the look-at point to the camera
+    forward = -back
+    up = np.array([0.0, 0.0, 1.0]) - forward[2] * forward
+    up /= np.linalg.norm(up)
+    right = np.cross(forward, up)
+    tan_v = np.tan(fov_y_rad / 2.0) * SLICE_FILL
+    tan_h = tan_v * float(aspect)
+    r = pts - look
+    # A point at offset r is at depth dist - r.back from a camera `dist` behind the look-at point.
+    need = np.maximum(np.abs(r @ right) / tan_h, np.abs(r @ up) / tan_v) + r @ back
+    dist = max(float(need.max()), 0.3)
+    return CameraPose(tuple(float(v) for v in look + back * dist), tuple(float(v) for v in look))
 
 
 def frame_point(snap: Snapshot, centre: np.ndarray, radius_m: float) -> CameraPose:

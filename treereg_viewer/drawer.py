@@ -226,8 +226,9 @@ class Drawer:
 
     def draw(self, latest: Snapshot, view: ViewState) -> None:
         """Bring the scene and the panel up to date with `latest` and `view` (the whole view of the
-        run it draws: the latest, or the run before, `draw.before.drawn`)."""
-        scene = self.scene
+        run it draws: the latest, or the run before, `draw.before.drawn`). In projector mode
+        (`view.scale`) every layer is drawn with its labels, lines and points that much larger."""
+        scene: Any = self.scene if view.scale == 1.0 else ScaledScene(self.scene, view.scale)
         snap, _ = drawn(latest, view)
         # On-demand results (residuals, the cross-section) are computed before the atomic block:
         # the connection's other messages are not held back meanwhile.
@@ -244,7 +245,7 @@ class Drawer:
             branch = branches[view.branch] if view.branch is not None and view.branch < len(branches) else None
         with self._atomic():
             # The scan layer: points change only with the scans, preparation and display options.
-            key = scan_layer_key(snap, view)
+            key = (scan_layer_key(snap, view), view.scale)
             if self._keys.get("scans") != key:
                 self._replace("scans", draw_scan_layer(scene, snap, view, residuals, moved))
                 self._scan_frames = {
@@ -265,7 +266,7 @@ class Drawer:
             # or a view choice it uses.
             upto = STAGE_NAMES[: STAGE_NAMES.index(name) + 1]
             key = (name, tuple(id(snap.outputs.get(n)) for n in upto), latest.running == name, len(snap.scans),
-                   tuple(getattr(view, f) for f in fields), comparison_text(latest, view))
+                   tuple(getattr(view, f) for f in fields), comparison_text(latest, view), view.scale)
             stage_changed = self._keys.get("stage") != key
             if stage_changed:
                 handles, content = render_stage(scene, f"/{name}", latest, view)
@@ -278,7 +279,7 @@ class Drawer:
             # shown (scan3 -> scan2 where scan2 stands, not at scan1's origin).
             apply_poses({0: self._groups[name]}, [poses[pair_reference(snap, view)]])
             # The cross-section: its 3-D marker and, in section mode, the panel.
-            key = (id(cs), None if branch is None else branch.index, view.show_rejected, sectioning)
+            key = (id(cs), None if branch is None else branch.index, view.show_rejected, sectioning, view.scale)
             if self._keys.get("section") != key:
                 self._replace("section", cross_section.draw_marker(scene, "/section", cs, branch) if sectioning else [])
                 self._keys["section"] = key
@@ -316,6 +317,31 @@ class Drawer:
             except Exception:  # already removed with its parent
                 pass
         self._handles[layer] = handles
+
+
+class ScaledScene:
+    """A tab's scene as the drawing sees it in projector mode: labels, lines and points `scale` times
+    their size (a label's screen scale, a line's thickness, a cloud's point size); everything else
+    passed through. One place, so no renderer needs to know about projector mode."""
+
+    def __init__(self, scene: viser.SceneApi, scale: float) -> None:
+        self._scene = scene
+        self._scale = float(scale)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._scene, name)
+
+    def add_label(self, *args: Any, **kwargs: Any) -> Any:
+        kwargs["font_screen_scale"] = kwargs.get("font_screen_scale", 1.0) * self._scale
+        return self._scene.add_label(*args, **kwargs)
+
+    def add_line_segments(self, *args: Any, **kwargs: Any) -> Any:
+        kwargs["thickness"] = kwargs.get("thickness", 0.01) * self._scale
+        return self._scene.add_line_segments(*args, **kwargs)
+
+    def add_point_cloud(self, *args: Any, **kwargs: Any) -> Any:
+        kwargs["point_size"] = kwargs.get("point_size", 0.1) * self._scale
+        return self._scene.add_point_cloud(*args, **kwargs)
 
 
 def branch_choice(name: str, b: Any) -> str:

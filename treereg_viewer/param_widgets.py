@@ -178,6 +178,12 @@ class SectionWidgets:
         finally:
             self._syncing.on = False
 
+    def set_disabled(self, on: bool) -> None:
+        """Grey the inputs out (a tab following the presenter: its parameters are the presenter's)."""
+        for h in self.handles.values():
+            if h.disabled != on:
+                h.disabled = on
+
     def show_in_force(self, name: str, params: P.Params) -> None:
         """After a value was applied: the input shows the value in force, sent to the tab even when the
         server's copy of the input already holds it. With two tabs, a keystroke in one can cross the

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import viser
@@ -12,6 +13,7 @@ from .actions import AppActions
 from .controller import Snapshot
 from .palette import scan_color
 from .text import md
+from .uploads import discard
 
 #: File types treereg_core.io reads (the upload dialog's filter is only a hint: anything may come).
 SCAN_SUFFIXES = ".ply,.las,.laz,.xyz,.txt,.csv,.npy,.npz"
@@ -39,7 +41,7 @@ class ScanPanel:
                                                  f"{format_bytes(app.max_upload_bytes)} and {app.max_upload_points:,} "
                                                  "points); the first scan stays the reference.")
         # Streamed to a temporary file on the server (see uploads.py), then read by the worker.
-        app.uploads.add(self.upload, app.controller.add_scan_file, app.max_upload_bytes, what="scan file",
+        app.uploads.add(self.upload, self._add_file, app.max_upload_bytes, what="scan file",
                         max_points=app.max_upload_points)
         self.receiving = gui.add_markdown("")
         gui.add_markdown("Uploaded scans are registered onto scan 1. A file that cannot be read is "
@@ -53,9 +55,18 @@ class ScanPanel:
         """What is being uploaded, and how far (every tab sees it); "" when nothing is."""
         self.receiving.content = f"*{md(text)}*" if text else ""
 
+    def _add_file(self, filename: str, path: Path) -> None:
+        """A scan file received: added, unless this tab follows the presenter (its scans are the
+        presenter's; the button is greyed out, and a file sent anyway is dropped)."""
+        if self.app.read_only:
+            discard(path)
+            self.app.controller.note("A scan file was not added: the tab that sent it follows the presenter.")
+            return
+        self.app.controller.add_scan_file(filename, path)
+
     def _remove(self) -> None:
         name = self.remove_choice.value
-        if name in self._names[1:]:
+        if name in self._names[1:] and not self.app.read_only:  # a follower's scans are the presenter's
             self.app.controller.remove_scan(name)
 
     def show_snapshot(self, snap: Snapshot) -> None:

@@ -95,6 +95,8 @@ class StagePanel:
         # Each stage's view controls (`treereg_viewer/stages/<name>.py` makes them), in its folder's order.
         self.controls: dict[str, tuple[StageControls, ...]] = {}
         self.run_below: list[Any] = []  # the Run buttons under each folder's parameters
+        #: While the tab follows a presenter its parameters and Run are the presenter's (`set_read_only`).
+        self.read_only = False
 
     def build_folders(self, gui: viser.GuiApi) -> None:
         """One folder per stage: explanation, view controls, then its parameter sections."""
@@ -179,9 +181,9 @@ class StagePanel:
         """Status line per stage, message, Run button state, view-control ranges."""
         warned = stage_warnings(snap) if not snap.busy else {}
         self.status_md.content = status_line(snap, view.stage, warned) + verdict_line(snap)
-        self.run_button.disabled = snap.busy
+        self.run_button.disabled = snap.busy or self.read_only
         for button in self.run_below:
-            button.disabled = snap.busy
+            button.disabled = snap.busy or self.read_only
         lines = []
         if snap.message:
             lines.append(f"**⚠ {md(snap.message)}**" if snap.error else md(snap.message))
@@ -226,6 +228,17 @@ class StagePanel:
         """Apply parameter values still being typed (Run, an export: they must see what the user typed)."""
         for w in self.sections.values():
             w.flush()
+
+    def set_read_only(self, on: bool, busy: bool) -> None:
+        """Parameters, Run and "Run when stepping" greyed out (a tab that follows the presenter) or
+        usable again."""
+        self.read_only = on
+        for w in self.sections.values():
+            w.set_disabled(on)
+        self.run_button.disabled = busy or on
+        for button in self.run_below:
+            button.disabled = busy or on
+        self.auto_run.disabled = on
 
     def sync_params(self, params: Any) -> None:
         for w in self.sections.values():

@@ -342,8 +342,9 @@ class SurveyViewer:
     following = False
 
     def __init__(self, host: Any, gui: viser.GuiApi, scene: viser.SceneApi, client: Any | None,
-                 atomic: Callable[[], AbstractContextManager[Any]]) -> None:
+                 atomic: Callable[[], AbstractContextManager[Any]], name: str = "this tab") -> None:
         self.host = host
+        self.name = name
         self.controller: Controller = host.controller
         self.client = client
         self.gui = gui
@@ -543,10 +544,17 @@ class SurveyViewer:
         self.drawer.post("progress", show)
 
     def show_presenter(self, presenter: Any) -> None:
-        """A survey tab neither presents nor follows (the stage view's Teach tab)."""
+        """A survey tab neither presents nor follows (the stage view's Teach tab), nor takes the
+        projector mode (`treereg view --projector` enlarges the stage view's tabs)."""
 
     def follow(self, presenter: Any) -> None:
         pass
+
+    def offer_tabs(self, names: list[str]) -> None:
+        pass
+
+    def show_changed_elsewhere(self, by: str, what: str, undo: Any) -> None:
+        """Another tab's change (parameters, a hypothesis) is the stage view's; a survey has none."""
 
     def follow_camera(self, position: Any, look_at: Any, up: Any) -> None:
         pass

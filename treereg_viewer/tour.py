@@ -39,6 +39,10 @@ class TourPanel:
         else:
             self._go_to(max(0, min(len(STEPS) - 1, self.step + (1 if which.startswith("Next") else -1))))
 
+    def step_by(self, delta: int) -> None:
+        """The keys' Next (+1) or Back (-1): as the buttons."""
+        self._nav("Next ▶" if delta > 0 else "◀ Back")
+
     def show(self, step: int | None, following: bool = False) -> None:
         """Show step `step` (None hides the card); a tab `following` the presenter reads the card
         without the buttons (the presenter leads the steps)."""

@@ -51,4 +51,5 @@ class ViewState:
     slice_shown: int | None = None  # Arcs, Fits, Fine: one slice (0-based), ALL_SLICES, or None = the busiest
     align_scan: str | None = None  # Align: the scan this tab aligns by hand (its layers hidden meanwhile)
     show_before: bool = False  # draw the stage's run before (a parameter changed since) instead of the latest
+    scale: float = 1.0  # sizes on screen (labels, lines, points): PROJECTOR_SCALE in projector mode
     rival: str | None = None  # Hypotheses: the rival drawn beside the chosen pose (None = the best distinct one)

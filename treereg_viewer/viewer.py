@@ -4,7 +4,10 @@ Every tab has its own stage, pair, sliders, cross-section and camera (its `ViewS
 GUI and scene (viser's per-client `client.gui` / `client.scene`) and its own drawing thread; the
 computation (the `Controller`'s pipeline) and its results are shared through the app. A viewer
 can present ("others follow me": the tabs that follow get its stage, view choices and camera) or
-follow the presenter, and can walk the guided tour.
+follow the presenter, and can walk the guided tour. While it follows, its parameters and Run are
+greyed out (the presenter's); a change of the parameters made in another tab is shown, naming the
+tab and the change, with an Undo. Projector mode scales text, 3-D labels, lines and points for a
+room; PageDown / PageUp (a clicker), and → ← Space in projector mode or the tour, step (`keys`).
 
 Without a browser (scripts, tests) a viewer can also be built on the server's own GUI and scene;
 every tab then sees that one viewer.
@@ -13,6 +16,7 @@ every tab then sees that one viewer.
 from __future__ import annotations
 
 import logging
+import math
 import threading
 from contextlib import AbstractContextManager
 from dataclasses import fields, replace
@@ -33,6 +37,9 @@ from .controller import Controller, Snapshot
 from .derived import default_height, prepared_scans
 from .drawer import Drawer
 from .export_panel import ExportPanel
+from .keys import StepKeys
+from .param_widgets import format_text
+from .text import md
 from .draw.common import display_subset
 from .draw.before import drawn
 from .draw.fits import focus_rows, pinned_slice
@@ -56,7 +63,16 @@ NARROW_PANEL_PX = 330
 NARROW_WINDOW_PX = 1500
 #: What a follower takes over from the presenter: everything it looks at (not its display sizes).
 FOLLOWED = tuple(f.name for f in fields(ViewState) if f.name not in ("point_size", "max_points", "hidden_scans",
-                                                                    "show_stations", "tour_step", "align_scan"))
+                                                                    "show_stations", "tour_step", "align_scan",
+                                                                    "scale"))
+#: Projector mode: text, 3-D labels, lines and points this many times their size (issue 32: at least 1.6).
+PROJECTOR_SCALE = 1.6
+#: Projector mode's text: viser sizes its GUI in rem of the page's font size, 92.5 % of the browser's
+#: (its App.css.ts): at least 1.6 times that (149 %). Our own constant markup (no text from outside),
+#: shown as the tables' CSS is (`view_panel.TABLE_CSS`); the element hidden, the style goes with it.
+#: A table's words may break anywhere: at this size a column of long words would not fit its panel.
+PROJECTOR_CSS = (f"<style>html {{font-size: {math.ceil(92.5 * PROJECTOR_SCALE)}% !important;}} "
+                 ".treereg-tables td, .treereg-tables th {overflow-wrap: anywhere !important;}</style>")
 
 
 def narrow_window(cam: Any, panels_px: int) -> int | None:
@@ -91,8 +107,11 @@ class Viewer:
     """
 
     def __init__(self, host: AppHost, gui: viser.GuiApi, scene: viser.SceneApi, client: Any | None,
-                 atomic: Callable[[], AbstractContextManager[Any]]) -> None:
+                 atomic: Callable[[], AbstractContextManager[Any]], name: str = "this tab") -> None:
         self.host = host
+        self.name = name  # "tab 3": how other tabs name it (ours, never text from outside)
+        self.read_only = False  # following the presenter: parameters and runs are the presenter's
+        self._undo_fn: Callable[[Viewer], None] | None = None
         self.controller: Controller = host.controller
         self.client = client
         self.gui = gui
@@ -103,6 +122,8 @@ class Viewer:
         self._closed = False
         self.following = False
         self._window_px: int | None = None
+        self._view_aspect: float | None = None  # the 3-D view's width / height, as the tab's camera reports it
+        self._fov_y: float | None = None
         self._tour_nodes: list[Any] = []
 
         self.panel = ViewPanel(gui, self.set_view, width=PANEL_WIDTH_PX)
@@ -112,11 +133,18 @@ class Viewer:
         gui.main_panel.set_width(CONTROL_WIDTH_PX)
         gui.add_markdown("**treereg** · marker-free registration of single-tree TLS scans (rotating projection, "
                          "then stem and branch centres)")
+        self.projector_css = gui.add_markdown(PROJECTOR_CSS, visible=False)
+        self.keys = StepKeys(gui, self.key_step)
         self.tour = TourPanel(gui, self.tour_go)
         self.follow_md = gui.add_markdown("", visible=False)
         self.follow_box = gui.add_checkbox("Follow the presenter", False, visible=False,
                                            hint="Untick to look around on your own; tick to follow again.")
         self.follow_box.on_update(lambda _: self._set_following(bool(self.follow_box.value)))
+        # A change of the shared parameters made in another tab: what and by whom, and an Undo.
+        self.changed_md = gui.add_markdown("", visible=False)
+        self.undo_button = gui.add_button("Undo that change", icon=viser.Icon.ARROW_BACK_UP, color="gray", visible=False,
+                                          hint="Put the parameters back as they were before that change.")
+        self.undo_button.on_click(lambda _: self._undo())
         self.stages = StagePanel(gui, self)
         tabs = gui.add_tab_group()
         with tabs.add_tab("Stage", viser.Icon.LIST_NUMBERS):
@@ -132,12 +160,26 @@ class Viewer:
         with tabs.add_tab("Teach", viser.Icon.SCHOOL):
             gui.add_markdown("**Guided tour:** the stages in order, each with the paper's reasoning and one thing to "
                              "try. **Present:** the other open tabs (a class on this server) follow your stage, "
-                             "view and camera until they untick *Follow the presenter*.")
+                             "view and camera until they untick *Follow the presenter*; while they follow, the "
+                             f"parameters and Run are yours. This tab is **{name}**. **Keys:** PageDown / PageUp "
+                             "(a clicker) step the stages, or the tour's steps; in projector mode and the tour "
+                             "also → ← and Space.")
             self.tour_button = gui.add_button("Start the tour", icon=viser.Icon.PLAYER_PLAY, color="blue")
             self.tour_button.on_click(lambda _: self.tour_go(0))
             self.present_box = gui.add_checkbox("Others follow me", False,
-                                                hint="Present: every other tab follows this one's stage, view and camera.")
-            self.present_box.on_update(lambda _: host.set_presenter(self, bool(self.present_box.value)))
+                                                hint="Present: every other tab follows this one's stage, view and camera; "
+                                                "only the presenter hands the lead over.")
+            self.present_box.on_update(lambda _: self._present(bool(self.present_box.value)))
+            self.lead_md = gui.add_markdown("", visible=False)
+            self.hand_to = gui.add_dropdown("Hand the lead to", ("no other tab",), visible=False,
+                                            hint="The tab that presents next; this one then follows it.")
+            self.hand_button = gui.add_button("Hand over the lead", icon=viser.Icon.ARROWS_EXCHANGE, color="gray",
+                                              visible=False, disabled=True)
+            self.hand_button.on_click(lambda _: host.hand_over(self, str(self.hand_to.value)))
+            self.projector_box = gui.add_checkbox(
+                "Projector mode", False, hint=f"Text, 3-D labels, lines and points {PROJECTOR_SCALE:g} times larger, "
+                "for a room; → ← and Space step too.")
+            self.projector_box.on_update(lambda _: self.set_projector(bool(self.projector_box.value)))
 
         self.drawer = Drawer(scene, atomic, self.panel, lambda: self.controller.snapshot, lambda: self.view,
                              host.derived, on_error=lambda msg: self.controller.note(msg, error=True),
@@ -149,6 +191,8 @@ class Viewer:
                 self._on_camera(client.camera)
             except (AssertionError, AttributeError, ValueError):
                 pass  # not reported yet: its first report comes to the callback
+        if getattr(host, "projector", False):  # `treereg view --projector`
+            self.set_projector(True)
         self.on_snapshot(self.controller.snapshot)
 
     # ---- the view -------------------------------------------------------------------------------
@@ -205,7 +249,7 @@ class Viewer:
             self.frame_view()
         snap = self.controller.snapshot
         self.stages.show_snapshot(snap, self.view)
-        if self.stages.auto_run.value and snap.status(name) == "stale" and len(snap.scans) >= 2 \
+        if self.stages.auto_run.value and not self.read_only and snap.status(name) == "stale" and len(snap.scans) >= 2 \
                 and not any(snap.status(s) == "failed" for s in STAGE_NAMES[: STAGE_NAMES.index(name)]):
             self.controller.request_run(name)
 
@@ -241,8 +285,12 @@ class Viewer:
         """Run: bring this stage and the ones after it up to date, reusing earlier results.
 
         Stale stages run; when nothing from here on is stale, this stage is re-run (and so are the
-        later ones, which depend on it).
+        later ones, which depend on it). Not while the tab follows the presenter (its runs are the
+        presenter's; the buttons are greyed out, and a click sent anyway changes nothing).
         """
+        if self.read_only:
+            self._tell_tab("Following the presenter: Run is the presenter's. Untick *Follow the presenter* first.")
+            return
         self.flush_edits()
         snap = self.controller.snapshot
         stage = self.view.stage
@@ -255,19 +303,91 @@ class Viewer:
         self.stages.flush_edits()
 
     def on_param_change(self, section: str, name: str, value: Any) -> str | None:
+        if self.read_only:  # greyed out while following; a value sent anyway changes nothing
+            self.stages.sections[section].sync(self.controller.params)
+            return "following the presenter: the parameters are the presenter's"
+        before = self.controller.params
         try:
-            self.controller.set_param(section, name, value)
+            after = self.controller.set_param(section, name, value)
         except ConfigError as e:
             self.controller.note(str(e), error=True)
             self.stages.sections[section].sync(self.controller.params)  # show what is in force
             return str(e)
         self.stages.sections[section].show_in_force(name, self.controller.params)
+        old, new = getattr(getattr(before, section), name), getattr(getattr(after, section), name)
+        if old != new:
+            self._report(before, after, f"{section}.{name} {format_text(old) or 'none'} → {format_text(new) or 'none'}")
         return None
 
     def load_params(self, params: Params, source: str, note: str = "") -> None:
+        if self.read_only:
+            self._tell_tab("Following the presenter: the parameters are the presenter's. Untick *Follow the "
+                           "presenter* first.")
+            return
+        before = self.controller.params
         self.controller.set_params(params)
         self.stages.sync_params(params)
         self.controller.note(f"Parameters from {source} in force; press Run to apply them. {note}".rstrip())
+        if params != before:
+            self._report(before, params, f"the parameters from {source}")
+
+    def choose_hypothesis(self, pair: str, candidate: str | None) -> None:
+        """A hypothesis picked by hand for `pair` (None: automatic again); the other tabs are told, and
+        can undo it. Not while the tab follows the presenter."""
+        if self.read_only:
+            return
+        before = self.controller.snapshot.choices.get(pair)
+        self.controller.choose(pair, candidate)
+        what = f"the hypothesis of {pair} {before or 'automatic'} → {candidate or 'automatic'}"
+        by = self.name
+
+        def undo(v: Viewer) -> None:
+            v.choose_hypothesis(pair, before)
+            v.controller.note(f"Undone: {what} (by {by}).")
+
+        self.host.changed_by(self, what, undo)
+
+    # ---- changes of the shared parameters, told to the other tabs --------------------------------
+    def _report(self, before: Params, after: Params, what: str) -> None:
+        """This tab changed the parameters from `before` to `after`: the other tabs are told, and
+        can undo it (while nothing has changed them since)."""
+        by = self.name
+
+        def undo(v: Viewer) -> None:
+            if v.controller.params != after:
+                v._tell_tab("The parameters changed again since; nothing was undone.")
+                return
+            v.controller.set_params(before)
+            v.stages.sync_params(before)
+            v.controller.note(f"Undone: {what} (by {by}).")
+            v._report(after, before, f"undid {by}'s change ({what})")
+
+        self.host.changed_by(self, what, undo)
+
+    def show_changed_elsewhere(self, by: str, what: str, undo: Callable[[Viewer], None]) -> None:
+        """Another tab changed the parameters: say which and what, and offer the undo (not to a tab
+        that follows: its parameters are the presenter's)."""
+        self._undo_fn = undo
+        self.changed_md.content = f"**Changed by {md(by)}:** {md(what)}."
+        self.changed_md.visible = True
+        self.undo_button.visible = not self.read_only
+
+    def _undo(self) -> None:
+        fn, self._undo_fn = self._undo_fn, None
+        self.changed_md.visible = False
+        self.undo_button.visible = False
+        if fn is not None and not self.read_only:
+            fn(self)
+
+    def _tell_tab(self, text: str) -> None:
+        """A word for this tab only (a notification), or the app's message line without a browser."""
+        if self.client is None:
+            self.controller.note(text)
+            return
+        try:
+            self.client.add_notification("treereg", text, auto_close_seconds=6.0)
+        except Exception:
+            log.debug("could not notify tab %s", self.name)
 
     def send_file(self, client: Any, filename: str, data: bytes) -> None:
         """A one-click browser download for the tab that asked."""
@@ -293,13 +413,20 @@ class Viewer:
 
     def frame_view(self) -> None:
         """Point this tab's camera at what the current stage draws (the "Frame the view" button)."""
-        self._look(camera.frame(self.controller.snapshot, self.view.stage, self.view))
+        self._look(camera.frame(self.controller.snapshot, self.view.stage, self.view, aspect=self._view_aspect,
+                                fov_y_rad=self._fov_y or camera.FOV_Y_RAD))
 
     def _on_camera(self, cam: Any) -> None:
         # The tab's reports say how wide its 3-D view is: a narrow window (a 1280 x 720 laptop screen)
         # gets narrower panels, so the scene keeps at least half. A report may come before the panels
         # are docked (the canvas then the whole window: landscape) or after (between them: the window
         # less both panels); either reading of a narrow window narrows, and the panels then stay so.
+        width = int(getattr(cam, "image_width", 0) or 0)
+        height = int(getattr(cam, "image_height", 0) or 0)
+        if width and height:
+            self._view_aspect = width / height
+            fov = float(getattr(cam, "fov", 0.0) or 0.0)
+            self._fov_y = fov if 0.1 < fov < 3.0 else None
         if self._window_px is None and (narrow := narrow_window(cam, self.panel.width + CONTROL_WIDTH_PX)) is not None:
             self._window_px = narrow
             self.panel.set_width(NARROW_PANEL_PX)
@@ -362,28 +489,71 @@ class Viewer:
             self.set_view(section_height=round(float(pts[k, 2]), 2), branch=None, panel="section")
 
     # ---- presenting and following -------------------------------------------------------------------
+    def _present(self, on: bool) -> None:
+        """"Others follow me" ticked or unticked; ticking is refused while another tab presents (only
+        the presenter hands the lead over)."""
+        if self.host.set_presenter(self, on):
+            return
+        presenter = self.host.presenter
+        who = presenter.name if presenter is not None else "another tab"
+        self.present_box.value = False
+        self._tell_tab(f"{who} presents: only it can hand the lead over.")
+
     def show_presenter(self, presenter: Viewer | None) -> None:
-        """A presenter started or stopped: offer (and by default start) following, or say who presents."""
+        """A presenter started, stopped or handed over: offer (and by default start) following, or say
+        who presents; the presenter itself gets the hand-over controls."""
         if presenter is None or presenter is self:
             if self.following:
                 self.tour.show(self.view.tour_step)
             self.following = False
+            self._set_read_only(False)
             self.follow_md.visible = False
             self.follow_box.visible = False
-            if presenter is None and self.present_box.value:
-                self.present_box.value = False
+            self.lead_md.visible = False
+            self.present_box.disabled = False
+            mine = presenter is self
+            if self.present_box.value != mine:
+                self.present_box.value = mine
+            self.hand_to.visible = mine
+            self.hand_button.visible = mine
             return
+        self.hand_to.visible = False
+        self.hand_button.visible = False
         if self.present_box.value:  # someone else presents now
             self.present_box.value = False
-        self.follow_md.content = "**Presenting:** another tab leads; this one follows its stage, view and camera."
+        self.present_box.disabled = True
+        self.lead_md.content = f"**{presenter.name} presents.** Only it can hand the lead over."
+        self.lead_md.visible = True
+        self.follow_md.content = (f"**Following {presenter.name}**, the presenter: its stage, view and camera. "
+                                  "While you follow, the parameters and Run are the presenter's (greyed out); "
+                                  "untick *Follow the presenter* to look around on your own.")
         self.follow_md.visible = True
         self.follow_box.visible = True
         self.follow_box.value = True
         self._set_following(True)
 
+    def offer_tabs(self, names: list[str]) -> None:
+        """The presenter's list of the tabs it can hand the lead to."""
+        options = tuple(names) or ("no other tab",)
+        if tuple(self.hand_to.options) != options:
+            self.hand_to.options = options
+        self.hand_button.disabled = not names
+
+    def _set_read_only(self, on: bool) -> None:
+        """Following: the parameters, Run, presets, loaded parameters, added scans and start poses are
+        the presenter's (greyed out here; refused by the handlers too)."""
+        self.read_only = on
+        self.align.locked = on
+        self.stages.set_read_only(on, self.controller.snapshot.busy)
+        for h in (self.files.apply_preset, self.files.load_params, self.scans.upload, self.align.load_starts):
+            if h.disabled != on:
+                h.disabled = on
+        self.undo_button.visible = self.changed_md.visible and self._undo_fn is not None and not on
+
     def _set_following(self, on: bool) -> None:
         was = self.following
         self.following = on and self.host.presenter is not None and self.host.presenter is not self
+        self._set_read_only(self.following)
         if self.following:
             self.follow(self.host.presenter)
         elif was:  # on its own again: the presenter's tour card goes, this tab's own tour (if any) stays
@@ -409,11 +579,34 @@ class Viewer:
             except (AssertionError, ValueError):
                 pass
 
+    # ---- keys and projector mode --------------------------------------------------------------------
+    def key_step(self, delta: int) -> None:
+        """A stepping key (`keys`): the tour's next or previous step while it runs, else the stage's.
+        A tab that follows does not step: the presenter leads."""
+        if self.following:
+            return
+        if self.tour.step is not None:
+            self.tour.step_by(delta)
+        else:
+            self.step_stage(delta)
+
+    def set_projector(self, on: bool) -> None:
+        """Projector mode on or off: text (the page's CSS), 3-D labels, lines and points (the drawing's
+        `ViewState.scale`) `PROJECTOR_SCALE` times larger; → ← and Space step too."""
+        self.projector_css.visible = on
+        if self.projector_box.value != on:
+            self.projector_box.value = on
+        self.keys.bind_all(on or self.view.tour_step is not None)
+        self.set_view(scale=PROJECTOR_SCALE if on else 1.0)
+        if self.view.tour_step is not None:
+            self._highlight(STEPS[self.view.tour_step].highlight)
+
     # ---- the tour ---------------------------------------------------------------------------------
     def tour_go(self, step: int | None) -> None:
         """Go to tour step `step` (None ends the tour): stage, view, camera and highlight set."""
         self.tour.show(step)
         self._highlight(None)
+        self.keys.bind_all(step is not None or self.view.scale != 1.0)
         if step is None:
             self.set_view(tour_step=None)
             return
@@ -451,13 +644,13 @@ class Viewer:
                 pts = item.scan.points if getattr(item, "scan", None) is not None else scan.points
                 top = np.array([*np.median(pts[:, :2], axis=0), float(np.quantile(pts[:, 2], 0.995)) + 0.6])
                 self._tour_nodes.append(self.scene.add_label(
-                    f"/tour/tree{i}", f"▼ scan {i + 1}",
+                    f"/tour/tree{i}", f"▼ scan {i + 1}", font_screen_scale=self.view.scale,
                     position=tuple(float(v) for v in top)))
         elif what == "trunk":
             anchor = camera.trunk_anchor(snap, default_height(snap, self.view.target))
             if anchor is not None:
                 self._tour_nodes.append(self.scene.add_label(
-                    "/tour/label", "◀ the trunk slice of the cross-section",
+                    "/tour/label", "◀ the trunk slice of the cross-section", font_screen_scale=self.view.scale,
                     position=tuple(float(v) for v in anchor + np.array([0.0, 0.0, 0.35]))))
 
     # ---- from the worker (which never calls viser: the drawing thread shows its news) ---------------

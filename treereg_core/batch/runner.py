@@ -226,7 +226,7 @@ def run_batch(jobs: list[TreeJob], params: Params, out_dir: Path, *, until: str 
         done[outcome.tree] = write_tree(outcome, out_dir)
         progress(len(done) / total, f"{outcome.tree}: {outcome.status}")
 
-    client = _dask_client(dask_address) if dask_address and todo else None  # unreachable: say so first
+    client = dask_client(dask_address) if dask_address and todo else None  # unreachable: say so first
     progress(len(done) / total, f"{len(done)} of {total} trees already done" if done else "starting")
     if client is not None:
         _run_dask(todo, params, until, client, finished)
@@ -295,7 +295,9 @@ def _run_pool(todo: list[TreeJob], params: Params, until: str, workers: int, fin
                 left.append(job)
 
 
-def _dask_client(address: str):
+def dask_client(address: str):
+    """A Dask client of the scheduler at `address`, or one ConfigError line saying why not (no Dask,
+    nothing there, another service's port)."""
     try:
         from dask.utils import parse_timedelta
         from distributed import Client

@@ -29,7 +29,7 @@ from .._version import __version__
 from ..errors import ConfigError
 from ..geometry.rigid import invert
 from ..params import Params, changed_from_defaults, loosened, loosened_text, to_dict
-from ..scan import Scan
+from ..scan import Scan, ScanHeader
 from . import atomic
 from .json_input import load_json
 from .naming import file_safe, file_stem
@@ -353,7 +353,7 @@ def write_exports(out_dir: str | Path, tf: TransformFile, name: str = DEFAULT_NA
 
 # Ten parameters: the scans, transforms and parameters, and by keyword every block of the file
 # (stage, metrics, verdicts, quality, sources, time); CLI, batch and app each fill a different set.
-def registration_file(scans: Sequence[Scan], transforms: dict[str, np.ndarray], params: Params, *, stage: str,
+def registration_file(scans: Sequence[Scan | ScanHeader], transforms: dict[str, np.ndarray], params: Params, *, stage: str,
                       metrics: dict[str, Any], verdicts: dict[str, tuple[str, tuple[str, ...], str]] | None = None,
                       quality: dict[str, Any] | None = None, keep_unverified: bool = False,
                       sources: dict[str, str] | None = None, seconds: float | None = None,
@@ -434,7 +434,7 @@ def _with_loosened(quality: dict[str, Any], params: Params, reference: str) -> d
     return {**quality, "loosened": {k: list(v) for k, v in loose.items()}, "scans": scans, "edges": edges}
 
 
-def user_frame_transforms(scans: Sequence[Scan], transforms: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+def user_frame_transforms(scans: Sequence[Scan | ScanHeader], transforms: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """Transforms between scanner frames mapped into the frames the users' files give the scans:
     pose_ref @ T_ref_scan @ inv(pose_scan) (unchanged when every pose is the identity)."""
     ref = scans[0]

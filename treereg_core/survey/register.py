@@ -19,7 +19,7 @@ from __future__ import annotations
 import time
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass, replace
-from typing import Callable, Sequence, TypeVar
+from typing import Any, Callable, Sequence, TypeVar
 
 import numpy as np
 from scipy.sparse.csgraph import minimum_spanning_tree
@@ -29,7 +29,7 @@ from ..parallel import one_blas_thread
 from ..prepare.level import as_given
 from ..prepare.target import stem_map_hypotheses
 from ..results import Progress
-from ..scan import Scan
+from ..scan import Scan, ScanHeader
 from ..verify.evidence import FAILED, UNVERIFIED, VERIFIED
 from ..verify.graph import Edge, Placement, place_scans
 from .pair_fit import PairFit, register_pair
@@ -62,9 +62,12 @@ class SurveyPair:
 
 @dataclass(frozen=True, kw_only=True, eq=False)
 class Survey:
-    """A registered survey: its stations, the pairs registered, each station's placement."""
+    """A registered survey: its stations, the pairs registered, each station's placement.
 
-    scans: tuple[Scan, ...]
+    scans : each station's scan without its points (its name, file, steps and pose), in order.
+    """
+
+    scans: tuple[ScanHeader, ...]
     stations: tuple[SurveyStation, ...]
     shared: np.ndarray  # n x n: stems the stem maps of two stations share
     pairs: tuple[SurveyPair, ...]
@@ -99,17 +102,30 @@ class Survey:
         return out
 
 
-def register_survey(scans: Sequence[Scan], params: Params, *, workers: int = 1,
-                    progress: Progress | None = None) -> Survey:
-    """Register a survey's stations onto the first (see the module doc)."""
+def register_survey(scans: Sequence[Scan | Callable[[], Scan]], params: Params, *, workers: int = 1,
+                    progress: Progress | None = None, client: Any = None) -> Survey:
+    """Register a survey's stations onto the first (see the module doc).
+
+    `scans` are the stations, each a Scan or a function that reads it: a station read that way is
+    reduced to its summary and its points let go before the next is read, so a survey's memory holds
+    `workers` stations' points at a time, not every station's.
+
+    `client`: a Dask client (`batch.runner.dask_client`); the stations are then read and reduced,
+    and the pairs registered, on its workers (which must reach the files), each station's summary
+    sent to the cluster once. The same transforms as in one process.
+    """
     say = progress or (lambda f, t: None)
     sv = params.survey
     seconds: dict[str, float] = {}
     with one_blas_thread(), ThreadPoolExecutor(max(1, workers)) as pool:
         t0 = time.perf_counter()
         say(0.0, "stations: ground and stems")
-        stations = tuple(_each(pool, lambda s: survey_station(s, params), scans, say, 0.0, 0.4,
-                               lambda k, s: f"{k} of {len(scans)} stations reduced ({s.name})"))
+        reduced = (_each(pool, lambda s: _reduced(s, params), scans, say, 0.0, 0.4,
+                         lambda k, _, r: f"{k} of {len(scans)} stations reduced ({r[1].name})") if client is None else
+                   client.gather(client.map(_reduced, list(scans), params=params, pure=False)))
+        headers = tuple(h for h, _ in reduced)
+        stations = tuple(st for _, st in reduced)
+        del reduced
         seconds["stations"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         say(0.4, "stem maps")
@@ -131,8 +147,14 @@ def register_survey(scans: Sequence[Scan], params: Params, *, workers: int = 1,
         seconds["stem maps"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         say(0.5, f"{len(chosen)} pairs on their shared stems")
-        fits = _each(pool, lambda ij: register_pair(stations[ij[0]], stations[ij[1]], hyps[ij], sv), chosen, say, 0.5, 0.9,
-                     lambda k, ij: f"{k} of {len(chosen)} pairs fitted ({stations[ij[1]].name} -> {stations[ij[0]].name})")
+        if client is None:
+            fits = _each(pool, lambda ij: register_pair(stations[ij[0]], stations[ij[1]], hyps[ij], sv), chosen, say,
+                         0.5, 0.9, lambda k, ij, _: f"{k} of {len(chosen)} pairs fitted "
+                                                    f"({stations[ij[1]].name} -> {stations[ij[0]].name})")
+        else:  # each station's summary sent once, not once a pair
+            on = client.scatter(list(stations))
+            fits = client.gather([client.submit(register_pair, on[i], on[j], hyps[(i, j)], sv, pure=False)
+                                  for i, j in chosen])
         seconds["pairs"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     say(0.9, "placing every station")
@@ -140,18 +162,24 @@ def register_survey(scans: Sequence[Scan], params: Params, *, workers: int = 1,
     placements = _place(stations, pairs, shared, params)
     seconds["placement"] = time.perf_counter() - t0
     say(1.0, "done")
-    return Survey(scans=tuple(scans), stations=stations, shared=shared, pairs=pairs, placements=placements,
+    return Survey(scans=headers, stations=stations, shared=shared, pairs=pairs, placements=placements,
                   seconds=seconds)
 
 
 def _each(pool: ThreadPoolExecutor, fn: Callable[[T], R], items: Sequence[T], say: Progress, start: float, end: float,
-          text: Callable[[int, T], str]) -> list[R]:
+          text: Callable[[int, T, R], str]) -> list[R]:
     """`fn` over `items` on the pool, in their order, the progress told (on the calling thread) as each
-    finishes, from `start` to `end` of the whole."""
+    finishes, from `start` to `end` of the whole: `text(finished so far, item, its result)`."""
     futures = {pool.submit(fn, it): k for k, it in enumerate(items)}
     for done, f in enumerate(as_completed(futures), 1):
-        say(start + (end - start) * done / max(len(items), 1), text(done, items[futures[f]]))
+        say(start + (end - start) * done / max(len(items), 1), text(done, items[futures[f]], f.result()))
     return [f.result() for f in futures]
+
+
+def _reduced(item: Scan | Callable[[], Scan], params: Params) -> tuple[ScanHeader, SurveyStation]:
+    """A station read (when given as a reader) and reduced; its points are not kept."""
+    scan = item if isinstance(item, Scan) else item()
+    return scan.header(), survey_station(scan, params)
 
 
 def survey_pairs(shared: np.ndarray, neighbours: int, min_stems: int) -> list[tuple[int, int]]:

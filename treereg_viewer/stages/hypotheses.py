@@ -133,12 +133,12 @@ class HypothesisControl(StageControls):
 
     def _choose(self) -> None:
         snap = self.app.controller.snapshot
-        if _shown_pair_item(snap, self.app.view) is None:
+        if _shown_pair_item(snap, self.app.view) is None or self.app.read_only:  # following: the presenter's
             return
         pair = snap.pair(target_index(snap, "hypotheses", self.app.view)).key
         wanted = None if self.dropdown.value == "automatic" else self.dropdown.value
         if snap.choices.get(pair) != wanted:
-            self.app.controller.choose(pair, wanted)
+            self.app.choose_hypothesis(pair, wanted)  # the other tabs are told, and can undo it
 
     def show_snapshot(self, snap: Snapshot, view: ViewState) -> None:
         """The hypothesis list of the pair in view, and the choice in force for it."""

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import os
 import re
+import time
 from pathlib import Path
 
 import pytest
@@ -67,9 +68,14 @@ def page(served, browser):
     pg = context.new_page()
     pg.set_default_timeout(90_000)
     playwright_api.expect.set_options(timeout=60_000)
+    t0 = time.monotonic()
     pg.goto(url)
     playwright_api.expect(pg.get_by_role("button", name="Run", exact=True)).to_be_visible()
-    # The registration runs on the app's worker: the map appears once every station is placed.
+    # The registration runs on the app's worker: the page is drawn and says so meanwhile (or shows the
+    # survey, once registered), and the map appears once every station is placed.
+    _heading(pg, "^Survey of 9 stations")
+    opened = time.monotonic() - t0
+    assert opened < 30, f"the survey view took {opened:.0f} s to show its heading"
     pg.wait_for_function("() => !!window.__viserMutable?.nodeRefFromName['/survey/map/stems'] && "
                          "window.__viserTestpoints.rendererInfo.render.frame > 0", timeout=120_000)
     close_toast(pg)

@@ -298,8 +298,8 @@ def stem_content(s: StemInspection, m: SurveyMap) -> PanelContent:
         good = np.isfinite(v.heights_m) & np.isfinite(v.circles[:, 3])
         hs = ", ".join(f"{h:.2f}" for h in v.heights_m[good])
         c = v.circles[v.breast]
-        rows.append([f'<span style="color:{hex_color(station_color(v.station))}">●</span> {md(v.name)}',
-                     str(int(good.sum())), hs, f"{c[3] * 100:.1f} cm"])
+        rows.append([f'<span style="color:{hex_color(station_color(v.station))}">●</span>&nbsp;{md(v.name)}',
+                     str(int(good.sum())), hs, f"{c[3] * 100:.1f}&nbsp;cm"])
     table = _table(["station", "sections", "heights above ground (m)", f"r at {BREAST_HEIGHT_M:g} m"], rows)
     plots = (stem_figure(s),) if seen else ()
     return PanelContent(f"Stem {s.index + 1}", text=text, plots=plots, table=table)

@@ -139,6 +139,7 @@ def test_the_public_api_is_one_import():
 TYPED = ("treereg_core/stage.py", "treereg_core/stages", "treereg_core/pipeline.py", "treereg_core/parallel.py",
          "treereg_viewer/stages/__init__.py", "treereg_viewer/stages/base.py", "treereg_viewer/controller.py",
          "treereg_viewer/align.py", "treereg_core/geometry/point_pairs.py", "treereg_core/verify/summary.py",
+         "treereg_core/survey/inspect.py", "treereg_viewer/survey_view.py",
          *(f"treereg_viewer/draw/{name}.py" for name in (
              "__init__", "common", "fits", "motion", "images", "cross_section", "scan_layer", "before")),
          *(f"treereg_viewer/stages/{name}.py" for name in (

@@ -161,6 +161,76 @@ def test_a_reference_of_another_plot_is_named_as_the_reason_no_station_is_placed
     assert set(json.loads(out.read_text())["transforms"]) == {"other/st01.ply"}  # the reference alone
 
 
+def test_the_apps_survey_view_draws_the_map_pairs_and_stems_with_names_as_text(run: dict) -> None:
+    """The app on the survey without a browser (tests/test_browser_survey.py drives it in Chromium): the
+    controller registers it on its worker; the map, every pair and a stem are inspected as
+    `survey.inspect` computes them; the station of another plot, named as markup, is not placed, and
+    reads as its name in the panel's markdown."""
+    import viser
+
+    from conftest import read
+    from treereg_core.survey.inspect import inspect_pair, inspect_stem, survey_map
+    from treereg_viewer.app import TreeregApp
+    from treereg_viewer.controller import Controller
+    from treereg_viewer.survey_view import SurveyViewer
+
+    # A 2 x 2 block of the grid (st01, st02, st04, st05: half the registration's time) and the other plot's station.
+    names = [run["names"][k] for k in (0, 1, 3, 4)]
+    files = [run["root"] / "plot" / n for n in names] + [run["root"] / "plot" / HOSTILE]
+    scans = [read_scan(f) for f in files]
+    assert not Controller(scans, Params(), workers=1).survey_mode  # five stations: one tree, unless asked
+    controller = Controller(scans, Params(), workers=2, survey=True)
+    server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    app = TreeregApp(server, controller)
+    try:
+        assert controller.wait_idle(300)
+        sv = controller.snapshot.survey
+        assert sv is not None and isinstance(app.viewer, SurveyViewer)
+        v = app.viewer
+        assert v.drawer.wait_idle(60)
+        panel = read(v.panel.title + "\n\n" + v.panel.text + "\n\n" + v.panel.table)
+        assert f"Survey of {len(scans)} stations" in panel and HOSTILE in panel
+        from markdown_it import MarkdownIt
+        rendered = MarkdownIt("commonmark", {"html": True}).enable(["table"]).render(v.panel.text + "\n\n" + v.panel.table)
+        assert "<img" not in rendered and "&lt;img src=x" in rendered  # the name as text, no element
+        assert re.search(r"\bnan\b", panel) is None
+
+        m = survey_map(sv, max_points=50_000)
+        assert len(m.points) <= 50_000 and set(np.unique(m.station_of)) == set(range(len(names)))
+        assert not m.placed[-1] and m.placed[:-1].all()  # the other plot's station is not placed
+        assert len(m.links) == len(sv.pairs) and len(m.stems) >= 8
+        assert all(len(set(s.stations)) == len(s.stations) for s in m.stems)  # a station sees a stem once
+        # A click straight down on a link's middle picks its pair; on a stem, the stem.
+        ln = next(x for x in m.links if x.state == "used")
+        assert m.pick(ln.mid + [0, 0, 30.0], [0, 0, -1.0]) == ("link", ln.index)
+        st = m.stems[0]
+        assert m.pick(st.xyz + [12.0, 0, 0.5], [-12.0, 0, -0.5]) == ("stem", st.index)
+        for k, p in enumerate(sv.pairs):
+            ins = inspect_pair(sv, k, Params().survey)
+            assert (p.verdict == "verified") == all(c.ok for c in ins.checks), (p.verdict, ins.checks)
+            assert set(np.unique(ins.station_of)) <= {p.i, p.j}
+        stem = inspect_stem(sv, st)
+        assert {w.station for w in stem.views} == set(st.stations) and len(stem.views) >= 3
+        for w in stem.views:
+            if w.breast >= 0:  # its breast-height section, placed, stands where the others' do (mm)
+                assert abs(w.heights_m[w.breast] - 1.3) < 0.2
+                assert np.hypot(*(w.circles[w.breast, :2] - stem.xyz[:2])) < 0.02
+
+        v.set_view(pair=next(k for k, p in enumerate(sv.pairs) if p.verdict == "verified"))
+        assert v.drawer.wait_idle(60)
+        assert read(v.panel.title).startswith("Pair ") and "every check passes" in read(v.panel.text)
+        v.set_view(pair=None, stem=0)
+        assert v.drawer.wait_idle(60)
+        assert read(v.panel.title).strip() == "Stem 1" and "heights above ground" in v.panel.table
+        # Every station its own colour: twelve kept apart as the scan colours are.
+        from treereg_viewer.palette import MIN_CHANNEL_GAP, station_color
+        colours = np.array([station_color(k) for k in range(12)])
+        assert all(np.abs(colours[i] - colours[j]).max() >= MIN_CHANNEL_GAP for i in range(12) for j in range(i))
+    finally:
+        app.close()
+        server.stop()
+
+
 def test_stations_are_read_one_at_a_time_and_their_points_let_go(run: dict) -> None:
     """A survey holds its stations' summaries, not their points: each station given as a reader is
     read once, and the one before it is gone by then (60 stations: 0.75 GB peak, not 2.3 GB)."""

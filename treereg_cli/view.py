@@ -20,6 +20,7 @@ from treereg_core.limits import MAX_UPLOAD_POINTS
 from treereg_core.parallel import APP_SPARE_CORES
 from treereg_core.params import Params
 from treereg_core.scan import Scan
+from treereg_core.survey.mode import is_survey
 
 from .common import add_param_args, add_workers_arg, load_params, read_scans, workers_of
 
@@ -55,6 +56,13 @@ def add(sub: argparse._SubParsersAction) -> None:
                    f"checked before any point is read: a compressed file can unpack to far more than its "
                    f"size suggests, and each point takes about 64 bytes of the server's memory while it is "
                    f"read and prepared (default {MAX_UPLOAD_POINTS:,})")
+    mode = p.add_mutually_exclusive_group()
+    mode.add_argument("--survey", action="store_true",
+                      help="open the survey view: the stations registered as a whole-plot survey (every station on "
+                      "every stem it shares with its neighbours), their map, pairs and stems (the default for more "
+                      "than 8 stations; survey.mode)")
+    mode.add_argument("--one-tree", action="store_true",
+                      help="step through the one-tree registration's stages, even with more than 8 stations (survey.mode)")
     p.set_defaults(func=run)
 
 
@@ -88,6 +96,8 @@ def run(args: argparse.Namespace) -> int:
     if args.max_upload_points < 1:
         raise ConfigError(f"--max-upload-points: {args.max_upload_points} must be a positive number of points")
     params = load_params(args)
+    if args.survey or args.one_tree:
+        params = params.with_value("survey", "mode", "survey" if args.survey else "one_tree")
     workers = workers_of(args)
     scans, truth = scans_and_truth(args, params)
     # The app (viser, its web client) is imported only here: every other command stays light.
@@ -99,7 +109,11 @@ def run(args: argparse.Namespace) -> int:
         check_not_inputs(out_dir, file_names(s.name for s in scans),
                          [*args.scans, *(f for f in (args.config, args.truth) if f)])
 
-    serve(Controller(scans, params, truth, workers=workers), host=args.host, port=args.port, out_dir=out_dir,
+    survey = is_survey(len(scans), params)
+    if survey:
+        print(f"treereg view: {len(scans)} stations: the survey view (--one-tree steps through one tree's stages)",
+              flush=True)
+    serve(Controller(scans, params, truth, workers=workers, survey=survey), host=args.host, port=args.port, out_dir=out_dir,
           max_upload_bytes=int(args.max_upload_mb * 1e6), max_upload_points=args.max_upload_points,
           projector=args.projector)
     return 0

@@ -43,6 +43,7 @@ from . import camera
 from .controller import Controller, Snapshot
 from .derived import Derived
 from .stages import STAGE_NAMES
+from .survey_view import SurveyViewer
 from .uploads import UploadReceiver
 from .view_state import ViewState
 from .viewer import Viewer
@@ -96,6 +97,8 @@ class TreeregApp:
         self._lock = threading.Lock()
         self._viewers: dict[int | None, Viewer] = {}
         self.presenter: Viewer | None = None
+        # A whole-plot survey (`Controller.survey_mode`) gets the survey view in every tab instead.
+        self._make_viewer: Any = SurveyViewer if controller.survey_mode else Viewer
         self.max_upload_bytes = int(max_upload_bytes)
         self.max_upload_points = int(max_upload_points)
         # One receiver for every tab's upload buttons: each file streams to a temporary file.
@@ -109,7 +112,7 @@ class TreeregApp:
         controller.subscribe(self._on_snapshot)
         controller.subscribe_progress(self._on_progress)
         if tabs == "shared":
-            self._viewers[None] = Viewer(self, server.gui, server.scene, None, server.atomic, name="this tab")
+            self._viewers[None] = self._make_viewer(self, server.gui, server.scene, None, server.atomic, name="this tab")
         else:
             server.on_client_connect(self._connect)
             server.on_client_disconnect(self._disconnect)
@@ -124,7 +127,7 @@ class TreeregApp:
         with self._lock:
             self._tab_count += 1
             name = f"tab {self._tab_count}"
-        v = Viewer(self, client.gui, client.scene, client, client.atomic, name=name)
+        v = self._make_viewer(self, client.gui, client.scene, client, client.atomic, name=name)
         with self._lock:
             self._viewers[client.client_id] = v
             presenter = self.presenter

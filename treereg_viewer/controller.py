@@ -31,6 +31,8 @@ from treereg_core.prepare.ground import PreparedScan
 from treereg_core.stage import Event, Pair, StageFinished, StageOutput, StageProgress, StageResult, StageStarted
 from treereg_core.stages import STAGE_NAMES as STAGES
 from treereg_core.stages import stage as core_stage
+from treereg_core.survey.mode import is_survey
+from treereg_core.survey.register import Survey, register_survey
 from treereg_core.verify.graph import Placement
 from treereg_core.text import shown
 
@@ -127,6 +129,9 @@ class Snapshot:
     #: changed parameter dropped it, or a run replaced it), for the tuner's before and after. Its own
     #: `before` is empty; the scans were the same (new scans forget it).
     before: Mapping[str, Snapshot] = field(default_factory=dict, repr=False, compare=False)
+    #: A whole-plot survey's registration (`Controller(..., survey=True)`: `treereg_core.survey`, not
+    #: the stages), once it has run; None before and in the one-tree app.
+    survey: Survey | None = field(default=None, repr=False, compare=False)
 
     def status(self, stage: str) -> str:
         """'done', 'failed', 'running' or 'stale' for a pipeline stage."""
@@ -271,6 +276,11 @@ class Controller:
     workers
         Threads a run uses (None: one less than the machine's cores, at least one: APP_SPARE_CORES).
         The app's server has threads of its own, so the pipeline never forks here (`Pipeline.fork`).
+    survey
+        Register the scans as a whole-plot survey (`treereg_core.survey.register_survey`, on the same
+        worker, its progress to the same listeners, its result in `Snapshot.survey`) instead of
+        running the stages. None: `survey.mode.is_survey` decides (more than 8 stations, or
+        params.survey.mode).
     """
 
     def __init__(
@@ -280,6 +290,7 @@ class Controller:
         truth: Mapping[str, np.ndarray] | None = None,
         parse_upload: ScanParser = parse_scan_upload,
         workers: int | None = None,
+        survey: bool | None = None,
     ) -> None:
         self._lock = threading.Lock()
         self._wake = threading.Condition(self._lock)
@@ -296,6 +307,8 @@ class Controller:
         self._crashed: dict[str, str] = {}  # stages that raised, until inputs change or Run is pressed
         self._give_way = _GiveWay()
         self._before: dict[str, Snapshot] = {}
+        self.survey_mode = is_survey(len(scans), self._pipeline.params) if survey is None else bool(survey)
+        self._survey: Survey | None = None
         self._snapshot = self._make_snapshot(busy=False, running=None, message="", error=False)
         self._thread = threading.Thread(target=self._loop, name="treereg-worker", daemon=True)
         self._thread.start()
@@ -509,7 +522,42 @@ class Controller:
                 message, error = (message, error) if req.notes else (changed, False)
         self._publish(message=message, error=error)
         if req.run_until:
-            self._run(req.run_until, req.rerun_from)
+            if self.survey_mode:
+                self._run_survey()
+            else:
+                self._run(req.run_until, req.rerun_from)
+
+    def _run_survey(self) -> None:
+        """Register the scans as a survey (`register_survey`): its progress to the progress listeners,
+        the tabs given way to between its steps, its result published in `Snapshot.survey`."""
+        pipe = self._pipeline
+        if len(pipe.scans) < 2:
+            self._publish(message="A survey needs at least two stations.", error=True)
+            return
+        self._survey = None
+        self._publish(busy=True, running="survey", message=f"Registering {len(pipe.scans)} stations as a survey…")
+
+        def progress(fraction: float, text: str) -> None:
+            self._pause_for_tabs()
+            for fn in self._progress_listeners:
+                fn(fraction, f"Survey: {text.replace(' -> ', ' → ')}")
+
+        t0 = time.perf_counter()
+        try:
+            survey = register_survey(pipe.scans, pipe.params, workers=pipe.workers or 1, progress=progress)
+        except _Closing:
+            return
+        except Exception as e:
+            if not isinstance(e, (ConfigError, ScanError)):
+                log.exception("survey registration failed")
+            self._publish(message=f"The survey failed: {type(e).__name__}: {e}", error=True)
+            return
+        self._survey = survey
+        verdicts = [pl.verdict for pl in survey.placements[1:]]
+        counts = ", ".join(f"{verdicts.count(v)} {v}" for v in ("verified", "unverified", "failed") if verdicts.count(v))
+        failed = verdicts.count("failed")
+        self._publish(message=f"Registered {len(pipe.scans)} stations in {time.perf_counter() - t0:.1f} s on "
+                              f"{len(survey.pairs)} pairs: {counts}.", error=bool(failed))
 
     def _run(self, until: str, rerun_from: str | None) -> None:
         pipe = self._pipeline
@@ -627,6 +675,7 @@ class Controller:
             choices=dict(pipe.choices),
             starts=dict(pipe.starts),
             before=dict(self._before),
+            survey=getattr(self, "_survey", None),
         )
 
     def _remember_before(self, outputs: Mapping[str, StageOutput]) -> None:

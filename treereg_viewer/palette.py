@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import colorsys
+
 import numpy as np
 
 #: Scan 1 green, scan 2 red, scan 3 blue (paper Figs. 7, 9, 10), then more for extra scans.
@@ -43,6 +45,31 @@ def distinct_from_scans(rgb: tuple[int, int, int] | np.ndarray) -> bool:
     """Whether `rgb` differs from every scan colour by at least MIN_CHANNEL_GAP in some channel."""
     c = np.asarray(rgb, dtype=int)
     return all(int(np.abs(c - np.asarray(s)).max()) >= MIN_CHANNEL_GAP for s in SCAN_COLORS)
+
+
+#: A survey's stations after the scan colours: six more, each apart from the others and from every scan
+#: colour (`MIN_CHANNEL_GAP`), none yellow (a stem's ring) or grey (left out); then hues by the golden angle.
+MORE_STATION_COLORS: tuple[tuple[int, int, int], ...] = (
+    (140, 86, 75), (230, 110, 190), (150, 150, 20), (20, 30, 110), (0, 110, 100), (120, 0, 40),
+)
+_GOLDEN = 0.618033988749895
+
+
+def station_color(index: int) -> tuple[int, int, int]:
+    """The colour of survey station `index`: the scan colours, then `MORE_STATION_COLORS`, then hues
+    spread by the golden angle (a 6 x 6 grid has 36 stations; neighbours in the list stay apart)."""
+    fixed = SCAN_COLORS + MORE_STATION_COLORS
+    if index < len(fixed):
+        return fixed[index]
+    h = (0.11 + index * _GOLDEN) % 1.0
+    r, g, b = colorsys.hsv_to_rgb(h, 0.75, 0.85 if index % 2 else 0.6)
+    return int(r * 255), int(g * 255), int(b * 255)
+
+
+#: A survey's links, as the survey report colours them: used by the placement, verified but dropped by
+#: a loop that did not close, unverified, failed.
+LINK_COLORS: dict[str, tuple[int, int, int]] = {"used": (26, 127, 55), "dropped": (142, 68, 173),
+                                                "unverified": (179, 89, 0), "failed": (198, 40, 40)}
 
 
 def scan_color(index: int) -> tuple[int, int, int]:

@@ -75,6 +75,22 @@ PROJECTOR_CSS = (f"<style>html {{font-size: {math.ceil(92.5 * PROJECTOR_SCALE)}%
                  ".treereg-tables td, .treereg-tables th {overflow-wrap: anywhere !important;}</style>")
 
 
+def narrow_window(cam: Any, panels_px: int) -> int | None:
+    """The window's width when a tab's camera report says it is narrow (below NARROW_WINDOW_PX), else
+    None. A report may come before the panels are docked (the canvas then the whole window:
+    landscape) or after (between them: the window less both panels, `panels_px`); either reading of
+    a narrow window counts."""
+    width = int(getattr(cam, "image_width", 0) or 0)
+    height = int(getattr(cam, "image_height", 0) or 0)
+    if not width:
+        return None
+    docked = width + panels_px
+    whole = width if height and width > 1.2 * height else None
+    if docked < NARROW_WINDOW_PX or (whole is not None and whole < NARROW_WINDOW_PX):
+        return whole or docked
+    return None
+
+
 class Viewer:
     """One tab's view of the shared app (implements `actions.AppActions` for its panels).
 
@@ -415,13 +431,10 @@ class Viewer:
             self._view_aspect = width / height
             fov = float(getattr(cam, "fov", 0.0) or 0.0)
             self._fov_y = fov if 0.1 < fov < 3.0 else None
-        if width and self._window_px is None:
-            docked = width + self.panel.width + CONTROL_WIDTH_PX
-            whole = width if height and width > 1.2 * height else None
-            if docked < NARROW_WINDOW_PX or (whole is not None and whole < NARROW_WINDOW_PX):
-                self._window_px = whole or docked
-                self.panel.set_width(NARROW_PANEL_PX)
-                self.gui.main_panel.set_width(NARROW_CONTROL_PX)
+        if self._window_px is None and (narrow := narrow_window(cam, self.panel.width + CONTROL_WIDTH_PX)) is not None:
+            self._window_px = narrow
+            self.panel.set_width(NARROW_PANEL_PX)
+            self.gui.main_panel.set_width(NARROW_CONTROL_PX)
         if self.host.presenter is self:
             self.host.camera_moved(self, cam)
 

@@ -17,9 +17,9 @@ the scans (`prepare.level.as_given`), as transforms.json wants them.
 from __future__ import annotations
 
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass, replace
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Sequence, TypeVar
 
 import numpy as np
 from scipy.sparse.csgraph import minimum_spanning_tree
@@ -34,6 +34,9 @@ from ..verify.evidence import FAILED, UNVERIFIED, VERIFIED
 from ..verify.graph import Edge, Placement, place_scans
 from .pair_fit import PairFit, register_pair
 from .stations import SurveyStation, survey_station
+
+T = TypeVar("T")
+R = TypeVar("R")
 
 #: A pair's stems must spread at least this far (m, the smaller principal spread) to hold its turn.
 _MIN_SPREAD_M = 0.5
@@ -117,7 +120,8 @@ def register_survey(scans: Sequence[Scan | Callable[[], Scan]], params: Params, 
     with one_blas_thread(), ThreadPoolExecutor(max(1, workers)) as pool:
         t0 = time.perf_counter()
         say(0.0, "stations: ground and stems")
-        reduced = (list(pool.map(lambda s: _reduced(s, params), scans)) if client is None else
+        reduced = (_each(pool, lambda s: _reduced(s, params), scans, say, 0.0, 0.4,
+                         lambda k, _, r: f"{k} of {len(scans)} stations reduced ({r[1].name})") if client is None else
                    client.gather(client.map(_reduced, list(scans), params=params, pure=False)))
         headers = tuple(h for h, _ in reduced)
         stations = tuple(st for _, st in reduced)
@@ -144,7 +148,9 @@ def register_survey(scans: Sequence[Scan | Callable[[], Scan]], params: Params, 
         t0 = time.perf_counter()
         say(0.5, f"{len(chosen)} pairs on their shared stems")
         if client is None:
-            fits = list(pool.map(lambda ij: register_pair(stations[ij[0]], stations[ij[1]], hyps[ij], sv), chosen))
+            fits = _each(pool, lambda ij: register_pair(stations[ij[0]], stations[ij[1]], hyps[ij], sv), chosen, say,
+                         0.5, 0.9, lambda k, ij, _: f"{k} of {len(chosen)} pairs fitted "
+                                                    f"({stations[ij[1]].name} -> {stations[ij[0]].name})")
         else:  # each station's summary sent once, not once a pair
             on = client.scatter(list(stations))
             fits = client.gather([client.submit(register_pair, on[i], on[j], hyps[(i, j)], sv, pure=False)
@@ -158,6 +164,16 @@ def register_survey(scans: Sequence[Scan | Callable[[], Scan]], params: Params, 
     say(1.0, "done")
     return Survey(scans=headers, stations=stations, shared=shared, pairs=pairs, placements=placements,
                   seconds=seconds)
+
+
+def _each(pool: ThreadPoolExecutor, fn: Callable[[T], R], items: Sequence[T], say: Progress, start: float, end: float,
+          text: Callable[[int, T, R], str]) -> list[R]:
+    """`fn` over `items` on the pool, in their order, the progress told (on the calling thread) as each
+    finishes, from `start` to `end` of the whole: `text(finished so far, item, its result)`."""
+    futures = {pool.submit(fn, it): k for k, it in enumerate(items)}
+    for done, f in enumerate(as_completed(futures), 1):
+        say(start + (end - start) * done / max(len(items), 1), text(done, items[futures[f]], f.result()))
+    return [f.result() for f in futures]
 
 
 def _reduced(item: Scan | Callable[[], Scan], params: Params) -> tuple[ScanHeader, SurveyStation]:

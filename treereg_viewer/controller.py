@@ -381,13 +381,15 @@ class Controller:
             self._req.choices.append((pair_label, candidate))
             self._notify()
 
-    def start(self, name: str, pose: StartPose | None) -> None:
+    def start(self, name: str, pose: StartPose | None, run: bool = True) -> None:
         """Record a start pose given by hand for scan `name` (None: the coarse stage estimates it again);
         the worker gives it to the pipeline (`Pipeline.start`: the coarse stage and what follows become
-        stale) and runs every stage again from there, to the verdict."""
+        stale) and runs every stage again from there, to the verdict (`run`; False: restored with the
+        parameters, it waits for Run as they do)."""
         with self._wake:
             self._req.starts.append((name, pose))
-            self._req.run_until = STAGES[-1]
+            if run:
+                self._req.run_until = STAGES[-1]
             self._notify()
 
     def note(self, message: str, error: bool = False) -> None:

@@ -186,6 +186,29 @@ def test_a_start_from_an_earlier_transforms_json_and_the_apps_way_in(case, tmp_p
     assert not pipe.output("coarse").ok
 
 
+def test_a_params_json_the_app_saved_with_its_starts_is_parameters_and_a_start_file(case, tmp_path):
+    """The app saves the start poses in force beside the parameters (params.json's "starts"): the
+    file still loads as parameters (`--config`), and `--initial SCAN=params.json` takes its start;
+    a params.json without starts is no start file (one line)."""
+    from treereg_core import params as P
+    from treereg_core.io.start import STARTS_KEY, starts_doc
+
+    T = off(case.T_ref_scan[1], case.scans[1].points, 5.0, 0.2)
+    params = Params().with_value("coarse", "max_tilt_deg", 2.0)
+    doc = {**P.to_dict(params), STARTS_KEY: starts_doc("scan1.ply", {"scan2.ply": StartPose(T, "the app (3 point pairs)")})}
+    path = tmp_path / "params.json"
+    path.write_text(json.dumps(doc))
+    assert P.load(path) == params
+    s = read_start(path, "scan2.ply")
+    assert np.allclose(s.T_ref_scan, T) and s.reference == "scan1.ply"
+    with pytest.raises(ConfigError, match="holds no transform for 'scan3.ply'"):
+        read_start(path, "scan3.ply")
+    bare = tmp_path / "bare.json"
+    bare.write_text(json.dumps(P.to_dict(params)))
+    with pytest.raises(ConfigError, match="a JSON start file is a transforms.json"):
+        read_start(bare, "scan2.ply")
+
+
 # ---- a wrong start is refused --------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def other_tree():

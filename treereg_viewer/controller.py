@@ -498,8 +498,10 @@ class Controller:
             except ConfigError as e:
                 message, error = f"Start pose refused — {e}", True
                 continue
-            message, error = ((f"{name}: the start pose from {pose.source} in force; the stages from "
-                               f"{label('coarse')} on run from it.") if pose is not None else
+            if req.notes and not req.run_until:
+                continue  # a note from the same moment says more (a params.json's starts restored with it)
+            then = f"the stages from {label('coarse')} on run from it." if req.run_until else "press Run to run from it."
+            message, error = ((f"{name}: the start pose from {pose.source} in force; {then}") if pose is not None else
                               f"{name}: the coarse stage estimates its pose again."), False
         if req.scans is not None or req.uploads or req.removals or req.params_changed or req.run_until:
             self._crashed.clear()  # new inputs or an explicit run: try again

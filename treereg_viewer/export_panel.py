@@ -142,6 +142,6 @@ class ExportPanel:
             note = f"Start poses restored for {', '.join(n for n, _ in poses)}."
         if absent:
             note += f" Start poses of {', '.join(absent)} not restored: no such scan is loaded."
-        self.app.load_params(params, filename, note.strip())
-        for n, pose in poses:
+        for n, pose in poses:  # before the parameters' note, which then says what was loaded
             self.app.controller.start(n, pose, run=False)
+        self.app.load_params(params, filename, note.strip())

@@ -11,11 +11,12 @@ Families (every case two scans: the reference and the one to rescue):
 - plot: simulated plots (`simulate.plots.PlotSpec`, neighbours, shrubs, 360 deg stations), 2 stations.
 
 1. Every candidate case is registered automatically (`Pipeline.run("graph")`, `treereg register`'s
-   path, robust default). A case whose scan ends verified within 0.5 deg and 1.5 cm is not a rescue
-   case. A family with no natural failure among its candidates is measured on them with the coarse
-   stage forced to fail (`coarse.max_tilt_deg = 0`: every estimate tilts a little, so each is
-   refused, the tie points unchanged — as tests/test_initial_pose.py forces it); the coarse stage's
-   setting touches nothing a start goes through (`coarse.estimate` only). The output says which.
+   path, robust default). A family's rescue cases (`--rescue` of them) are first its candidates whose
+   automatic result is not verified within 0.5 deg and 1.5 cm (refused, or verified but off: a
+   natural case, run with the robust default), then, to fill the count, candidates with the coarse
+   stage forced to fail (`coarse.max_tilt_deg = 0`: every estimate tilts a little, so each is refused,
+   the tie points unchanged — as tests/test_initial_pose.py forces it; the setting touches nothing a
+   start goes through, `coarse.estimate` only). The output says which is which.
 2. For each rescue case, starts = the truth turned by 2, 5, 10 deg about an axis through the tree
    (the centre of the scan's points): a random axis, and the vertical; and shifted 0.1, 0.25, 0.5 m
    horizontally, in a random direction (`--seeds` draws of each). Each is given as `register
@@ -193,10 +194,12 @@ def main() -> None:
     for fam in a.families:
         cands = chosen[fam]
         nat = [x for x in cands if x[2]]
-        use = (nat or cands)[:a.rescue]
-        how = "fails by itself" if nat else "coarse stage forced to fail (coarse.max_tilt_deg = 0)"
+        # The natural failures first; the family's rescue count filled with cases forced to fail.
+        use = nat[:a.rescue] + [x for x in cands if not x[2]][:max(0, a.rescue - len(nat))]
         rows, neg_rows = [], []
         for c, case, natural, o_auto in use:
+            how = (f"automatic: {o_auto.verdict}, {fmt(o_auto.rot_deg, '.2f')}° / {fmt(o_auto.disp_m * 1000, '.1f')} mm off"
+                   + ("" if natural else "; its coarse stage forced to fail (coarse.max_tilt_deg = 0)"))
             params = Params() if natural else forced()
             pipe, base = automatic(case, params)
             base_s = o_auto.seconds  # the automatic registration of the same case (robust default, all stages)
@@ -215,7 +218,8 @@ def main() -> None:
                         axis = np.array([0.0, 0.0, 1.0]) if kind == "vertical" else rng.normal(size=3)
                         T0 = perturbed(T_true, s.points, deg, m, axis, rng.uniform(0, 2 * np.pi))
                         o = started(pipe, s.name, T0, T_true, s.points)
-                        rows.append((deg, m, kind, rotation_error_deg(T0, T_true), mean_displacement(T0, T_true, s.points), o, base_s))
+                        rows.append((deg, m, kind, rotation_error_deg(T0, T_true), mean_displacement(T0, T_true, s.points), o, base_s,
+                                     c.label))
                         print(f"  {fam} {deg}° {m} m {kind}: {o.verdict} {o.rot_deg:.3f} deg {o.disp_m * 1000:.1f} mm "
                               f"({o.seconds:.1f} s)", flush=True)
             # 3. negatives, in the same family's setting
@@ -230,49 +234,48 @@ def main() -> None:
                 for label, T0 in (("the truth", T_true),
                                   ("5° / 0.25 m off", perturbed(T_true, s.points, 5.0, 0.25, rng.normal(size=3), rng.uniform(0, 2 * np.pi)))):
                     o = started(npipe, "wrong.ply", T0, T_true, s.points)
-                    neg_rows.append([what, label, o.verdict, "yes" if o.verdict != "verified" else "**NO**", o.reason[:110],
+                    neg_rows.append([c.label.split(" (")[0], what, label, o.verdict, "yes" if o.verdict != "verified" else "**NO**", o.reason[:110],
                                      f"{o.seconds / base_s:.2f}"])
                     print(f"  {fam} negative {what} {label}: {o.verdict}", flush=True)
         # the family's tables
         table = []
-        for (deg, m) in errors:
-            for kind in ("random axis", "vertical"):
-                rs = [r for r in rows if r[0] == deg and r[1] == m and r[2] == kind]
-                if not rs:
-                    continue
-                outs = [r[5] for r in rs]
-                rot = np.array([x.rot_deg for x in outs])
-                disp = np.array([x.disp_m for x in outs])
-                nv = sum(x.verdict == "verified" for x in outs)
-                right = sum(x.right for x in outs)
-                vr = sum(x.right and x.verdict == "verified" for x in outs)
-                table.append([f"{deg:g}° {kind}, {m:g} m", str(len(rs)),
-                              f"{np.mean([r[3] for r in rs]):.1f}° / {np.mean([r[4] for r in rs]):.2f} m",
-                              f"{np.nanmedian(rot):.3f} / {np.nanmax(rot):.3f}", f"{np.nanmedian(disp) * 1000:.1f} / {np.nanmax(disp) * 1000:.1f}",
-                              f"{right} of {len(rs)}", f"{nv} verified ({vr} right), {len(rs) - nv} not",
-                              f"{np.median([x.seconds for x in outs]) / rs[0][6]:.2f}"])
+        for label, (deg, m), kind in [(c.label, e, k) for c, _, _, _ in use for e in errors for k in ("random axis", "vertical")]:
+            rs = [r for r in rows if r[0] == deg and r[1] == m and r[2] == kind and r[7] == label]
+            if not rs:
+                continue
+            outs = [r[5] for r in rs]
+            rot = np.array([x.rot_deg for x in outs])
+            disp = np.array([x.disp_m for x in outs])
+            nv = sum(x.verdict == "verified" for x in outs)
+            right = sum(x.right for x in outs)
+            vr = sum(x.right and x.verdict == "verified" for x in outs)
+            table.append([label.split(" (")[0], f"{deg:g}° {kind}, {m:g} m", str(len(rs)),
+                          f"{np.mean([r[3] for r in rs]):.1f}° / {np.mean([r[4] for r in rs]):.2f} m",
+                          f"{np.nanmedian(rot):.3f} / {np.nanmax(rot):.3f}", f"{np.nanmedian(disp) * 1000:.1f} / {np.nanmax(disp) * 1000:.1f}",
+                          f"{right} of {len(rs)}", f"{nv} verified ({vr} right), {len(rs) - nv} not",
+                          f"{np.median([x.seconds for x in outs]) / rs[0][6]:.2f}"])
         rep.say(f"#### {fam}: starts given (each re-run from the coarse stage on; right = within {RIGHT_DEG}° and {RIGHT_M * 100:g} cm)")
         rep.say()
-        rep.say(md_table(["start error", "starts", "start off (rotation / scan's points, mean)", "final rotation error (median / max, deg)",
+        rep.say(md_table(["case", "start error", "starts", "start off (rotation / scan's points, mean)", "final rotation error (median / max, deg)",
                           "final mean displacement (median / max, mm)", "right", "verdict", "time (x automatic)"], table))
         rep.say()
         bad = [r for r in rows if not (r[5].right and r[5].verdict == "verified")]
         if bad:
             rep.say("Not verified right:")
             rep.say()
-            rep.say(md_table(["start error", "start off (deg / m)", "verdict", "final rotation (deg)", "final disp (mm)", "why not verified"],
-                             [[f"{r[0]:g}° {r[2]}, {r[1]:g} m", f"{r[3]:.1f} / {r[4]:.2f}", r[5].verdict, fmt(r[5].rot_deg, ".3f"),
+            rep.say(md_table(["case", "start error", "start off (deg / m)", "verdict", "final rotation (deg)", "final disp (mm)", "why not verified"],
+                             [[r[7].split(" (")[0], f"{r[0]:g}° {r[2]}, {r[1]:g} m", f"{r[3]:.1f} / {r[4]:.2f}", r[5].verdict, fmt(r[5].rot_deg, ".3f"),
                                fmt(r[5].disp_m * 1000, ".1f"), r[5].reason[:110]] for r in bad]))
             rep.say()
         rep.say(f"#### {fam}: wrong scans given the right scan's start")
         rep.say()
-        rep.say(md_table(["scan", "start", "verdict", "refused", "why", "time (x automatic)"], neg_rows))
+        rep.say(md_table(["case", "scan", "start", "verdict", "refused", "why", "time (x automatic)"], neg_rows))
         rep.say()
         n = len(rows)
-        summary.append([fam, how, str(n), str(sum(r[5].verdict == "verified" and r[5].right for r in rows)),
+        summary.append([fam, "; ".join(f"{c.label} ({'natural' if natural else 'forced'})" for c, _, natural, _ in use), str(n), str(sum(r[5].verdict == "verified" and r[5].right for r in rows)),
                         str(sum(r[5].verdict == "verified" and not r[5].right for r in rows)),
                         f"{sum(r[0] == 10.0 and r[5].verdict == 'verified' and r[5].right for r in rows)} of {sum(r[0] == 10.0 for r in rows)}",
-                        f"{sum(x[3] == 'yes' for x in neg_rows)} of {len(neg_rows)}"])
+                        f"{sum(x[4] == 'yes' for x in neg_rows)} of {len(neg_rows)}"])
     rep.say("### Summary")
     rep.say()
     rep.say(md_table(["family", "rescue case", "starts", "verified right", "verified wrong", "10° starts verified right",

@@ -70,8 +70,10 @@ def saved_start_poses(path: Path, filename: str, doc: Any, names: list[str],
     doc = saved_starts(doc)
     if not isinstance(doc, dict) or not isinstance(doc.get("transforms"), dict):
         return [], []
-    listed = list(doc["transforms"]) + [n for n in (doc.get("unverified") or {}) if isinstance(doc.get("unverified"), dict)]
-    sources = doc.get("sources") if isinstance(doc.get("sources"), dict) else {}
+    unverified = doc.get("unverified")
+    listed = list(doc["transforms"]) + (list(unverified) if isinstance(unverified, dict) else [])
+    recorded = doc.get("sources")
+    sources: dict[str, Any] = recorded if isinstance(recorded, dict) else {}
     poses = []
     for n in [n for n in names[1:] if n in listed]:
         saved = sources.get(n)

@@ -18,12 +18,13 @@ from treereg_core.demo import demo_case
 from treereg_core.geometry.point_pairs import as_file_frames, fit_point_pairs
 from treereg_core.geometry.rigid import apply_transform, invert, make_transform, rotation_error_deg, rotation_z
 from treereg_core.io.start import read_start
+from treereg_core import params as P
 from treereg_core.params import Params
 from treereg_core.prepare.ground import PreparedScan
 from treereg_viewer.align import candidates
 from treereg_viewer.app import TreeregApp
 from treereg_viewer.controller import Controller
-from treereg_viewer.export import STARTS_NAME, export_bundle
+from treereg_viewer.export import PARAMS_NAME, STARTS_NAME, export_bundle
 
 
 def _idle(app: TreeregApp, timeout: float = 120.0) -> None:
@@ -211,6 +212,52 @@ def test_start_poses_forgotten_then_loaded_back_from_their_file(refused, tmp_pat
     snap = app.controller.snapshot
     assert snap.starts[name].source == STARTS_NAME
     assert snap.verdicts[name][0] == "verified", snap.verdicts[name]
+
+
+def test_the_parameters_file_carries_the_start_poses_and_loading_it_restores_them(refused, tmp_path, monkeypatch):
+    """params.json (the Files tab's download and the exports) holds the start poses in force beside the
+    parameters ("starts", as starts.json has them); it still loads as parameters anywhere
+    (`params.from_dict`), `register --initial SCAN=params.json` reads a start from it, and loading it in
+    the app gives the starts back to their scans (run when Run is pressed, as the parameters are)."""
+    app, _ = refused
+    snap = app.controller.snapshot
+    name = snap.scans[1].name
+    if name not in snap.starts:
+        pytest.skip("needs the rescue above")
+    sent = {}
+    monkeypatch.setattr(app.viewer, "send_file", lambda client, filename, data: sent.update({filename: data}))
+    app.viewer.files._download_params(None)
+    doc = json.loads(sent[PARAMS_NAME])
+    assert json.loads(export_bundle(snap).files[PARAMS_NAME]) == doc  # the exports' params.json: the same
+    assert doc["starts"]["reference"] == snap.scans[0].name
+    assert set(doc["starts"]["transforms"]) == set(snap.starts)
+    assert doc["starts"]["sources"][name] == snap.starts[name].source
+    assert P.from_dict(doc) == snap.params
+    saved = tmp_path / PARAMS_NAME
+    saved.write_bytes(sent[PARAMS_NAME])
+    assert np.allclose(read_start(saved, name).T_ref_scan, snap.starts[name].T_ref_scan)
+    assert P.load(saved) == snap.params  # `--config params.json` as before
+
+    for n in list(snap.starts):  # every start forgotten (not run: the file gives them back before Run)
+        app.controller.start(n, None, run=False)
+    _idle(app)
+    assert not app.controller.snapshot.starts
+    upload = tmp_path / "c" / "upload"
+    upload.parent.mkdir()
+    upload.write_bytes(sent[PARAMS_NAME])
+    app.viewer.files._load_params(PARAMS_NAME, upload)
+    _idle(app)
+    after = app.controller.snapshot
+    assert not upload.exists()
+    assert set(after.starts) == set(snap.starts) and "Start poses restored for" in after.message, after.message
+    for n in snap.starts:
+        assert np.allclose(after.starts[n].T_ref_scan, snap.starts[n].T_ref_scan)
+        assert after.starts[n].source == snap.starts[n].source  # where the pose came from, as saved
+    assert after.verdicts.get(name, ("",))[0] != "verified"  # not run yet: the parameters wait for Run too
+    app.controller.request_run()
+    _idle(app)
+    after = app.controller.snapshot
+    assert after.verdicts[name][0] == "verified", after.verdicts[name]
 
 
 def test_the_align_tab_escapes_a_hostile_scan_name():

@@ -564,11 +564,15 @@ def to_dict(params: Params) -> dict[str, dict[str, Any]]:
 def from_dict(data: dict[str, Any], base: Params | None = None, source: str = "parameters") -> Params:
     """Parameters from a nested dict; missing keys keep `base` (default: robust). Unknown keys are errors.
 
-    A top-level `"preset": "paper"` starts from that preset.
+    A top-level `"preset": "paper"` starts from that preset; a top-level `"starts"` (the start poses the
+    app saves beside the parameters, `io.start.starts_doc`) is not read here.
     """
     if not isinstance(data, dict):
         raise ConfigError(f"{source}: expected a JSON object of sections")
     data = dict(data)
+    # The start poses the app saves beside its parameters (`io.start.STARTS_KEY`): not parameters; the
+    # app restores them, `register --initial SCAN=params.json` reads them.
+    data.pop("starts", None)
     preset = data.pop("preset", None)
     if preset is not None:
         if not isinstance(preset, str):  # a list or object is unhashable: `in PRESETS` would raise TypeError

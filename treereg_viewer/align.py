@@ -26,7 +26,7 @@ import viser.transforms as vtf
 from treereg_core.coarse.start import StartPose
 from treereg_core.errors import ConfigError
 from treereg_core.io.json_input import parse_json
-from treereg_core.io.start import MAX_START_BYTES, read_start
+from treereg_core.io.start import MAX_START_BYTES, read_start, saved_starts
 from treereg_core.text import shown as shown_text
 from treereg_core.geometry.picking import nearest_to_ray
 from treereg_core.geometry.point_pairs import MIN_PAIRS, PairFit, as_file_frames, fit_point_pairs
@@ -57,6 +57,29 @@ MARK_RADIUS_M = 0.05
 MARK_COLOUR = (255, 200, 0)
 
 Xyz = tuple[float, float, float]
+
+
+def saved_start_poses(path: Path, filename: str, doc: Any, names: list[str],
+                      source: str | None = None) -> tuple[list[tuple[str, StartPose]], list[str]]:
+    """The start poses a received JSON file holds for the loaded target scans `names[1:]` (a starts.json
+    or transforms.json, or the "starts" a params.json carries, `io.start.saved_starts`), each read as
+    `register --initial` reads it, and the names it gives starts for that are not loaded. Each pose's
+    source: `source` when given, else the one the file recorded for it (a params.json's "sources"),
+    else `filename`.
+    ([], []) for a doc that lists none (a plain matrix); ConfigError for a bad entry."""
+    doc = saved_starts(doc)
+    if not isinstance(doc, dict) or not isinstance(doc.get("transforms"), dict):
+        return [], []
+    unverified = doc.get("unverified")
+    listed = list(doc["transforms"]) + (list(unverified) if isinstance(unverified, dict) else [])
+    recorded = doc.get("sources")
+    sources: dict[str, Any] = recorded if isinstance(recorded, dict) else {}
+    poses = []
+    for n in [n for n in names[1:] if n in listed]:
+        saved = sources.get(n)
+        given = source or (saved if isinstance(saved, str) and saved else filename)
+        poses.append((n, replace(read_start(path, n), source=shown_text(given))))
+    return poses, [n for n in listed if n not in names and n != doc.get("reference")]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -220,18 +243,15 @@ class AlignPanel:
             data = path.read_bytes()
             text = data.decode("utf-8-sig", errors="replace")
             doc = parse_json(data, name) if text.lstrip().startswith(("{", "[")) else None
-            listed = (list(doc.get("transforms") or {}) + list(doc.get("unverified") or {})
-                      if isinstance(doc, dict) and isinstance(doc.get("transforms"), dict) else None)
-            if listed is not None:
-                wanted = [n for n in names[1:] if n in listed]
-                if not wanted:
+            if isinstance(saved_starts(doc), dict) and isinstance(saved_starts(doc).get("transforms"), dict):
+                poses, _ = saved_start_poses(path, name, doc, names, source=name)
+                if not poses:
                     raise ConfigError(f"{name}: names none of the loaded target scans ({', '.join(names[1:])})")
             else:
                 chosen = str(self.scan_choice.value)
                 if chosen not in names[1:]:
                     raise ConfigError(f"{name}: a matrix is the start of the scan chosen above: choose one first")
-                wanted = [chosen]
-            poses = [(n, replace(read_start(path, n), source=shown_text(name))) for n in wanted]
+                poses = [(chosen, replace(read_start(path, chosen), source=shown_text(name)))]
         except (ConfigError, OSError) as e:
             self.controller.note(f"Start poses not loaded — {str(e).replace(str(path), name)}", error=True)
             return

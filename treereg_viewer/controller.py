@@ -394,13 +394,15 @@ class Controller:
             self._req.choices.append((pair_label, candidate))
             self._notify()
 
-    def start(self, name: str, pose: StartPose | None) -> None:
+    def start(self, name: str, pose: StartPose | None, run: bool = True) -> None:
         """Record a start pose given by hand for scan `name` (None: the coarse stage estimates it again);
         the worker gives it to the pipeline (`Pipeline.start`: the coarse stage and what follows become
-        stale) and runs every stage again from there, to the verdict."""
+        stale) and runs every stage again from there, to the verdict (`run`; False: restored with the
+        parameters, it waits for Run as they do)."""
         with self._wake:
             self._req.starts.append((name, pose))
-            self._req.run_until = STAGES[-1]
+            if run:
+                self._req.run_until = STAGES[-1]
             self._notify()
 
     def note(self, message: str, error: bool = False) -> None:
@@ -509,8 +511,10 @@ class Controller:
             except ConfigError as e:
                 message, error = f"Start pose refused — {e}", True
                 continue
-            message, error = ((f"{name}: the start pose from {pose.source} in force; the stages from "
-                               f"{label('coarse')} on run from it.") if pose is not None else
+            if req.notes and not req.run_until:
+                continue  # a note from the same moment says more (a params.json's starts restored with it)
+            then = f"the stages from {label('coarse')} on run from it." if req.run_until else "press Run to run from it."
+            message, error = ((f"{name}: the start pose from {pose.source} in force; {then}") if pose is not None else
                               f"{name}: the coarse stage estimates its pose again."), False
         if req.scans is not None or req.uploads or req.removals or req.params_changed or req.run_until:
             self._crashed.clear()  # new inputs or an explicit run: try again

@@ -24,6 +24,7 @@ from treereg_core.io import atomic
 from treereg_core.io.atomic import check_distinct, write_bytes_atomic
 from treereg_core.io.merged import write_merged
 from treereg_core.io.naming import file_safe, file_stem
+from treereg_core.io.start import STARTS_KEY, starts_doc
 from treereg_core.io.transforms import TransformFile, export_paths, registration_file, write_exports
 from treereg_core.verify.report import quality_report
 
@@ -85,7 +86,7 @@ def export_bundle(snap: Snapshot, cloud_format: str = "ply", keep_unverified: bo
             files[path.name] = path.read_bytes()
         cloud = write_merged(Path(tmp) / f"merged.{cloud_format}", snap.scans, tf.transforms)
         files[cloud.name] = cloud.read_bytes()
-    files[PARAMS_NAME] = (json.dumps(P.to_dict(snap.params), indent=2) + "\n").encode()
+    files[PARAMS_NAME] = params_file(snap.params, snap)
     if snap.starts:
         files[STARTS_NAME] = starts_file(snap)
     return ExportBundle(stage, dict(tf.transforms), files)
@@ -94,9 +95,16 @@ def export_bundle(snap: Snapshot, cloud_format: str = "ply", keep_unverified: bo
 def starts_file(snap: Snapshot) -> bytes:
     """The start poses in force (`Snapshot.starts`) as a transforms.json a start file may be
     (`treereg_core.io.start`): each maps its scan as its file gives it onto the reference."""
-    doc = {"reference": snap.scans[0].name,
-           "transforms": {n: np.asarray(s.T_ref_scan, dtype=float).tolist() for n, s in snap.starts.items()},
-           "sources": {n: s.source for n, s in snap.starts.items()}}
+    return (json.dumps(starts_doc(snap.scans[0].name, snap.starts), indent=2) + "\n").encode()
+
+
+def params_file(params: P.Params, snap: Snapshot) -> bytes:
+    """params.json: the parameters, and beside them (top-level "starts", `io.start.STARTS_KEY`) the start
+    poses in force, so loading the file restores both (`P.from_dict` skips them; `register --initial
+    SCAN=params.json` reads them)."""
+    doc: dict[str, object] = dict(P.to_dict(params))
+    if snap.starts and snap.scans:
+        doc[STARTS_KEY] = starts_doc(snap.scans[0].name, snap.starts)
     return (json.dumps(doc, indent=2) + "\n").encode()
 
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 from typing import Any
@@ -12,9 +11,11 @@ import viser
 from treereg_core import params as P
 from treereg_core.errors import ConfigError, OutputError, ScanError
 from treereg_core.io.json_input import parse_json
+from treereg_core.io.start import STARTS_KEY
 
 from . import export
 from .actions import AppActions
+from .align import saved_start_poses
 from .checks import stage_warnings
 from .presets import ABOUT_SHORT, preset_note
 from .text import md
@@ -114,18 +115,33 @@ class ExportPanel:
 
     def _download_params(self, client: Any) -> None:
         self.app.flush_edits()  # a value just typed belongs in the file
-        data = (json.dumps(P.to_dict(self.app.controller.params), indent=2) + "\n").encode()
+        # The start poses in force go beside the parameters (`export.params_file`).
+        data = export.params_file(self.app.controller.params, self.app.controller.snapshot)
         self.app.send_file(client, "params.json", data)
 
     def _load_params(self, filename: str, path: Path) -> None:
-        """A parameter file received from the browser: applied when valid, else one message."""
+        """A parameter file received from the browser: applied when valid, else one message. The start
+        poses it carries (a params.json the app saved: `export.params_file`) are given again to the
+        loaded scans it names, to run with the parameters when Run is pressed."""
         try:
             data = path.read_bytes()
+            try:
+                doc = parse_json(data, filename)
+                params = P.from_dict(doc, source=filename)
+                names = [s.name for s in self.app.controller.snapshot.scans]
+                poses, absent = (saved_start_poses(path, filename, doc, names)
+                                 if isinstance(doc, dict) and STARTS_KEY in doc else ([], []))
+            except ConfigError as e:
+                self.app.controller.note(f"{str(e).replace(str(path), filename)}; the parameters in force did not change.",
+                                         error=True)
+                return
         finally:
             discard(path)
-        try:
-            params = P.from_dict(parse_json(data, filename), source=filename)
-        except ConfigError as e:
-            self.app.controller.note(f"{e}; the parameters in force did not change.", error=True)
-            return
-        self.app.load_params(params, filename)
+        note = ""
+        if poses:
+            note = f"Start poses restored for {', '.join(n for n, _ in poses)}."
+        if absent:
+            note += f" Start poses of {', '.join(absent)} not restored: no such scan is loaded."
+        for n, pose in poses:  # before the parameters' note, which then says what was loaded
+            self.app.controller.start(n, pose, run=False)
+        self.app.load_params(params, filename, note.strip())

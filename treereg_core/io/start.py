@@ -3,8 +3,10 @@
 A start file is either CloudCompare's matrix text — 4 rows of 4 numbers, as `register --exports`
 writes them and CloudCompare's Edit > Apply transformation shows them (other lines, a title or a
 timestamp, are ignored) — or a transforms.json written earlier, whose entry for the scan is taken
-(from "transforms", else its best guess under "unverified"). Either way the matrix maps the scan's
-points as its file gives them onto the reference's points as its file gives them (T_ref_scan).
+(from "transforms", else its best guess under "unverified"), or a params.json the app saved, whose
+"starts" (the start poses in force when it was saved, `starts_doc`) are such a transforms.json.
+Either way the matrix maps the scan's points as its file gives them onto the reference's points as
+its file gives them (T_ref_scan).
 
 Every problem is one `ConfigError` naming the file: missing, unreadable, not text, not 4x4, NaN,
 not rigid (checked as a file header's pose is: `record.rigid_pose`), no entry for the scan. That
@@ -14,7 +16,7 @@ the scan exists and is not the reference is checked against the scans (`Pipeline
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
 import numpy as np
 
@@ -27,6 +29,8 @@ from .transforms import cloudcompare_rows
 
 #: A start file is a few hundred bytes (a transforms.json a few kB per scan).
 MAX_START_BYTES = 16 * 1024 * 1024
+#: The key of the start poses the app saves beside its parameters in params.json (`starts_doc`).
+STARTS_KEY = "starts"
 
 
 def read_start(path: str | Path, scan: str) -> StartPose:
@@ -69,8 +73,27 @@ def _matrix(value: Any, path: Path, where: str) -> np.ndarray:
     return M
 
 
+def starts_doc(reference: str, starts: Mapping[str, StartPose]) -> dict[str, Any]:
+    """The start poses as a transforms.json a start file may be (the app's starts.json, and the
+    "starts" entry it saves beside the parameters in params.json): {"reference", "transforms": {scan:
+    4x4}, "sources": {scan: where from}}."""
+    return {"reference": reference,
+            "transforms": {n: np.asarray(s.T_ref_scan, dtype=float).tolist() for n, s in starts.items()},
+            "sources": {n: s.source for n, s in starts.items()}}
+
+
+def saved_starts(doc: Any) -> Any:
+    """The start poses in a parameter file the app saved (its top-level "starts", `starts_doc`), else
+    `doc` itself: a start file may be such a params.json."""
+    if isinstance(doc, dict) and "transforms" not in doc and isinstance(doc.get(STARTS_KEY), dict):
+        return doc[STARTS_KEY]
+    return doc
+
+
 def _from_json(doc: Any, path: Path, scan: str) -> tuple[np.ndarray, str | None]:
-    """A JSON 4x4 (a list of 4 rows), or a transforms.json's entry for `scan` and its reference."""
+    """A JSON 4x4 (a list of 4 rows), a transforms.json's entry for `scan` and its reference, or that of
+    the start poses a params.json holds (`saved_starts`)."""
+    doc = saved_starts(doc)
     if isinstance(doc, list):
         return _matrix(doc, path, "the matrix"), None
     if not isinstance(doc, dict) or not isinstance(doc.get("transforms"), dict):

@@ -42,7 +42,7 @@ from .labels import VERDICT_MARKS, verdict_badge
 from .palette import GREY, HIGHLIGHT, LINK_COLORS, hex_color, station_color
 from .text import html, md
 from .view_panel import PanelContent, ViewPanel
-from .viewer import narrow_window
+from .viewer import narrow_window, pick_clicked
 
 log = logging.getLogger(__name__)
 
@@ -501,10 +501,7 @@ class SurveyViewer:
             self.drawer.request()
 
     def _on_scene_click(self, event: Any) -> None:
-        try:
-            self.pick(np.asarray(event.ray_origin, float), np.asarray(event.ray_direction, float))
-        except Exception:  # a click must never take the tab down
-            log.exception("pick failed")
+        pick_clicked(self.pick, event)
 
     def pick(self, origin: np.ndarray, direction: np.ndarray) -> None:
         """A click in 3-D: a link's middle inspects its pair, a stem's ring the stem."""

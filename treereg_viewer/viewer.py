@@ -451,10 +451,7 @@ class Viewer:
 
     # ---- clicks in 3-D -----------------------------------------------------------------------------
     def _on_scene_click(self, event: Any) -> None:
-        try:
-            self.pick(np.asarray(event.ray_origin, float), np.asarray(event.ray_direction, float))
-        except Exception:  # a click must never take the tab down
-            log.exception("pick failed")
+        pick_clicked(self.pick, event)
 
     def pick(self, origin: np.ndarray, direction: np.ndarray) -> None:
         """A click in 3-D: on the Fits and Fine stages a fitted section picks its table row; on the
@@ -701,3 +698,11 @@ def _pinned(snap: Snapshot, view: ViewState) -> int | None:
     if view.slice_shown is None and view.stage not in camera.SLICE_STAGES:
         return None
     return pinned_slice(drawn(snap, view)[0], view)
+
+
+def pick_clicked(pick: Callable[[np.ndarray, np.ndarray], None], event: Any) -> None:
+    """A click in 3-D handed to a tab's `pick` as its ray; a click must never take the tab down."""
+    try:
+        pick(np.asarray(event.ray_origin, float), np.asarray(event.ray_direction, float))
+    except Exception:
+        log.exception("pick failed")

@@ -59,9 +59,9 @@ def pytest_collection_modifyitems(config, items):
 
     Under pytest-xdist with `--dist loadgroup` (README's command: two workers, one per core) a test
     module stays on one worker (its module fixtures — a registration, an app, a Chromium — are made
-    once). Browser modules are groups like the rest: held on one worker they were its long pole (8 of
-    the suite's 10 minutes, the other worker idle for the last 2.5); spread over both, two Chromiums
-    may run side by side. Tests that bound a time (`timed`) run in a pass of their own before, on a
+    once). The browser tests form two groups, one a worker: held in one group they were the suite's
+    long pole (8 of its 10 minutes); a group per module, each of a few tests, xdist started last
+    (13.6 minutes). Tests that bound a time (`timed`) run in a pass of their own before, on a
     machine doing nothing else."""
     for item in items:
         if item.get_closest_marker("browser") or item.get_closest_marker("soak"):
@@ -69,5 +69,20 @@ def pytest_collection_modifyitems(config, items):
     if not (getattr(config.option, "loadgroup", False) or getattr(config.option, "dist", "no") == "loadgroup"):
         return  # (xdist's workers are told by `loadgroup`, the controller by `dist`)
 
+    def chromium(item) -> bool:
+        return item.get_closest_marker("browser") is not None or "browser" in getattr(item, "fixturenames", ())
+
+    # The browser tests in two groups, a module's in one, balanced by their count: each group then
+    # counts enough tests that xdist (largest groups first) starts both early instead of leaving
+    # their minute-long tests for the end, one Chromium a worker.
+    count: dict[str, int] = {}
     for item in items:
-        item.add_marker(pytest.mark.xdist_group(item.nodeid.split("::")[0]))
+        if chromium(item):
+            count[item.nodeid.split("::")[0]] = count.get(item.nodeid.split("::")[0], 0) + 1
+    load, side = [0, 0], {}
+    for module in sorted(count, key=lambda m: (-count[m], m)):
+        k = int(load[1] < load[0])
+        side[module], load[k] = k, load[k] + count[module]
+    for item in items:
+        module = item.nodeid.split("::")[0]
+        item.add_marker(pytest.mark.xdist_group(f"browser-{side[module]}" if chromium(item) else module))

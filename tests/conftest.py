@@ -59,7 +59,7 @@ def pytest_collection_modifyitems(config, items):
 
     Under pytest-xdist with `--dist loadgroup` (README's command: two workers, one per core) a test
     module stays on one worker (its module fixtures — a registration, an app, a Chromium — are made
-    once). The browser tests form two groups, one a worker: held in one group they were the suite's
+    once). The browser tests form three groups: held in one group they were the suite's
     long pole (8 of its 10 minutes); a group per module, each of a few tests, xdist started last
     (13.6 minutes). Tests that bound a time (`timed`) run in a pass of their own before, on a
     machine doing nothing else."""
@@ -72,16 +72,17 @@ def pytest_collection_modifyitems(config, items):
     def chromium(item) -> bool:
         return item.get_closest_marker("browser") is not None or "browser" in getattr(item, "fixturenames", ())
 
-    # The browser tests in two groups, a module's in one, balanced by their count: each group then
-    # counts enough tests that xdist (largest groups first) starts both early instead of leaving
-    # their minute-long tests for the end, one Chromium a worker.
+    # The browser tests in three groups, a module's in one, balanced by their count: each group then
+    # counts enough tests that xdist (largest groups first) starts them early instead of leaving
+    # their minute-long tests for the end, and the third goes to whichever worker is free first
+    # (two groups: 697 s, the one holding the pairs walk and the soak a minute longer).
     count: dict[str, int] = {}
     for item in items:
         if chromium(item):
             count[item.nodeid.split("::")[0]] = count.get(item.nodeid.split("::")[0], 0) + 1
-    load, side = [0, 0], {}
+    load, side = [0, 0, 0], {}
     for module in sorted(count, key=lambda m: (-count[m], m)):
-        k = int(load[1] < load[0])
+        k = load.index(min(load))
         side[module], load[k] = k, load[k] + count[module]
     for item in items:
         module = item.nodeid.split("::")[0]

@@ -181,7 +181,7 @@ def test_app_export_never_replaces_a_loaded_scan_and_still_downloads(sandbox):
         assert app.controller.wait_idle(240) and app.drawer.wait_idle(30)
         before = fingerprint(sandbox)
         app.files.download_cloud.value = True  # the click
-        assert app.controller.wait_idle(60)
+        assert app.controller.wait_idle(60) and app.drawer.wait_idle(30)  # the message drawn, not only published
         assert sent == ["merged.ply"]  # the download, as asked
         assert changed(before, fingerprint(sandbox)) == []  # the scan kept, nothing half written beside it
         md = read(app.files.export_md.content)

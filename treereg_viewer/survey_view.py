@@ -76,7 +76,7 @@ def mark(verdict: str) -> str:
 
 def pair_label(survey: Survey, k: int) -> str:
     p = survey.pairs[k]
-    return f"{k + 1}. {survey.scans[p.j].name} → {survey.scans[p.i].name}  {mark(p.verdict)}"
+    return f"{k + 1}. {' → '.join(survey.pair_names(p))}  {mark(p.verdict)}"
 
 
 def stem_label(m: SurveyMap, k: int) -> str:
@@ -258,7 +258,7 @@ def overview_content(snap: Snapshot, m: SurveyMap | None) -> PanelContent:
     prow = []
     for ln in m.links:
         p = survey.pairs[ln.index]
-        prow.append([str(ln.index + 1), md(f"{survey.scans[p.j].name} → {survey.scans[p.i].name}"),
+        prow.append([str(ln.index + 1), md(" → ".join(survey.pair_names(p))),
                      _nowrap(md(verdict_badge(p.verdict))), md(f"{p.fit.stems_used} of {len(p.fit.stems)}"),
                      md(_mm(p.fit.residual_m)), md(LINK_MEANING[ln.state])])
     pairs = _table(["#", "pair", "verdict", "stems used", "stem residual", "on the map"], prow)
@@ -271,7 +271,7 @@ def _mm(v: float) -> str:
 
 def pair_content(survey: Survey, p: PairInspection) -> PanelContent:
     """A pair inspected: its verdict and reasons, its checks beside their thresholds, its numbers."""
-    ref, tgt = survey.scans[p.i].name, survey.scans[p.j].name
+    tgt, ref = survey.pair_names(survey.pairs[p.index])
     why = "\n".join(f"- {md(r)}" for r in p.reasons)
     text = (f"**{md(verdict_badge(p.verdict))}**" + (f", because\n\n{why}" if why else ": every check passes.") +
             f"\n\n{md(tgt)} (target) onto {md(ref)} (reference). In 3-D: the shared stems' sections, "

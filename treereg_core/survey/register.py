@@ -74,6 +74,10 @@ class Survey:
     placements: tuple[Placement, ...]
     seconds: dict[str, float]
 
+    def pair_names(self, p: SurveyPair) -> tuple[str, str]:
+        """A pair's (target, reference) station names, as every table and label names the pair."""
+        return self.scans[p.j].name, self.scans[p.i].name
+
     def placed_edges(self) -> dict[tuple[int, int], Edge]:
         """Every pair as the joint placement left it (its loop residual, whether it was used), by (i, j)."""
         return {(e.i, e.j): e for e in (self.placements[0].edges if self.placements else ())}
@@ -97,7 +101,7 @@ class Survey:
                     ("ground residual", "m", f.ground_residual_m), ("ground points", "", f.ground_points),
                     ("crowns agree", "", f.agreement), ("shifted stem map: crowns agree", "", f.runner_up_agreement),
                     ("stems' spread", "m", f.spread_m), ("pose uncertainty 20 m out", "m", f.pose_sd_m)]
-            out[f"{self.scans[p.j].name} -> {self.scans[p.i].name}"] = [
+            out[" -> ".join(self.pair_names(p))] = [
                 {"stage": "survey", "metric": m, "unit": u, "value": v} for m, u, v in rows]
         return out
 

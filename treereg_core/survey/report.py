@@ -71,7 +71,7 @@ def _pairs_table(survey: Survey) -> str:
     for p in survey.pairs:
         f = p.fit
         how, loop = state[(p.i, p.j)]
-        cells = [f"{survey.scans[p.j].name} → {survey.scans[p.i].name}", p.verdict, f"{f.stems_used} of {p.shared_stems}",
+        cells = [" → ".join(survey.pair_names(p)), p.verdict, f"{f.stems_used} of {p.shared_stems}",
                  _mm(f.residual_m), _mm(f.pose_sd_m), _mm(loop), "yes" if how == "used" else "no", "; ".join(p.reasons)]
         rows.append("<tr>" + "".join(f'<td class="{e(p.verdict)}">{e(c)}</td>' if j == 1 else f"<td>{e(c)}</td>"
                                      for j, c in enumerate(cells)) + "</tr>")
@@ -109,7 +109,7 @@ def _map_svg(survey: Survey) -> str:
         how, loop = state[(p.i, p.j)]
         (x1, y1), (x2, y2) = xy(stations[p.i]), xy(stations[p.j])
         dash = "" if how == "used" else ' stroke-dasharray="6 4"'
-        tip = (f"{survey.scans[p.j].name} → {survey.scans[p.i].name}: {p.verdict}, {p.fit.stems_used} stems, "
+        tip = (f"{' → '.join(survey.pair_names(p))}: {p.verdict}, {p.fit.stems_used} stems, "
                f"residual {_mm(p.fit.residual_m)}, loop {_mm(loop)}" + (f" ({'; '.join(p.reasons)})" if p.reasons else ""))
         parts.append(f'<line x1="{x1:.1f}" y1="{y1:.1f}" x2="{x2:.1f}" y2="{y2:.1f}" stroke="{_LINK[how]}" '
                      f'stroke-width="2.5"{dash}><title>{e(tip)}</title></line>')

@@ -49,7 +49,8 @@ def survey_quality(survey: Survey) -> dict[str, Any]:
     loop = survey.placed_edges()
     for p in survey.pairs:
         e = loop.get((p.i, p.j))
-        edges.append({"reference": survey.scans[p.i].name, "target": survey.scans[p.j].name, "verdict": p.verdict,
+        tgt, ref = survey.pair_names(p)
+        edges.append({"reference": ref, "target": tgt, "verdict": p.verdict,
                       "reasons": list(p.reasons), "shared_stems": p.shared_stems, "stems_used": p.fit.stems_used,
                       "stem_residual_m": json_number(p.fit.residual_m), "ground_residual_m": json_number(p.fit.ground_residual_m),
                       "crowns_agree": json_number(p.fit.agreement), "used": bool(e.used) if e is not None else False,
